@@ -1,0 +1,1 @@
+"""Pure numerical analysis: identification, Kt, efficiency, diagnosis. No I/O."""

@@ -1,0 +1,1 @@
+"""One module per ``gearbench`` subcommand (see ``gearbench.cli``)."""

@@ -1,0 +1,1 @@
+"""Drives: one small protocol (base.py), families found by name (registry.py)."""

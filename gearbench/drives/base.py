@@ -1,0 +1,157 @@
+"""The drive protocol the sequencer talks to.
+
+A ``DriveNetwork`` is one connection (a CAN bus, a Modbus TCP endpoint) carrying
+one or more ``Drive`` axes. The public methods do the shared work (SI scaling,
+sample bookkeeping, lost-sample counting); families implement a few hooks.
+Families are registered by name in ``gearbench.drives.registry`` and third parties
+add theirs through the ``gearbench.drives`` entry-point group.
+
+Units at this interface are SI only: rad, rad/s, A. Conversion to drive units
+(counts, per-mille of rated current, ...) happens inside the family, from the
+device description in ``drivers/``.
+"""
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from enum import Enum
+
+
+class Mode(str, Enum):
+    """Operating modes the sequencer uses (CiA 402 names in brackets)."""
+
+    VELOCITY = "velocity"   # profile velocity (3) / cyclic sync velocity (9); setpoint rad/s
+    TORQUE = "torque"       # profile torque (4) / cyclic sync torque (10); setpoint A (motor current)
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One synchronous sample of one drive, in SI units.
+
+    ``index`` is the drive-side sample counter (SYNC counter for CANopen, the
+    drive's counter register for Modbus); ``time_s`` = index x period, the drive's
+    time base, never the host clock.
+    """
+
+    index: int
+    time_s: float
+    position_rad: float
+    velocity_rad_s: float
+    current_a: float
+    status: int = 0
+    fault: bool = False
+
+
+@dataclass
+class AxisConfig:
+    """What the profile says about one axis; families read what they need."""
+
+    name: str                      # "in" / "out"
+    address: int                   # CANopen node id or Modbus unit id
+    description: str               # path to the device description in drivers/
+    rated_current_a: float = 1.0
+    current_limit_a: float = 3.0
+    speed_limit_rad_s: float = 400.0
+    counts_per_rev: int = 10000
+    extra: dict = field(default_factory=dict)
+
+
+class Drive(ABC):
+    """One servo axis on a network."""
+
+    def __init__(self, config: AxisConfig):
+        self.config = config
+        self.name = config.name
+
+    @abstractmethod
+    def enable(self, mode: Mode) -> None:
+        """Go to operation enabled in ``mode`` (setpoint reset to zero first)."""
+
+    @abstractmethod
+    def set_setpoint(self, value: float) -> None:
+        """Target velocity (rad/s) or target current (A), by the enabled mode."""
+
+    @abstractmethod
+    def quick_stop(self) -> None:
+        """CiA 402 quick stop: decelerate and hold zero torque; must not block long."""
+
+    @abstractmethod
+    def disable(self) -> None:
+        """Remove power from the motor (switch on disabled / ready to switch on)."""
+
+    @abstractmethod
+    def reset_fault(self) -> None:
+        """Acknowledge a fault (CiA 402 fault reset)."""
+
+
+class DriveNetwork(ABC):
+    """A bus or endpoint with its drives; a context manager that always disables.
+
+    Lifecycle: ``open()`` -> ``add_drive()`` per axis -> ``start(period_s)`` ->
+    repeated ``sample()`` -> ``close()`` (which disables every drive).
+    """
+
+    family: str = "abstract"
+
+    def __init__(self, **options):
+        self.options = options
+        self.drives: dict[str, Drive] = {}
+        self.period_s: float = 1e-3
+        self.lost_samples = 0
+        self._last_index: int | None = None
+
+    @abstractmethod
+    def open(self) -> None: ...
+
+    @abstractmethod
+    def add_drive(self, config: AxisConfig) -> Drive: ...
+
+    @abstractmethod
+    def start(self, period_s: float) -> None:
+        """Configure synchronous sampling at ``period_s``."""
+
+    @abstractmethod
+    def _sample(self) -> dict[str, Sample]:
+        """Family hook: one synchronous sample of all drives."""
+
+    @abstractmethod
+    def _close(self) -> None: ...
+
+    def sample(self) -> dict[str, Sample]:
+        """One synchronous sample of every drive, keyed by axis name.
+
+        Counts lost samples from gaps in the drive sample counter.
+        """
+        samples = self._sample()
+        idx = next(iter(samples.values())).index if samples else None
+        if idx is not None and self._last_index is not None and idx > self._last_index + 1:
+            self.lost_samples += idx - self._last_index - 1
+        self._last_index = idx
+        return samples
+
+    def stop_all(self) -> None:
+        """Quick stop then disable every drive; never raises (used on faults)."""
+        for d in self.drives.values():
+            try:
+                d.quick_stop()
+            except Exception:
+                pass
+        for d in self.drives.values():
+            try:
+                d.disable()
+            except Exception:
+                pass
+
+    def close(self) -> None:
+        try:
+            self.stop_all()
+        finally:
+            self._close()
+
+    def __enter__(self):
+        self.open()
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False

@@ -1,0 +1,1 @@
+"""Simulated physics: motors, drive loops, reducer bench. Deterministic for a seed."""
