@@ -1,0 +1,315 @@
+"""Measured signals, linear-in-parameters motor models and the paper's nominal model.
+
+The paper's model (eqs. 1-5) with current as input is
+
+    theta'' = (Kt/J) i - (D/J) theta' - (C/J) theta.
+
+Every model here is written the same way, as an acceleration that is linear in its
+coefficients, ``alpha = sum_j coef_j * feature_j(theta, omega, current, state)``; a
+candidate effect adds features (or replaces the current features).  Coefficients are
+fitted by *integrated* equation error: the velocity change over a short window
+against the window sums of the features (paper eq. 10's least squares, integrated so
+that no twice-differentiated angle enters).  How current is held between samples is
+fitted as two taps ``a0 i[k] + a1 i[k+1]`` (hold fraction ``a1/(a0+a1)``).
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.signal import savgol_filter
+
+from ...errors import ProfileError, TraceError
+from ...trace import Trace
+
+#: Savitzky-Golay window for the velocity estimate, in samples (odd).
+VELOCITY_WINDOW = 9
+#: Integration window of the equation-error fit, in seconds.
+FIT_WINDOW_S = 0.02
+
+
+@dataclass(frozen=True)
+class Signals:
+    """One single-motor trace, ready for analysis (SI units, regular sampling)."""
+
+    time_s: np.ndarray
+    position_rad: np.ndarray
+    velocity_rad_s: np.ndarray      # Savitzky-Golay derivative of the encoder angle
+    current_a: np.ndarray
+    dt_s: float
+    source: str = "<array>"
+
+    def __len__(self) -> int:
+        return len(self.time_s)
+
+
+def prepare(trace: Trace) -> Signals:
+    """Validate a single-motor trace and estimate velocity (SG derivative, order 2)."""
+    trace.validate(("position_rad", "current_a"), min_samples=200)
+    dt = trace.dt_s
+    theta = np.asarray(trace["position_rad"], float)
+    current = np.asarray(trace["current_a"], float)
+    if np.ptp(theta) == 0.0:
+        raise TraceError(f"{trace.source}: column 'position_rad' never changes; the motor did "
+                         f"not move — record a run with motion")
+    if np.ptp(current) == 0.0:
+        raise TraceError(f"{trace.source}: column 'current_a' is constant; check the current "
+                         f"channel and its scaling")
+    omega = savgol_filter(theta, VELOCITY_WINDOW, 2, deriv=1, delta=dt)
+    return Signals(trace.time_s, theta, omega, current, dt, trace.source)
+
+
+# --------------------------------------------------------------------- model terms
+@dataclass(frozen=True)
+class Term:
+    """A group of features of a linear-in-parameters acceleration model.
+
+    ``measured(sig)`` gives the features along the whole trace from measured
+    signals (for the equation-error fit); ``simulate(sig, theta, omega, idx, state)``
+    gives them along a simulation (vectors over horizons, ``idx`` = sample index).
+    Stateful terms (a disk on a shaft) also implement ``init_state``/``step_state``.
+    """
+
+    names: tuple[str, ...] = ()
+
+    def measured(self, sig: Signals) -> list[np.ndarray]:
+        return self.simulate(sig, sig.position_rad, sig.velocity_rad_s,
+                             np.arange(len(sig)), None)
+
+    def simulate(self, sig, theta, omega, idx, state) -> list[np.ndarray]:
+        raise NotImplementedError
+
+    def init_state(self, sig: Signals, idx: np.ndarray):
+        return None
+
+    def step_state(self, state, theta, omega, dt_s: float):
+        return state
+
+
+def current_map(sig: Signals, delay: int = 0, sat_a: float = 0.0) -> np.ndarray:
+    """Current driving the torque: measured current advanced by ``delay`` samples
+    (undoing a measurement delay) and optionally saturated, i/(1+(i/i_sat)^2)."""
+    i = sig.current_a
+    if delay:
+        i = np.concatenate([i[delay:], np.full(delay, i[-1])])
+    if sat_a > 0:
+        i = i / (1.0 + (i / sat_a) ** 2)
+    return i
+
+
+@dataclass(frozen=True)
+class CurrentTaps(Term):
+    """Kt/J * current, held between samples: a0 i[k] + a1 i[k+1] (paper eq. 5, B~)."""
+
+    names: tuple[str, ...] = ("a0", "a1")
+    delay: int = 0
+    sat_a: float = 0.0
+
+    def _i(self, sig):
+        key = (id(sig), self.delay, self.sat_a)
+        cache = _CURRENT_CACHE
+        if key not in cache:
+            if len(cache) > 64:
+                cache.clear()
+            i = current_map(sig, self.delay, self.sat_a)
+            cache[key] = (i, np.append(i[1:], i[-1]))
+        return cache[key]
+
+    def simulate(self, sig, theta, omega, idx, state):
+        i0, i1 = self._i(sig)
+        return [i0[idx], i1[idx]]
+
+
+_CURRENT_CACHE: dict = {}
+
+
+@dataclass(frozen=True)
+class Viscous(Term):
+    """-D/J * omega."""
+
+    names: tuple[str, ...] = ("d_over_j",)
+
+    def simulate(self, sig, theta, omega, idx, state):
+        return [-omega]
+
+
+@dataclass(frozen=True)
+class Spring(Term):
+    """-C/J * theta (the paper's spring to ground)."""
+
+    names: tuple[str, ...] = ("c_over_j",)
+
+    def simulate(self, sig, theta, omega, idx, state):
+        return [-theta]
+
+
+@dataclass(frozen=True)
+class Model:
+    """Terms + coefficients; ``fixed`` marks coefficients not refitted."""
+
+    terms: tuple[Term, ...]
+    coef: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    cov: np.ndarray | None = None
+
+    @property
+    def names(self) -> list[str]:
+        return [n for t in self.terms for n in t.names]
+
+    def params(self) -> dict[str, float]:
+        return {n: float(c) for n, c in zip(self.names, self.coef)}
+
+    def sigma(self) -> dict[str, float]:
+        if self.cov is None:
+            return {}
+        return {n: float(np.sqrt(max(v, 0.0))) for n, v in zip(self.names, np.diag(self.cov))}
+
+
+def measured_features(sig: Signals, terms) -> np.ndarray:
+    cols = [f for t in terms for f in t.measured(sig)]
+    return np.column_stack(cols) if cols else np.zeros((len(sig), 0))
+
+
+@dataclass(frozen=True)
+class Windows:
+    """Start indices of the equation-error integration windows (all inside a mask)."""
+
+    start: np.ndarray
+    length: int
+
+
+def fit_windows(sig: Signals, mask: np.ndarray) -> Windows:
+    """Windows of FIT_WINDOW_S, stride a quarter window, lying wholly where ``mask``."""
+    n = len(sig)
+    L = max(4, int(round(FIT_WINDOW_S / sig.dt_s)))
+    stride = max(1, L // 4)
+    starts = np.arange(0, n - L - 1, stride)
+    bad = np.concatenate([[0], np.cumsum(~mask)])
+    ok = bad[starts + L + 1] - bad[starts] == 0
+    return Windows(starts[ok], L)
+
+
+def integrated_rows(sig: Signals, F: np.ndarray, win: Windows):
+    """Rows of the integrated equation error: dw = dt * sum(F) over each window."""
+    L, s = win.length, win.start
+    cum = np.vstack([np.zeros((1, F.shape[1])), np.cumsum(F, axis=0)])
+    X = sig.dt_s * (cum[s + L] - cum[s])
+    y = sig.velocity_rad_s[s + L] - sig.velocity_rad_s[s]
+    return X, y
+
+
+def solve(X: np.ndarray, y: np.ndarray, overlap: float = 4.0):
+    """Least squares with a covariance inflated for overlapping windows."""
+    scale = np.sqrt((X ** 2).sum(0))
+    scale[scale == 0] = 1.0
+    coef, *_ = np.linalg.lstsq(X / scale, y, rcond=None)
+    coef = coef / scale
+    r = y - X @ coef
+    dof = max(len(y) - X.shape[1], 1)
+    s2 = float(r @ r) / dof * overlap
+    try:
+        cov = s2 * np.linalg.pinv(X.T @ X)
+    except np.linalg.LinAlgError:  # pragma: no cover - pinv rarely fails
+        cov = None
+    return coef, float(r @ r), cov
+
+
+def fit_model(sig: Signals, terms, win: Windows, fixed: dict[int, float] | None = None) -> tuple[Model, float]:
+    """Fit the coefficients of ``terms`` by integrated equation error on ``win``.
+
+    ``fixed`` maps coefficient index -> value kept constant (a given nominal model).
+    Returns the model and the residual sum of squares (for grid scans).
+    """
+    F = measured_features(sig, terms)
+    X, y = integrated_rows(sig, F, win)
+    fixed = fixed or {}
+    free = [j for j in range(X.shape[1]) if j not in fixed]
+    coef = np.zeros(X.shape[1])
+    for j, v in fixed.items():
+        coef[j] = v
+        y = y - X[:, j] * v
+    cov = np.zeros((X.shape[1], X.shape[1]))
+    if free:
+        c, rss, cv = solve(X[:, free], y)
+        coef[free] = c
+        if cv is not None:
+            cov[np.ix_(free, free)] = cv
+    else:
+        rss = float(y @ y)
+    return Model(tuple(terms), coef, cov), rss
+
+
+# ------------------------------------------------------------------ nominal model
+def nominal_terms(spring: bool = False, delay: int = 0, sat_a: float = 0.0) -> list[Term]:
+    terms: list[Term] = [CurrentTaps(delay=delay, sat_a=sat_a), Viscous()]
+    if spring:
+        terms.append(Spring())
+    return terms
+
+
+@dataclass(frozen=True)
+class GivenModel:
+    """A nominal model from a file: Kt/J, D/J, C/J (1/s^2 per A, 1/s, 1/s^2)."""
+
+    kt_over_j: float
+    d_over_j: float
+    c_over_j: float = 0.0
+    source: str = "<model>"
+
+
+def load_model(path: str | Path) -> GivenModel:
+    """Read MODEL.json: ``{"Kt": N m/A, "J": kg m^2, "D": N m s/rad[, "C": N m/rad]}``
+    (optionally under ``"params"``), or the ratios ``kt_over_j``, ``d_over_j``."""
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text())
+    except FileNotFoundError:
+        raise ProfileError(f"{p}: model file not found; check the --model path") from None
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ProfileError(f"{p}: not valid JSON ({exc}); write the model as "
+                           f'{{"Kt": ..., "J": ..., "D": ...}}') from None
+    if isinstance(data, dict) and isinstance(data.get("params"), dict):
+        data = data["params"]
+    if not isinstance(data, dict):
+        raise ProfileError(f"{p}: expected a JSON object with Kt, J, D")
+    try:
+        if "kt_over_j" in data:
+            return GivenModel(float(data["kt_over_j"]), float(data.get("d_over_j", 0.0)),
+                              float(data.get("c_over_j", 0.0)), str(p))
+        J = float(data["J"])
+        if J <= 0:
+            raise ProfileError(f"{p}: field 'J' must be > 0 (kg m^2)")
+        return GivenModel(float(data["Kt"]) / J, float(data.get("D", 0.0)) / J,
+                          float(data.get("C", 0.0)) / J, str(p))
+    except KeyError as exc:
+        raise ProfileError(f"{p}: missing field {exc}; give Kt (N m/A), J (kg m^2) and D "
+                           f"(N m s/rad), or kt_over_j and d_over_j") from None
+    except (TypeError, ValueError):
+        raise ProfileError(f"{p}: Kt, J, D must be numbers") from None
+
+
+def physical(model: Model) -> dict[str, float]:
+    """Nominal parameters as the paper writes them (ratios to J) plus the hold fraction."""
+    p = model.params()
+    a = p.get("a0", 0.0) + p.get("a1", 0.0)
+    out = {"kt_over_j": a, "d_over_j": p.get("d_over_j", 0.0),
+           "c_over_j": p.get("c_over_j", 0.0),
+           "hold_fraction": p.get("a1", 0.0) / a if a else float("nan")}
+    return out
+
+
+@dataclass(frozen=True)
+class GivenNominal(Term):
+    """A given nominal model as one feature with coefficient ``scale`` (1 = as given;
+    free = an inertia mismatch, J_true = J/scale) plus a fitted current hold."""
+
+    names: tuple[str, ...] = ("scale", "hold")
+    kt_over_j: float = 0.0
+    d_over_j: float = 0.0
+    c_over_j: float = 0.0
+
+    def simulate(self, sig, theta, omega, idx, state):
+        i0, i1 = CurrentTaps()._i(sig)
+        base = self.kt_over_j * i0[idx] - self.d_over_j * omega - self.c_over_j * theta
+        return [base, self.kt_over_j * (i1[idx] - i0[idx])]

@@ -1,0 +1,366 @@
+"""Single-run motor identification: ``J θ'' + D θ' + Tc s(θ') + C θ = Kt i``.
+
+Two methods, same result type:
+
+``paper``   Yukawa et al., eqs. 6–10: state x = [θ, θ'], input u = i, forward (Euler)
+            differences at the data's rate, equation-error least squares written with
+            the Q matrices (integrals as sums × dt). Returns A_e, B_e; b2 = B_e[1] = Kt/J.
+            ``decimate_s=0.015`` reproduces the paper's 15 ms sampling (every k-th
+            sample, as a 15 ms A/D would see it).
+``default`` Removes the paper's biases: one zero-phase FIR on every signal and central
+            differences (see ``derivatives.consistent_derivatives``) so velocity,
+            acceleration and current stay aligned; a smoothed Coulomb term tanh(θ'/w)
+            instead of subtracting a no-load current; C fixed at 0 unless asked; a
+            current-noise (errors-in-variables) correction; a parameter covariance
+            from block sums of the residual scores (valid for coloured residuals)
+            with Student-t degrees of freedom = blocks − 1.
+
+``check_excitation`` refuses data that cannot identify b2 (constant speed, no
+acceleration content, ill-conditioned regressors) with an ``ExcitationError`` saying
+what to change.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats
+
+from ..errors import ExcitationError, TraceError
+from . import derivatives as dv
+
+# Regression written as  θ'' = b2·i − (D/J)·θ' − (Tc/J)·s(θ') − (C/J)·θ + bias.
+KT_J, D_J, TC_J, C_J, BIAS, LAG = "Kt/J", "D/J", "Tc/J", "C/J", "bias", "lag"
+
+MAX_CONDITION = 1e4          # of the column-normalised regressor matrix
+MIN_ACCEL_SNR = 20.0         # rms filtered acceleration / rms encoder-noise acceleration
+MAX_B2_REL_STD = 0.05        # refuse a fit whose b2 is known worse than 5 % (1 sigma)
+
+
+@dataclass(frozen=True)
+class IdentificationResult:
+    """One run's fit. ``values``/``covariance`` follow ``names``; sign convention of
+    the module docstring, so ``D/J`` and ``Tc/J`` are positive for a real motor."""
+
+    method: str
+    names: tuple[str, ...]
+    values: tuple[float, ...]
+    covariance: np.ndarray
+    dof: int                     # degrees of freedom for Student-t intervals
+    dt_s: float
+    n_samples: int               # samples in the regression
+    n_effective: float           # independent-sample equivalent (coloured residuals)
+    r2: float
+    rmse: float                  # rad/s² residual
+    condition: float             # of the column-normalised regressor matrix
+    A: np.ndarray                # 2x2 state matrix (paper eq. 4 / 10)
+    B: np.ndarray                # input vector [b1, b2] (paper eq. 5 / 10)
+    extras: dict = field(default_factory=dict)
+
+    def value(self, name: str, default: float = 0.0) -> float:
+        return self.values[self.names.index(name)] if name in self.names else default
+
+    def std(self, name: str) -> float:
+        if name not in self.names:
+            return 0.0
+        k = self.names.index(name)
+        return float(np.sqrt(max(self.covariance[k, k], 0.0)))
+
+    @property
+    def b2(self) -> float:
+        """Kt/J (paper eq. 11), 1/(A s²)."""
+        return self.value(KT_J)
+
+    @property
+    def b2_std(self) -> float:
+        return self.std(KT_J)
+
+    def to_dict(self) -> dict:
+        return {
+            "method": self.method,
+            "b2": self.b2, "b2_std": self.b2_std,
+            "params": dict(zip(self.names, map(float, self.values))),
+            "std": {n: self.std(n) for n in self.names},
+            "covariance": {"names": list(self.names), "matrix": self.covariance.tolist()},
+            "dof": self.dof, "dt_s": self.dt_s, "n_samples": self.n_samples,
+            "n_effective": self.n_effective, "r2": self.r2, "rmse": self.rmse,
+            "condition": self.condition,
+            "A": self.A.tolist(), "B": self.B.tolist(),
+            **{k: v for k, v in self.extras.items()},
+        }
+
+
+# --------------------------------------------------------------------------- paper
+def identify_paper(time_s: np.ndarray, position_rad: np.ndarray, current_a: np.ndarray, *,
+                   decimate_s: float | None = None, no_load_current_a: float = 0.0,
+                   check: bool = True, source: str = "<array>") -> IdentificationResult:
+    """Equation-error least squares exactly as published (Yukawa et al., eqs. 6–10).
+
+    ``x_d = [θ, θ']``, ``x_d' = [θ', θ'']`` by forward (Euler) differences,
+    ``u_d = i − no_load_current_a`` (the paper's variant that subtracts the mean
+    no-load current), ``[A_e B_e] = [Q1 Q2] [[Q11, Q12], [Q12ᵀ, Q22]]⁻¹`` (eq. 10)
+    with every integral a sum × dt. ``decimate_s`` keeps every k-th sample first
+    (the paper sampled at 15 ms).
+    """
+    t = np.asarray(time_s, float)
+    th = np.asarray(position_rad, float)
+    i = np.asarray(current_a, float)
+    dt = float(np.median(np.diff(t)))
+    if decimate_s:
+        k = max(1, int(round(decimate_s / dt)))
+        t, th, i = t[::k], th[::k], i[::k]
+        dt *= k
+    if len(t) < 10:
+        raise TraceError(f"{source}: only {len(t)} samples after decimation to {dt * 1e3:.3g} ms; "
+                         f"record a longer run")
+    th = th - th[0]
+    w, a = dv.forward_differences(th, dt)
+    n = len(a)
+    x = np.vstack([th[:n], w])            # 2 x N state
+    xd = np.vstack([w, a])                # 2 x N state derivative
+    u = (i[:n] - no_load_current_a)[None, :]
+    if check:
+        _check_paper_excitation(w, a, i[:n], dt, source)
+    Q1, Q2 = xd @ x.T * dt, xd @ u.T * dt
+    Q11, Q12, Q22 = x @ x.T * dt, x @ u.T * dt, u @ u.T * dt
+    M = np.block([[Q11, Q12], [Q12.T, Q22]])
+    AB = np.hstack([Q1, Q2]) @ np.linalg.inv(M)          # eq. 10
+    A, B = AB[:, :2], AB[:, 2]
+    # Classical (white-residual) covariance of the second row, for information only:
+    # the paper gives none.
+    X = np.vstack([x, u]).T
+    e = a - X @ AB[1]
+    s2 = float(e @ e) / max(n - 3, 1)
+    cov3 = s2 * np.linalg.inv(X.T @ X)
+    # Map the second row (−C/J, −D/J, b2) onto the common parameter names.
+    perm = [2, 1, 0]
+    sign = np.array([1.0, -1.0, -1.0])
+    cov = cov3[np.ix_(perm, perm)] * np.outer(sign, sign)
+    values = (float(B[1]), float(-A[1, 1]), float(-A[1, 0]))
+    return IdentificationResult(
+        method="paper" if not decimate_s else f"paper@{dt * 1e3:.3g}ms",
+        names=(KT_J, D_J, C_J), values=values, covariance=cov, dof=n - 3, dt_s=dt,
+        n_samples=n, n_effective=float(n), r2=_r2(a, e), rmse=float(np.sqrt(np.mean(e * e))),
+        condition=_condition(X), A=A, B=B,
+        extras={"no_load_current_a": no_load_current_a})
+
+
+def _check_paper_excitation(w, a, i, dt, source):
+    if np.ptp(w) <= 0 or np.ptp(i) <= 0 or not np.any(a):
+        raise ExcitationError(
+            f"{source}: speed or current is constant, the regression cannot identify Kt/J; "
+            f"add speed steps or a multisine of at least 10 rad/s amplitude")
+
+
+# ------------------------------------------------------------------------- default
+def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np.ndarray, *,
+                     cutoff_hz: float | None = None, spring: bool = False,
+                     friction_width_rad_s: float = 1.0, bias: bool | None = None,
+                     lag: bool = True, eiv_correction: bool = True, check: bool = True,
+                     source: str = "<array>") -> IdentificationResult:
+    """Bias-reduced equation-error fit of ``θ'' = b2 i − (D/J)θ' − (Tc/J)s(θ') [− (C/J)θ] [+ c]``.
+
+    Parameters
+    ----------
+    cutoff_hz : low-pass cutoff of the common FIR; default ``min(40 Hz, rate/10)``.
+        The filter never biases the fit (it is applied to both sides of a linear
+        relation); it only trades noise against the excitation band it keeps.
+    spring : also fit the paper's C/J (spring to ground); off for a real motor.
+    friction_width_rad_s : width w of the smoothed sign s(θ') = tanh(θ'/w).
+    bias : add a constant (current-offset) column. Default: only when the speed
+        reverses, since with one rotation direction a constant and the Coulomb term
+        are the same column (PAPER-NOTES: "reversals separate them").
+    lag : also fit a small lag τ between the measured current and the torque-producing
+        current (current-loop lag, sample-instant skew): i_T(t) ≈ i(t + τ) = i + τ i'. Left out, a
+        0.5 ms skew biases b2 by ~0.1 % and makes b2 depend on the filter cutoff.
+        Reported as ``extras["current_delay_s"]`` (τ > 0: the measured current is late).
+    eiv_correction : subtract the filtered current-noise variance from the normal
+        matrix (errors-in-variables: noise on the current regressor pulls b2 to zero).
+
+    Returns
+    -------
+    IdentificationResult with a covariance from block sums of residual scores.
+    """
+    t = np.asarray(time_s, float)
+    th = np.asarray(position_rad, float)
+    i = np.asarray(current_a, float)
+    dt = float(np.median(np.diff(t)))
+    rate = 1.0 / dt
+    cutoff_hz = cutoff_hz or min(40.0, rate / 10.0)
+    taps = dv.lowpass_fir(cutoff_hz, rate)
+    if len(t) < len(taps) + 50:
+        raise TraceError(f"{source}: only {len(t)} samples, need at least {len(taps) + 50} "
+                         f"at {rate:.4g} Hz for the {cutoff_hz:.3g} Hz filter; record a longer run")
+    th = th - th[0]
+    # Friction regressor from the raw central-difference speed, *then* filtered like
+    # everything else, so the filtered equation stays exact.
+    w_raw = np.empty_like(th)
+    w_raw[1:-1] = (th[2:] - th[:-2]) / (2 * dt)
+    w_raw[0], w_raw[-1] = w_raw[1], w_raw[-2]
+    sgn = np.tanh(w_raw / friction_width_rad_s)
+    di = np.gradient(i, dt)
+    fs = dv.consistent_derivatives(th, {"current": i, "sign": sgn, "dcurrent": di}, dt, taps)
+    n = len(fs["acceleration"])
+
+    reverses = bool(np.mean(w_raw > 5 * friction_width_rad_s) > 0.05
+                    and np.mean(w_raw < -5 * friction_width_rad_s) > 0.05)
+    use_bias = reverses if bias is None else bias
+    if use_bias and not reverses:
+        raise ExcitationError(f"{source}: a current offset and Coulomb friction cannot be told "
+                              f"apart without speed reversals; reverse the rotation in the run "
+                              f"or fit without the offset term")
+    cols = [(KT_J, fs["current"], 1.0), (D_J, fs["velocity"], -1.0), (TC_J, fs["sign"], -1.0)]
+    if spring:
+        cols.append((C_J, fs["position"], -1.0))
+    if use_bias:
+        cols.append((BIAS, np.ones(n), 1.0))
+    if lag:
+        cols.append((LAG, fs["dcurrent"], 1.0))
+    names = tuple(c[0] for c in cols)
+    sign = np.array([c[2] for c in cols])
+    X = np.column_stack([c[1] for c in cols])
+    y = fs["acceleration"]
+
+    # Errors in variables: white current noise σ² becomes σ²·Σh² after the filters.
+    h = np.convolve(dv.SECOND_DIFFERENCE_MATCH, taps)
+    noise_var_raw = _white_noise_variance(i)
+    noise_var = noise_var_raw * float(h @ h)
+    G = X.T @ X
+    Gc = G.copy()
+    if eiv_correction:
+        Gc[0, 0] -= n * noise_var
+    try:
+        beta = np.linalg.solve(Gc, X.T @ y)
+    except np.linalg.LinAlgError:
+        raise ExcitationError(f"{source}: regressors are linearly dependent; add speed steps "
+                              f"or a multisine of at least 10 rad/s amplitude") from None
+    e = y - X @ beta
+    cond = _condition(X)
+    cov, dof, n_eff = _block_covariance(X, e, Gc, block=max(4 * len(taps), n // 64))
+    values = beta * sign
+    cov = cov * np.outer(sign, sign)
+    b2 = float(values[0])
+    b2_std = float(np.sqrt(max(cov[0, 0], 0.0)))
+
+    if check:
+        accel_noise = _encoder_accel_noise(th, dt, taps)
+        check_excitation(velocity=fs["velocity"], acceleration=y, accel_noise_rms=accel_noise,
+                         condition=cond, b2=b2, b2_std=b2_std, rate_hz=rate, source=source)
+
+    A = np.array([[0.0, 1.0], [-(values[names.index(C_J)] if spring else 0.0), -values[1]]])
+    B = np.array([0.0, b2])
+    return IdentificationResult(
+        method="default", names=names, values=tuple(map(float, values)), covariance=cov,
+        dof=dof, dt_s=dt, n_samples=n, n_effective=n_eff, r2=_r2(y, e),
+        rmse=float(np.sqrt(np.mean(e * e))), condition=cond, A=A, B=B,
+        extras={"cutoff_hz": cutoff_hz, "filter_taps": len(taps),
+                "current_noise_a": float(np.sqrt(noise_var_raw)),
+                "eiv_relative_correction": float(n * noise_var / G[0, 0]) if eiv_correction else 0.0,
+                "friction_width_rad_s": friction_width_rad_s,
+                "current_delay_s": (float(values[names.index(LAG)]) / b2) if lag and b2 else 0.0})
+
+
+def identify(time_s, position_rad, current_a, *, method: str = "default",
+             source: str = "<array>", **options) -> IdentificationResult:
+    """Dispatch on ``method``: ``default``, ``paper`` (data rate) or ``paper-15ms``."""
+    if method == "default":
+        return identify_default(time_s, position_rad, current_a, source=source, **options)
+    if method == "paper":
+        return identify_paper(time_s, position_rad, current_a, source=source, **options)
+    if method == "paper-15ms":
+        return identify_paper(time_s, position_rad, current_a, decimate_s=0.015,
+                              source=source, **options)
+    raise ValueError(f"unknown identification method {method!r}; use default, paper or paper-15ms")
+
+
+METHODS = ("default", "paper", "paper-15ms")
+
+
+def identify_trace(trace, *, method: str = "default", **options) -> IdentificationResult:
+    """Validate a single-motor ``Trace`` (columns ``position_rad``, ``current_a``) and fit it."""
+    trace.validate(["position_rad", "current_a"], min_samples=50)
+    return identify(trace.time_s, trace["position_rad"], trace["current_a"], method=method,
+                    source=trace.source, **options)
+
+
+# ---------------------------------------------------------------- excitation check
+def check_excitation(*, velocity: np.ndarray, acceleration: np.ndarray, accel_noise_rms: float,
+                     condition: float, b2: float, b2_std: float, rate_hz: float,
+                     source: str = "<array>") -> None:
+    """Raise ``ExcitationError`` unless the data can identify b2.
+
+    Three tests, each with its fix: the filtered acceleration must stand well above
+    what encoder quantisation alone would produce (else: constant speed); the
+    column-normalised regressors must be well conditioned; b2 must come out
+    positive and known to better than ``MAX_B2_REL_STD``.
+    """
+    # Amplitude of a 2 Hz speed sine whose acceleration reaches the SNR target.
+    need = max(10.0, MIN_ACCEL_SNR * np.sqrt(2) * accel_noise_rms / (2 * np.pi * 2.0) ** 2)
+    fix = f"add speed steps or a multisine of at least {need:.2g} rad/s amplitude (1-10 Hz)"
+    acc_rms = float(np.std(acceleration))
+    if acc_rms < MIN_ACCEL_SNR * accel_noise_rms or np.ptp(velocity) < 1e-6:
+        raise ExcitationError(
+            f"{source}: almost no acceleration content (rms {acc_rms:.3g} rad/s² vs encoder "
+            f"noise {accel_noise_rms:.3g}); {fix}")
+    if not np.isfinite(condition) or condition > MAX_CONDITION:
+        raise ExcitationError(
+            f"{source}: regressors ill-conditioned (condition {condition:.3g} > "
+            f"{MAX_CONDITION:.0g}): speed, current and friction do not vary independently; {fix}")
+    if not (b2 > 0) or b2_std > MAX_B2_REL_STD * abs(b2):
+        raise ExcitationError(
+            f"{source}: Kt/J is not identifiable from this run (b2 = {b2:.4g} ± {b2_std:.2g}); {fix}")
+
+
+# ------------------------------------------------------------------------- helpers
+def _r2(y: np.ndarray, e: np.ndarray) -> float:
+    ss = float(np.sum((y - y.mean()) ** 2))
+    return float(1.0 - (e @ e) / ss) if ss > 0 else float("nan")
+
+
+def _condition(X: np.ndarray) -> float:
+    """2-norm condition number of X with unit-norm columns (scale-free)."""
+    norms = np.sqrt(np.einsum("ij,ij->j", X, X))
+    if np.any(norms == 0):
+        return float("inf")
+    G = (X.T @ X) / np.outer(norms, norms)
+    ev = np.linalg.eigvalsh(G)
+    return float(np.sqrt(ev[-1] / ev[0])) if ev[0] > 0 else float("inf")
+
+
+def _white_noise_variance(x: np.ndarray) -> float:
+    """White-noise variance from the second difference (var = 6σ² for white noise),
+    with a robust (MAD) scale so steps and spikes do not inflate it."""
+    d2 = x[2:] - 2 * x[1:-1] + x[:-2]
+    mad = float(np.median(np.abs(d2 - np.median(d2))))
+    return (1.4826 * mad) ** 2 / 6.0
+
+
+def _encoder_accel_noise(th: np.ndarray, dt: float, taps: np.ndarray) -> float:
+    """rms acceleration that encoder quantisation alone produces after the filter."""
+    d = np.abs(np.diff(th))
+    d = d[d > 1e-12]
+    q = float(d.min()) if len(d) else 0.0
+    h = np.convolve([1.0, -2.0, 1.0], taps) / dt ** 2
+    return q / np.sqrt(12.0) * float(np.sqrt(h @ h))
+
+
+def _block_covariance(X: np.ndarray, e: np.ndarray, G: np.ndarray, *, block: int):
+    """Sandwich covariance (X'X)⁻¹ Ω (X'X)⁻¹ with Ω = Σ_b S_b S_bᵀ over contiguous
+    blocks (S_b = Σ_{t∈b} x_t e_t). Blocks longer than the residual correlation
+    (several filter lengths) make Ω honest for coloured residuals; the t quantile
+    uses blocks − 1 degrees of freedom. Also returns an effective sample count."""
+    n, k = X.shape
+    nb = max(n // block, 2)
+    m = nb * block if n >= 2 * block else n
+    S = (X[:m] * e[:m, None]).reshape(nb, -1, k).sum(axis=1)
+    Ginv = np.linalg.inv(G)
+    omega = S.T @ S * nb / max(nb - 1, 1)
+    cov = Ginv @ omega @ Ginv
+    # Effective n: how many white samples would give the same b2 variance.
+    white = float(e @ e) / max(n - k, 1) * Ginv[0, 0]
+    n_eff = float(n * white / cov[0, 0]) if cov[0, 0] > 0 else float(n)
+    return cov, nb - 1, min(n_eff, float(n))
+
+
+def t_quantile(dof: int, level: float = 0.95) -> float:
+    return float(stats.t.ppf(0.5 + level / 2, max(dof, 1)))

@@ -1,0 +1,47 @@
+"""gearbench run PROFILE: the end-of-line test (calibrate -> load -> efficiency)."""
+from __future__ import annotations
+
+import sys
+from datetime import datetime, timezone
+from pathlib import Path
+
+from ..errors import GearbenchError
+
+NAME = "run"
+HELP = "Run a test profile on the bench (or on the simulated bench with --sim)."
+
+
+def add_arguments(p) -> None:
+    p.add_argument("profile", help="test profile YAML, e.g. profiles/cvt.yaml")
+    p.add_argument("--sim", action="store_true",
+                   help="run against the simulated bench (emulated drives behind real CANopen/Modbus)")
+    p.add_argument("--out", help="output folder for this run (default results/<serial>-<UTC time>)")
+    p.add_argument("--serial", default=None, help="serial number of the unit under test")
+    p.add_argument("--db", help="station database (default: station.sqlite beside the output folder)")
+    p.add_argument("--yes", action="store_true", help="answer operator prompts with yes (unattended)")
+    p.add_argument("--rrd", help="record the live view to this .rrd file")
+    p.add_argument("--live", action="store_true", help="open a Rerun viewer with the live view")
+    p.add_argument("--connect", help="stream the live view to a Rerun viewer at this URL")
+    p.add_argument("--method", choices=["default", "paper"], default="default",
+                   help="identification method (default: bias-corrected; paper: as published)")
+    p.add_argument("--seed", type=int, default=None, help="--sim: plant noise seed (default: profile's)")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+def run(args) -> int:
+    from ..api import run_profile
+
+    serial = args.serial or ("SIM-0001" if args.sim else None)
+    if serial is None:
+        raise GearbenchError("no --serial given; scan or type the unit's serial number "
+                             "(e.g. --serial SN12345)")
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    out = Path(args.out or f"results/{serial}-{stamp}")
+    if not args.yes and not args.sim and not sys.stdin.isatty():
+        raise GearbenchError("no operator terminal to answer the mounting prompts; "
+                             "run from a terminal or pass --yes for an unattended run")
+    result = run_profile(args.profile, sim=args.sim, out_dir=out, serial=serial,
+                         db=args.db, yes=args.yes or args.sim, rrd=args.rrd, live=args.live,
+                         connect=args.connect, method=args.method, seed=args.seed,
+                         quiet=args.quiet)
+    return int(result["exit_code"])

@@ -1,0 +1,83 @@
+"""Run results as files a factory uses: ``result.json`` and ``junit.xml``.
+
+Both are written by one subscriber when the run stops (also after an abort or a
+fault, so a partial run still leaves its record).
+"""
+from __future__ import annotations
+
+import json
+import math
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+from .records import LimitResult, RunStop, Subscriber
+
+
+def _clean(o):
+    """JSON-safe: numpy scalars to Python, NaN/inf to null (strict JSON)."""
+    if isinstance(o, dict):
+        return {str(k): _clean(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_clean(v) for v in o]
+    if hasattr(o, "item") and not isinstance(o, (str, bytes)):
+        try:
+            o = o.item()
+        except (ValueError, AttributeError):
+            o = o.tolist()
+    if isinstance(o, float) and not math.isfinite(o):
+        return None
+    return o
+
+
+def write_result_json(path: str | Path, result: dict) -> Path:
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(_clean(result), indent=2, allow_nan=False) + "\n")
+    tmp.replace(p)  # atomic: a reader never sees half a file
+    return p
+
+
+def write_junit(path: str | Path, result: dict) -> Path:
+    """One testcase per limit; an aborted/faulted run adds an errored testcase."""
+    limits = result.get("limits", [])
+    failures = sum(1 for lim in limits if not lim.get("passed"))
+    errors = 1 if result.get("status") in ("aborted", "fault") else 0
+    suite = ET.Element("testsuite", name=f"gearbench.{result.get('profile', 'run')}",
+                       tests=str(len(limits) + errors), failures=str(failures), errors=str(errors),
+                       time=f"{result.get('wall_time_s', 0.0):.3f}",
+                       timestamp=str(result.get("started_utc", "")))
+    props = ET.SubElement(suite, "properties")
+    for key in ("serial", "profile", "profile_sha256", "run_id"):
+        ET.SubElement(props, "property", name=key, value=str(result.get(key, "")))
+    for lim in limits:
+        case = ET.SubElement(suite, "testcase", classname=f"gearbench.{result.get('serial', '')}",
+                             name=lim["name"])
+        if not lim.get("passed"):
+            f = ET.SubElement(case, "failure", message=(
+                f"{lim['name']} = {lim.get('value')} outside [{lim.get('low')}, {lim.get('high')}]"))
+            f.text = json.dumps(_clean(lim))
+    if errors:
+        case = ET.SubElement(suite, "testcase", classname="gearbench", name="run")
+        e = ET.SubElement(case, "error", message=str(result.get("reason", result.get("status"))))
+        e.text = str(result.get("reason", ""))
+    p = Path(path)
+    ET.ElementTree(suite).write(
+        p, encoding="utf-8", xml_declaration=True)
+    return p
+
+
+class ResultWriter(Subscriber):
+    """Writes result.json and junit.xml into the run folder at RunStop."""
+
+    def __init__(self, out_dir: str | Path):
+        self.out_dir = Path(out_dir)
+        self.limits: list[dict] = []
+
+    def on_limit(self, rec: LimitResult) -> None:
+        self.limits.append(dict(name=rec.name, value=rec.value, low=rec.low, high=rec.high,
+                                passed=rec.passed))
+
+    def on_run_stop(self, rec: RunStop) -> None:
+        write_result_json(self.out_dir / "result.json", rec.result)
+        write_junit(self.out_dir / "junit.xml", rec.result)

@@ -1,0 +1,421 @@
+"""The sequencer: a profile's steps as a plain sequence, run against drives.
+
+calibrate (each motor unloaded, then with a disk) -> load (mount reducer) ->
+efficiency (grid of input speeds x output braking torques). Everything that
+happens is emitted as records (``gearbench.records``); the sequencer writes no
+files itself. A watchdog enforces the motors' current and speed limits; a limit,
+a drive fault or an operator abort quick-stops and disables every drive at once
+and ends the run with exit code 3, keeping every sample recorded before it.
+"""
+from __future__ import annotations
+
+import signal
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from typing import Callable, Protocol
+
+import numpy as np
+
+from .drives.base import DriveNetwork, Mode
+from .errors import BenchFault, GearbenchError
+from .records import (Calibration, EfficiencyPoint, LimitResult, Message, Progress, RunStart,
+                      RunStop, SampleBatch, StepStart, StepStop)
+from .trace import Trace
+
+BATCH_SAMPLES = 200          # samples per SampleBatch (and per flush of the recorder)
+OVERCURRENT_SAMPLES = 5      # consecutive samples over the limit before the watchdog trips
+RAMP_RAD_S2 = 2000.0         # speed-command slew between efficiency speeds
+
+
+class Operator(Protocol):
+    def confirm(self, prompt: str) -> None:
+        """Block until the operator confirms ``prompt``; raise BenchFault to abort."""
+
+
+class Fixture(Protocol):
+    def mount(self, *, coupling: str, disk_kgm2: dict[str, float]) -> None:
+        """What physically changes on the bench (nothing to do on a real bench:
+        the operator did it); the simulated bench mounts it itself."""
+
+
+class AutoOperator:
+    """``--yes`` / simulated bench: every prompt is answered at once."""
+
+    def __init__(self, emit: Callable | None = None):
+        self.emit = emit
+
+    def confirm(self, prompt: str) -> None:
+        pass
+
+
+class NoFixture:
+    def mount(self, *, coupling: str, disk_kgm2: dict[str, float]) -> None:
+        pass
+
+
+@dataclass
+class Segment:
+    """One acquisition: per motor a mode and a setpoint array (SI)."""
+
+    name: str
+    step_kind: str
+    commands: dict[str, tuple[Mode, np.ndarray]]
+    description: str = ""
+    meta: dict = field(default_factory=dict)
+
+
+def now_utc() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
+
+
+class Sequencer:
+    """Runs one profile on one drive network, emitting records to ``emit``."""
+
+    def __init__(self, profile, network: DriveNetwork, *, emit: Callable, operator: Operator,
+                 fixture: Fixture | None = None, serial: str = "", out_dir: str = "",
+                 sim_truth: dict | None = None, method: str = "default"):
+        self.profile = profile
+        self.net = network
+        self.emit = emit
+        self.operator = operator
+        self.fixture = fixture or NoFixture()
+        self.serial = serial
+        self.out_dir = out_dir
+        self.sim_truth = sim_truth
+        self.method = method
+        self.period_s = profile.bench.period_s
+        self.run_id = uuid.uuid4().hex[:12]
+        self._abort_reason: str | None = None
+        self._samples_done = 0
+        self._samples_total = 1
+        self._wall0 = 0.0
+        self.traces: dict[str, Trace] = {}
+        self.motors_result: dict[str, dict] = {}
+        self.efficiency: list[dict] = []
+        self.ratio: float | None = None
+
+    # ------------------------------------------------------------------ abort
+    def request_abort(self, reason: str) -> None:
+        """Thread/signal safe: the acquisition loop stops at the next sample."""
+        self._abort_reason = reason
+
+    def _install_signals(self):
+        if threading.current_thread() is not threading.main_thread():
+            return {}
+        old = {}
+
+        def handler(signum, frame):
+            self.request_abort("operator abort (Ctrl-C)" if signum == signal.SIGINT
+                               else "terminated (SIGTERM)")
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            old[sig] = signal.signal(sig, handler)
+        return old
+
+    # -------------------------------------------------------------- the plan
+    def plan(self) -> list:
+        """The profile's steps as a flat list of actions: Segment, ("prompt", text,
+        mount kwargs) and ("analyse", what, args). Plain data, easy to print and test."""
+        from .profile import CalibrateStep, EfficiencyStep, LoadStep
+
+        p = self.profile
+        actions: list = []
+        for step in p.steps:
+            if isinstance(step, CalibrateStep):
+                m = step.motor
+                disk = p.disks[step.disk]
+                wave = p.waveforms[step.waveform]
+                n = int(round(step.duration_s / self.period_s))
+                cmd = np.asarray(wave.render(np.arange(n) * self.period_s), dtype=float)
+                actions.append(("prompt", f"Motor '{m}': shafts free, no disk, no reducer",
+                                dict(coupling="none", disk_kgm2={})))
+                actions.append(Segment(f"calibrate-{m}-unloaded", "calibrate",
+                                       {m: (Mode.VELOCITY, cmd)}, f"motor {m} without disk"))
+                actions.append(("prompt", step.prompt or f"Mount disk '{disk.name}' on motor '{m}'",
+                                dict(coupling="none", disk_kgm2={m: disk.inertia_kgm2})))
+                actions.append(Segment(f"calibrate-{m}-{disk.name}", "calibrate",
+                                       {m: (Mode.VELOCITY, cmd)}, f"motor {m} with disk {disk.name}"))
+                actions.append(("prompt", f"Remove disk '{disk.name}' from motor '{m}'",
+                                dict(coupling="none", disk_kgm2={})))
+                actions.append(("analyse", "calibrate", dict(motor=m, disk=disk.inertia_kgm2,
+                                unloaded=f"calibrate-{m}-unloaded",
+                                loaded=f"calibrate-{m}-{disk.name}")))
+            elif isinstance(step, LoadStep):
+                name = p.reducer.name if p.reducer else "reducer"
+                actions.append(("prompt", step.prompt or f"Mount reducer '{name}' between the motors",
+                                dict(coupling="reducer", disk_kgm2={})))
+            elif isinstance(step, EfficiencyStep):
+                for k, speed in enumerate(step.speeds_in_rad_s):
+                    actions.append(self._efficiency_segment(step, k, speed))
+                    actions.append(("analyse", "efficiency", dict(segment=f"efficiency-{k}",
+                                                                   speed=speed)))
+        return actions
+
+    def _efficiency_segment(self, step, k: int, speed: float) -> Segment:
+        """Input motor at ``speed`` (velocity mode, ramped); output motor in current
+        mode: zero load, each braking torque, zero load again (references)."""
+        per = self.period_s
+        n_level = int(round((step.settle_s + step.measure_s) / per))
+        n_ramp = int(round(max(abs(speed) / RAMP_RAD_S2, 0.05) / per))
+        kt_out = self._kt("out")
+        levels = ([0.0] if step.include_zero_load else []) + \
+                 [-abs(t) / kt_out for t in step.torques_out_nm] + \
+                 ([0.0] if step.include_zero_load else [])
+        ramp = np.linspace(0.0, speed, n_ramp)
+        speed_cmd = np.concatenate([ramp, np.full(n_level * len(levels), speed)])
+        cur_cmd = np.concatenate([np.zeros(n_ramp)] + [np.full(n_level, c) for c in levels])
+        return Segment(f"efficiency-{k}", "efficiency",
+                       {"in": (Mode.VELOCITY, speed_cmd), "out": (Mode.TORQUE, cur_cmd)},
+                       f"input {speed:g} rad/s, {len(step.torques_out_nm)} braking torques",
+                       meta=dict(speed=speed, settle_s=step.settle_s, n_ramp=n_ramp))
+
+    def _kt(self, motor: str) -> float:
+        if motor in self.motors_result:
+            return float(self.motors_result[motor]["Kt"])
+        return float(self.profile.motors[motor].kt_datasheet)
+
+    # ------------------------------------------------------------------- run
+    def run(self) -> dict:
+        """Run every step; return the result dict (also emitted in RunStop)."""
+        p = self.profile
+        started = now_utc()
+        self._wall0 = time.monotonic()
+        actions = self.plan()
+        self._samples_total = max(1, sum(len(next(iter(a.commands.values()))[1])
+                                         for a in actions if isinstance(a, Segment)))
+        self.emit(RunStart(self.run_id, self.serial, p.name, str(p.path), p.sha256, started,
+                           self.sim_truth is not None, tuple(p.motors), self.period_s,
+                           str(self.out_dir)))
+        old = self._install_signals()
+        status, exit_code, reason = "passed", 0, ""
+        limits: list[dict] = []
+        try:
+            for action in actions:
+                if self._abort_reason:
+                    raise BenchFault(self._abort_reason)
+                if isinstance(action, Segment):
+                    self._acquire(action)
+                elif action[0] == "prompt":
+                    self._prompt(action[1], action[2])
+                else:
+                    self._analyse(action[1], action[2])
+            limits = self._check_limits()
+            if not all(lim["passed"] for lim in limits):
+                status, exit_code = "failed", 1
+                reason = ", ".join(lim["name"] for lim in limits if not lim["passed"])
+        except BenchFault as exc:
+            self.net.stop_all()
+            status, exit_code, reason = ("aborted" if "abort" in str(exc) or "terminated" in str(exc)
+                                         else "fault"), 3, str(exc)
+            self.emit(Message(f"run stopped: {exc}", level="error"))
+        except GearbenchError as exc:
+            # analysis refused the data (e.g. no excitation): drives safe, run failed
+            self.net.stop_all()
+            status, exit_code, reason = "fault", exc.exit_code if exc.exit_code == 3 else 3, str(exc)
+            self.emit(Message(f"run stopped: {exc}", level="error"))
+        except BaseException:
+            self.net.stop_all()
+            raise
+        finally:
+            for sig, h in old.items():
+                signal.signal(sig, h)
+        result = self._result(started, status, exit_code, reason, limits)
+        self.emit(RunStop(status, exit_code, reason, result))
+        return result
+
+    def _prompt(self, text: str, mount: dict) -> None:
+        self.emit(Message(text, level="prompt"))
+        self.operator.confirm(text)
+        self.fixture.mount(**mount)
+
+    # ----------------------------------------------------------- acquisition
+    def _acquire(self, seg: Segment) -> Trace:
+        """Play ``seg``'s setpoints sample by sample, recording every sample."""
+        net, per = self.net, self.period_s
+        motors = list(seg.commands)
+        n = len(next(iter(seg.commands.values()))[1])
+        self.emit(StepStart(seg.name, seg.step_kind, seg.description, n))
+        drives = {m: net.drives[m] for m in motors}
+        for m, (mode, cmd) in seg.commands.items():
+            drives[m].enable(mode)
+        names = [m for m in self.profile.motors if m in net.drives]
+        buf_idx = np.zeros(n, dtype=np.int64)
+        buf_t = np.zeros(n)
+        cols = {f"{m}.{q}": np.zeros(n) for m in names
+                for q in ("position_rad", "velocity_rad_s", "current_a", "command")}
+        limits = {m: (self.profile.motors[m].current_limit_a, self.profile.motors[m].speed_limit_rad_s)
+                  for m in names}
+        over = dict.fromkeys(names, 0)
+        last_sp = dict.fromkeys(motors, None)
+        flushed = done = 0
+        status = "ok"
+        lost0 = net.lost_samples
+        t_wall = time.monotonic()
+        try:
+            for k in range(n):
+                if self._abort_reason:
+                    raise BenchFault(self._abort_reason)
+                for m in motors:
+                    sp = float(seg.commands[m][1][k])
+                    if sp != last_sp[m]:
+                        drives[m].set_setpoint(sp)
+                        last_sp[m] = sp
+                samples = net.sample()
+                s0 = samples[names[0]]
+                buf_idx[k], buf_t[k] = s0.index, s0.time_s
+                for m in names:
+                    s = samples[m]
+                    cols[f"{m}.position_rad"][k] = s.position_rad
+                    cols[f"{m}.velocity_rad_s"][k] = s.velocity_rad_s
+                    cols[f"{m}.current_a"][k] = s.current_a
+                    cols[f"{m}.command"][k] = last_sp.get(m) or 0.0
+                done = k + 1
+                self._watchdog(seg.name, samples, names, limits, over)
+                if done - flushed >= BATCH_SAMPLES:
+                    self._flush(seg.name, buf_idx, buf_t, cols, flushed, done)
+                    flushed = done
+                    self._progress(seg, done, n, t_wall)
+        except BenchFault:
+            self.net.stop_all()   # first the drives, within this sample period; then the books
+            status = "aborted" if self._abort_reason else "fault"
+            raise
+        finally:
+            if status == "ok":
+                for m in motors:
+                    try:
+                        drives[m].set_setpoint(0.0)
+                        drives[m].disable()
+                    except Exception:
+                        pass
+            self._flush(seg.name, buf_idx, buf_t, cols, flushed, done)
+            self._samples_done += done
+            self.emit(StepStop(seg.name, status, done, net.lost_samples - lost0))
+            self.traces[seg.name] = Trace(buf_t[:done], {"sample": buf_idx[:done],
+                                          **{c: v[:done] for c, v in cols.items()}},
+                                          {"step": seg.name, **seg.meta}, seg.name)
+        return self.traces[seg.name]
+
+    def _watchdog(self, step: str, samples, names, limits, over) -> None:
+        """Drive fault, sustained over-current, over-speed -> BenchFault."""
+        for m in names:
+            s = samples[m]
+            if s.fault:
+                raise BenchFault(f"drive '{m}' reported a fault (status 0x{s.status:04x}) "
+                                 f"in step {step} at t={s.time_s:.3f} s")
+            i_lim, w_lim = limits[m]
+            over[m] = over[m] + 1 if abs(s.current_a) > i_lim else 0
+            if over[m] >= OVERCURRENT_SAMPLES:
+                raise BenchFault(f"limit: motor '{m}' current {s.current_a:.3f} A beyond "
+                                 f"{i_lim:g} A in step {step} at t={s.time_s:.3f} s")
+            if abs(s.velocity_rad_s) > w_lim:
+                raise BenchFault(f"limit: motor '{m}' speed {s.velocity_rad_s:.1f} rad/s beyond "
+                                 f"{w_lim:g} rad/s in step {step} at t={s.time_s:.3f} s")
+
+    def _flush(self, step, idx, t, cols, i0, i1) -> None:
+        if i1 > i0:
+            self.emit(SampleBatch(step, idx[i0:i1].copy(), t[i0:i1].copy(),
+                                  {c: v[i0:i1].copy() for c, v in cols.items()}))
+
+    def _progress(self, seg: Segment, k: int, n: int, t_wall: float) -> None:
+        done = self._samples_done + k
+        frac = done / self._samples_total
+        elapsed = time.monotonic() - self._wall0
+        eta = elapsed * (1 - frac) / frac if frac > 0 else None
+        self.emit(Progress(seg.name, seg.description, k / n, frac, eta))
+
+    # -------------------------------------------------------------- analysis
+    def _analyse(self, what: str, args: dict) -> None:
+        from . import pipeline
+
+        if what == "calibrate":
+            m = args["motor"]
+            cal = pipeline.calibrate(self.traces[args["unloaded"]], self.traces[args["loaded"]],
+                                     motor=m, disk_kgm2=args["disk"], method=self.method)
+            self.motors_result[m] = cal
+            self.emit(Calibration(m, cal))
+        elif what == "efficiency":
+            seg = self.traces[args["segment"]]
+            ratio = self.profile.reducer.ratio if self.profile.reducer else None
+            res = pipeline.efficiency(seg, self.motors_result.get("in") or self._datasheet("in"),
+                                      self.motors_result.get("out") or self._datasheet("out"),
+                                      ratio=ratio, settle_s=seg.meta["settle_s"],
+                                      skip_samples=seg.meta["n_ramp"])
+            self.ratio = res["ratio"]
+            for pt in res["points"]:
+                pt.setdefault("speed_setpoint_rad_s", args["speed"])
+                self.efficiency.append(pt)
+                self.emit(EfficiencyPoint(pt))
+
+    def _datasheet(self, motor: str) -> dict:
+        return {"Kt": self.profile.motors[motor].kt_datasheet, "D": 0.0, "Tc": 0.0}
+
+    # ---------------------------------------------------------------- limits
+    def _quantity(self, q: str):
+        parts = q.split(".")
+        if parts[0] == "motors" and len(parts) == 3:
+            m, key = parts[1], parts[2]
+            if m not in self.motors_result:
+                return None
+            if key == "Kt_rel_datasheet":
+                return self.motors_result[m]["Kt"] / self.profile.motors[m].kt_datasheet
+            return self.motors_result[m].get(key)
+        if q == "ratio":
+            return self.ratio
+        if parts[0] == "efficiency" and len(parts) == 2:
+            return [pt.get(parts[1]) for pt in self.efficiency]
+        return None
+
+    def _check_limits(self) -> list[dict]:
+        out = []
+        for lim in self.profile.limits:
+            value = self._quantity(lim.quantity)
+            values = value if isinstance(value, list) else [value]
+            for j, v in enumerate(values):
+                name = lim.name if not isinstance(value, list) else \
+                    f"{lim.name}[{self.efficiency[j]['speed_in_rad_s']:.0f}rad_s," \
+                    f"{self.efficiency[j]['torque_out_nm']:.3g}Nm]"
+                ok = v is not None and np.isfinite(v) and \
+                    (lim.low is None or v >= lim.low) and (lim.high is None or v <= lim.high)
+                rec = LimitResult(name, None if v is None else float(v), lim.low, lim.high,
+                                  bool(ok), lim.quantity)
+                self.emit(rec)
+                out.append(dict(name=name, quantity=lim.quantity, value=rec.value,
+                                low=lim.low, high=lim.high, passed=bool(ok)))
+        return out
+
+    # ---------------------------------------------------------------- result
+    def _result(self, started, status, exit_code, reason, limits) -> dict:
+        p = self.profile
+        n_samples = sum(len(t) for t in self.traces.values())
+        result = {
+            "serial": self.serial, "run_id": self.run_id, "profile": p.name,
+            "profile_path": str(p.path), "profile_sha256": p.sha256,
+            "started_utc": started, "finished_utc": now_utc(),
+            "status": status, "passed": status == "passed", "exit_code": exit_code,
+            "reason": reason, "method": self.method,
+            "motors": self.motors_result, "ratio": self.ratio,
+            "efficiency": self.efficiency, "limits": limits,
+            "bench_time_s": n_samples * self.period_s,
+            "wall_time_s": time.monotonic() - self._wall0,
+            "samples": n_samples, "lost_samples": self.net.lost_samples,
+            "steps": {name: len(t) for name, t in self.traces.items()},
+            "out_dir": str(self.out_dir),
+        }
+        if self.sim_truth is not None:
+            result["simulation_truth"] = self.sim_truth_for(result)
+        return result
+
+    def sim_truth_for(self, result: dict) -> dict:
+        """The simulated plant's truth in the shape of the result."""
+        from .sim import PlantParams, efficiency_truth
+
+        plant = PlantParams.from_dict(self.sim_truth, "simulation")
+        truth = plant.truth()
+        eff = []
+        for pt in result["efficiency"]:
+            t = efficiency_truth(plant, pt["speed_in_rad_s"], pt["torque_out_nm"])
+            eff.append({"speed_in_rad_s": pt["speed_in_rad_s"], "torque_out_nm": pt["torque_out_nm"],
+                        **t})
+        return {"motors": truth["motors"], "ratio": truth["ratio"], "efficiency": eff}

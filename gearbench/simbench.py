@@ -1,0 +1,121 @@
+"""``--sim``: the emulated bench in a child process, behind real protocol endpoints.
+
+The child is ``gearbench emulate`` (CANopen nodes over udp_multicast by default,
+or Modbus TCP on loopback when the profile's bus is Modbus). The sequencer then
+talks to it through the same drive stack it uses on a real tester. The operator's
+mounting is done by the child on request (fixture commands on its stdin).
+"""
+from __future__ import annotations
+
+import json
+import os
+import random
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import replace
+
+from .errors import BenchFault, DriveError
+
+READY_TIMEOUT_S = 60.0   # first start compiles the physics kernel (numba), later starts are fast
+
+
+def free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class SimBench:
+    """Context manager: starts the emulator, gives the bus options to use, mounts on request."""
+
+    def __init__(self, profile, *, seed: int | None = None):
+        self.profile = profile
+        self.seed = seed
+        self.proc: subprocess.Popen | None = None
+        self.bus_options: dict = {}
+        self._lines: list[str] = []
+        self._cv = threading.Condition()
+
+    def __enter__(self):
+        bus = self.profile.bench.bus
+        cmd = [sys.executable, "-m", "gearbench", "emulate", str(self.profile.path), "--lockstep"]
+        if bus.family == "modbus":
+            port = free_tcp_port()
+            cmd += ["--modbus", f"127.0.0.1:{port}"]
+            self.bus_options = dict(host="127.0.0.1", port=port, lockstep=True)
+        else:
+            # a private multicast port per run: parallel runs on one host never cross-talk
+            group = bus.channel if bus.interface == "udp_multicast" and bus.channel else "239.74.163.2"
+            port = random.randint(20000, 60000)
+            cmd += ["--can", f"udp_multicast:{group}", "--can-port", str(port)]
+            self.bus_options = dict(interface="udp_multicast", channel=group, port=port)
+        if self.seed is not None:
+            cmd += ["--seed", str(self.seed)]
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True, env=env)
+        threading.Thread(target=self._reader, daemon=True).start()
+        self._wait_line(lambda ln: ln == "ready", READY_TIMEOUT_S, "start")
+        return self
+
+    def _reader(self) -> None:
+        for line in self.proc.stdout:
+            with self._cv:
+                self._lines.append(line.strip())
+                self._cv.notify_all()
+        with self._cv:
+            self._cv.notify_all()
+
+    def _wait_line(self, pred, timeout: float, what: str) -> str:
+        deadline = time.monotonic() + timeout
+        with self._cv:
+            while True:
+                for i, ln in enumerate(self._lines):
+                    if pred(ln):
+                        del self._lines[: i + 1]
+                        return ln
+                if self.proc.poll() is not None:
+                    err = (self.proc.stderr.read() or "").strip().splitlines()
+                    raise DriveError(f"simulated bench stopped during {what} (exit {self.proc.returncode})"
+                                     f"{': ' + err[-1] if err else ''}")
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise DriveError(f"simulated bench did not answer {what} within {timeout:.0f} s")
+                self._cv.wait(min(left, 0.2))
+
+    def command(self, obj: dict) -> dict:
+        self.proc.stdin.write(json.dumps(obj) + "\n")
+        self.proc.stdin.flush()
+        line = self._wait_line(lambda ln: ln.startswith("{"), 10.0, obj.get("cmd", "command"))
+        reply = json.loads(line)
+        if not reply.get("ok"):
+            raise BenchFault(f"simulated bench refused {obj}: {reply.get('error')}")
+        return reply
+
+    def mount(self, *, coupling: str, disk_kgm2: dict[str, float]) -> None:
+        self.command({"cmd": "mount", "coupling": coupling, "disk_kgm2": disk_kgm2})
+
+    def bus_spec(self):
+        bus = self.profile.bench.bus
+        opts = dict(bus.options or {})
+        opts.update({k: v for k, v in self.bus_options.items() if k not in ("interface", "channel", "host", "port")})
+        return replace(bus, interface=self.bus_options.get("interface", bus.interface),
+                       channel=self.bus_options.get("channel", bus.channel),
+                       host=self.bus_options.get("host", bus.host),
+                       port=self.bus_options.get("port", bus.port), options=opts)
+
+    def __exit__(self, *exc):
+        if self.proc and self.proc.poll() is None:
+            try:
+                self.proc.stdin.close()
+            except OSError:
+                pass
+            self.proc.terminate()
+            try:
+                self.proc.wait(5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+        return False
