@@ -38,6 +38,8 @@ def open_network(bus, profile) -> DriveNetwork:
     cls = network_class(bus.family)
     opts = {k: v for k, v in dict(interface=bus.interface, channel=bus.channel, host=bus.host,
                                    port=bus.port).items() if v is not None}
+    if bus.interface:   # CAN families take one "interface:channel[:port]" string
+        opts["bus"] = ":".join(str(x) for x in (bus.interface, bus.channel, bus.port) if x is not None)
     opts.update(bus.options or {})
     net = cls(**opts)
     net.open()

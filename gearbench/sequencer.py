@@ -129,15 +129,16 @@ class Sequencer:
                 wave = p.waveforms[step.waveform]
                 n = int(round(step.duration_s / self.period_s))
                 cmd = np.asarray(wave.render(np.arange(n) * self.period_s), dtype=float)
+                mode = Mode.TORQUE if step.mode in ("current", "torque") else Mode.VELOCITY
                 actions.append(("prompt", f"Motor '{m}': shafts free, no disk, no reducer",
                                 dict(coupling="none", disk_kgm2={})))
                 actions.append(Segment(f"calibrate-{m}-unloaded", "calibrate",
-                                       {m: (Mode.VELOCITY, cmd)}, f"motor {m} without disk"))
+                                       {m: (mode, cmd)}, f"motor {m} without disk"))
                 actions.append(("prompt", step.prompt or f"Mount disk '{disk.name}' on motor '{m}'",
                                 dict(coupling="none", disk_kgm2={m: disk.inertia_kgm2})))
                 actions.append(Segment(f"calibrate-{m}-{disk.name}", "calibrate",
-                                       {m: (Mode.VELOCITY, cmd)}, f"motor {m} with disk {disk.name}"))
-                actions.append(("prompt", f"Remove disk '{disk.name}' from motor '{m}'",
+                                       {m: (mode, cmd)}, f"motor {m} with disk {disk.name}"))
+                actions.append(("prompt", step.remove_prompt or f"Remove disk '{disk.name}' from motor '{m}'",
                                 dict(coupling="none", disk_kgm2={})))
                 actions.append(("analyse", "calibrate", dict(motor=m, disk=disk.inertia_kgm2,
                                 unloaded=f"calibrate-{m}-unloaded",

@@ -50,7 +50,7 @@ class SimBench:
             # a private multicast port per run: parallel runs on one host never cross-talk
             group = bus.channel if bus.interface == "udp_multicast" and bus.channel else "239.74.163.2"
             port = random.randint(20000, 60000)
-            cmd += ["--can", f"udp_multicast:{group}", "--can-port", str(port)]
+            cmd += ["--can", f"udp_multicast:{group}:{port}"]
             self.bus_options = dict(interface="udp_multicast", channel=group, port=port)
         if self.seed is not None:
             cmd += ["--seed", str(self.seed)]

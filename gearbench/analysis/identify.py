@@ -198,8 +198,7 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
     w_raw[1:-1] = (th[2:] - th[:-2]) / (2 * dt)
     w_raw[0], w_raw[-1] = w_raw[1], w_raw[-2]
     sgn = np.tanh(w_raw / friction_width_rad_s)
-    di = np.gradient(i, dt)
-    fs = dv.consistent_derivatives(th, {"current": i, "sign": sgn, "dcurrent": di}, dt, taps)
+    fs = dv.consistent_derivatives(th, {"current": i, "sign": sgn}, dt, taps)
     n = len(fs["acceleration"])
 
     reverses = bool(np.mean(w_raw > 5 * friction_width_rad_s) > 0.05
@@ -215,28 +214,41 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
     if use_bias:
         cols.append((BIAS, np.ones(n), 1.0))
     if lag:
-        cols.append((LAG, fs["dcurrent"], 1.0))
+        cols.append((LAG, np.gradient(fs["current"], dt), 1.0))
     names = tuple(c[0] for c in cols)
     sign = np.array([c[2] for c in cols])
-    X = np.column_stack([c[1] for c in cols])
     y = fs["acceleration"]
 
     # Errors in variables: white current noise σ² becomes σ²·Σh² after the filters.
     h = np.convolve(dv.SECOND_DIFFERENCE_MATCH, taps)
     noise_var_raw = _white_noise_variance(i)
     noise_var = noise_var_raw * float(h @ h)
-    G = X.T @ X
-    Gc = G.copy()
-    if eiv_correction:
-        Gc[0, 0] -= n * noise_var
-    try:
-        beta = np.linalg.solve(Gc, X.T @ y)
-    except np.linalg.LinAlgError:
-        raise ExcitationError(f"{source}: regressors are linearly dependent; add speed steps "
-                              f"or a multisine of at least 10 rad/s amplitude") from None
-    e = y - X @ beta
-    cond = _condition(X)
-    cov, dof, n_eff = _block_covariance(X, e, Gc, block=max(4 * len(taps), n // 64))
+    # The lag column is first order in τ; past ~0.1 sample the τ² term biases b2, so
+    # shift the (band-limited) current by the estimated τ and refit (converges in 2-3).
+    shift_s, idx = 0.0, np.arange(n, dtype=float)
+    for _ in range(4 if lag else 1):
+        Xt = np.vstack([c[1] for c in cols])      # k x n, rows contiguous for speed
+        G = Xt @ Xt.T
+        Gc = G.copy()
+        if eiv_correction:
+            Gc[0, 0] -= n * noise_var
+        try:
+            beta = np.linalg.solve(Gc, Xt @ y)
+        except np.linalg.LinAlgError:
+            raise ExcitationError(f"{source}: regressors are linearly dependent; add speed steps "
+                                  f"or a multisine of at least 10 rad/s amplitude") from None
+        if not lag or beta[0] == 0:
+            break
+        tau = float(beta[-1] / beta[0])
+        if abs(tau) < 0.02 * dt or abs(shift_s + tau) > 5 * dt:
+            break
+        shift_s += tau
+        current = np.interp(idx + shift_s / dt, idx, fs["current"])   # i(t + shift)
+        cols[0] = (KT_J, current, 1.0)
+        cols[-1] = (LAG, np.gradient(current, dt), 1.0)
+    e = y - beta @ Xt
+    cond = _condition_gram(G)
+    cov, dof, n_eff = _block_covariance(Xt, e, Gc, block=max(4 * len(taps), n // 64))
     values = beta * sign
     cov = cov * np.outer(sign, sign)
     b2 = float(values[0])
@@ -257,7 +269,7 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
                 "current_noise_a": float(np.sqrt(noise_var_raw)),
                 "eiv_relative_correction": float(n * noise_var / G[0, 0]) if eiv_correction else 0.0,
                 "friction_width_rad_s": friction_width_rad_s,
-                "current_delay_s": (float(values[names.index(LAG)]) / b2) if lag and b2 else 0.0})
+                "current_delay_s": shift_s + ((float(values[names.index(LAG)]) / b2) if lag and b2 else 0.0)})
 
 
 def identify(time_s, position_rad, current_a, *, method: str = "default",
@@ -318,12 +330,16 @@ def _r2(y: np.ndarray, e: np.ndarray) -> float:
 
 
 def _condition(X: np.ndarray) -> float:
-    """2-norm condition number of X with unit-norm columns (scale-free)."""
-    norms = np.sqrt(np.einsum("ij,ij->j", X, X))
-    if np.any(norms == 0):
+    """2-norm condition number of X (n x k) with unit-norm columns (scale-free)."""
+    return _condition_gram(X.T @ X)
+
+
+def _condition_gram(G: np.ndarray) -> float:
+    """Condition number of the column-normalised regressor matrix, from its Gram matrix."""
+    d = np.sqrt(np.diag(G))
+    if np.any(d == 0):
         return float("inf")
-    G = (X.T @ X) / np.outer(norms, norms)
-    ev = np.linalg.eigvalsh(G)
+    ev = np.linalg.eigvalsh(G / np.outer(d, d))
     return float(np.sqrt(ev[-1] / ev[0])) if ev[0] > 0 else float("inf")
 
 
@@ -337,22 +353,30 @@ def _white_noise_variance(x: np.ndarray) -> float:
 
 def _encoder_accel_noise(th: np.ndarray, dt: float, taps: np.ndarray) -> float:
     """rms acceleration that encoder quantisation alone produces after the filter."""
-    d = np.abs(np.diff(th))
-    d = d[d > 1e-12]
-    q = float(d.min()) if len(d) else 0.0
+    q = encoder_resolution(th)
     h = np.convolve([1.0, -2.0, 1.0], taps) / dt ** 2
     return q / np.sqrt(12.0) * float(np.sqrt(h @ h))
 
 
-def _block_covariance(X: np.ndarray, e: np.ndarray, G: np.ndarray, *, block: int):
+def encoder_resolution(position_rad: np.ndarray) -> float:
+    """Encoder step (rad) from the gaps between distinct angle increments; 0 if the
+    angle does not look quantised."""
+    d = np.unique(np.round(np.diff(position_rad[:200_000]), 9))
+    gaps = np.diff(d)
+    gaps = gaps[gaps > 1e-9]
+    return float(gaps.min()) if len(gaps) else 0.0
+
+
+def _block_covariance(Xt: np.ndarray, e: np.ndarray, G: np.ndarray, *, block: int):
     """Sandwich covariance (X'X)⁻¹ Ω (X'X)⁻¹ with Ω = Σ_b S_b S_bᵀ over contiguous
     blocks (S_b = Σ_{t∈b} x_t e_t). Blocks longer than the residual correlation
     (several filter lengths) make Ω honest for coloured residuals; the t quantile
     uses blocks − 1 degrees of freedom. Also returns an effective sample count."""
-    n, k = X.shape
+    k, n = Xt.shape
     nb = max(n // block, 2)
-    m = nb * block if n >= 2 * block else n
-    S = (X[:m] * e[:m, None]).reshape(nb, -1, k).sum(axis=1)
+    size = n // nb
+    m = nb * size
+    S = np.einsum("kbt,bt->bk", Xt[:, :m].reshape(k, nb, size), e[:m].reshape(nb, size))
     Ginv = np.linalg.inv(G)
     omega = S.T @ S * nb / max(nb - 1, 1)
     cov = Ginv @ omega @ Ginv

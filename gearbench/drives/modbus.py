@@ -248,7 +248,10 @@ class ModbusNetwork(DriveNetwork):
         self._last_counter = None
 
     def _sync(self) -> None:
-        d = self._sync_drive or next(d for d in self.drives.values() if "sync" in d.map.registers)
+        d = self._sync_drive or next((d for d in self.drives.values() if "sync" in d.map.registers), None)
+        if d is None:
+            raise DriveError("lockstep asked but no drive's register map declares a `sync` register; "
+                             "open the network with lockstep=False or add `sync` to the map")
         d.write("sync", d._k)
 
     def _sample(self) -> dict[str, Sample]:

@@ -175,11 +175,17 @@ class _Map(dict):
 
 
 class _LineLoader(yaml.SafeLoader):
-    def construct_mapping(self, node, deep=False):
-        m = _Map(super().construct_mapping(node, deep=deep))
-        m.lines = {k.value: k.start_mark.line + 1 for k, _ in node.value if hasattr(k, "value")}
-        m.line = node.start_mark.line + 1
-        return m
+    pass
+
+
+def _construct_map(loader, node):
+    m = _Map(loader.construct_mapping(node, deep=True))
+    m.lines = {loader.construct_object(k): k.start_mark.line + 1 for k, _ in node.value}
+    m.line = node.start_mark.line + 1
+    return m
+
+
+_LineLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_map)
 
 
 def _line(m, key=None) -> str:

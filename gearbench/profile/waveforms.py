@@ -3,7 +3,10 @@
 Every waveform is a function of time only (``render(params, time_s) -> array``), so
 the sequencer, the emulator and the tests produce the same command for the same
 profile. Values are in the unit of the step's mode: rad/s for a velocity command,
-A for a current command. ``fade_in_s`` (all kinds) multiplies the whole signal by a
+A for a current command. Rendering is pointwise in time (no normalisation over the
+array passed in), so a command rendered in chunks equals one rendered whole; this is
+why these renderers are not ``gearbench.sim.waveforms``, whose multisine and PRBS
+depend on the time array. Parameter names follow that module. ``fade_in_s`` (all kinds) multiplies the whole signal by a
 raised-cosine ramp so a run starts from rest instead of jumping.
 
 Kinds: constant, step, ramp, trapezoid, multisine (Schroeder-phased periodic
@@ -12,6 +15,7 @@ length LFSR sequence).
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -34,36 +38,38 @@ class Param:
 
 
 _COMMON = {"fade_in_s": Param("number", 0.0, ge=0.0, meaning="raised-cosine start-up time in s")}
+_OPTIONAL = None  # a Param default of None: the parameter may be left out
 
+# Parameter names follow gearbench.sim.waveforms where the meaning is the same.
 PARAMS: dict[str, dict[str, Param]] = {
     "constant": {"value": Param("number", meaning="the constant command (rad/s or A)")},
     "step": {
-        "initial": Param("number", 0.0, meaning="command before the step"),
-        "final": Param("number", meaning="command after the step"),
-        "step_time_s": Param("number", 0.0, ge=0.0, meaning="time of the step in s"),
+        "offset": Param("number", 0.0, meaning="command before the step"),
+        "amplitude": Param("number", meaning="size of the step (command after = offset + amplitude)"),
+        "t_step_s": Param("number", 0.0, ge=0.0, meaning="time of the step in s"),
     },
     "ramp": {
-        "start": Param("number", 0.0, meaning="command at the ramp start"),
-        "end": Param("number", meaning="command at the ramp end, then held"),
-        "delay_s": Param("number", 0.0, ge=0.0, meaning="time before the ramp starts in s"),
-        "ramp_time_s": Param("number", gt=0.0, meaning="duration of the ramp in s"),
+        "offset": Param("number", 0.0, meaning="command before the ramp"),
+        "slope": Param("number", meaning="rate of change per second (rad/s^2 or A/s), not 0"),
+        "t0_s": Param("number", 0.0, ge=0.0, meaning="time the ramp starts in s"),
+        "final": Param("number", _OPTIONAL, meaning="command held once reached (optional)"),
     },
     "trapezoid": {
-        "level": Param("number", meaning="plateau command"),
-        "low": Param("number", 0.0, meaning="command between plateaus"),
-        "rise_s": Param("number", gt=0.0, meaning="rise time in s"),
-        "hold_s": Param("number", 0.0, ge=0.0, meaning="plateau time in s"),
-        "fall_s": Param("number", gt=0.0, meaning="fall time in s"),
-        "pause_s": Param("number", 0.0, ge=0.0, meaning="time at 'low' before repeating in s"),
-        "repeat": Param("bool", True, meaning="repeat the trapezoid periodically"),
-        "alternate": Param("bool", False, meaning="flip the sign of every second trapezoid (reversals)"),
+        "offset": Param("number", 0.0, meaning="command outside the plateaus"),
+        "amplitude": Param("number", meaning="plateau height above offset (negative = reverse)"),
+        "ramp_s": Param("number", gt=0.0, meaning="rise time = fall time in s"),
+        "hold_s": Param("number", ge=0.0, meaning="plateau time in s"),
+        "t0_s": Param("number", 0.0, ge=0.0, meaning="start of the first trapezoid in s"),
+        "repeat_s": Param("number", _OPTIONAL, gt=0.0, meaning="repeat period in s (optional)"),
+        "alternate": Param("bool", False, meaning="flip the sign of every second repetition (reversals)"),
     },
     "multisine": {
         "offset": Param("number", 0.0, meaning="mean command"),
         "amplitude": Param("number", gt=0.0, meaning="peak deviation from the offset"),
-        "period_s": Param("number", 1.0, gt=0.0, meaning="period; tones are multiples of 1/period_s"),
-        "f_min_hz": Param("number", gt=0.0, meaning="lowest tone in Hz"),
-        "f_max_hz": Param("number", gt=0.0, meaning="highest tone in Hz"),
+        "period_s": Param("number", 1.0, gt=0.0, meaning="period; every tone is a multiple of 1/period_s"),
+        "f_min_hz": Param("number", _OPTIONAL, gt=0.0, meaning="lowest tone in Hz (with f_max_hz)"),
+        "f_max_hz": Param("number", _OPTIONAL, gt=0.0, meaning="highest tone in Hz (with f_min_hz)"),
+        "freqs_hz": Param("list", _OPTIONAL, gt=0.0, meaning="explicit tones in Hz, multiples of 1/period_s"),
         "phases": Param("choice", "schroeder", choices=("schroeder", "random"),
                         meaning="tone phases (Schroeder: low crest factor)"),
         "seed": Param("int", 0, ge=0, meaning="seed for random phases"),
@@ -73,22 +79,23 @@ PARAMS: dict[str, dict[str, Param]] = {
         "amplitude": Param("number", gt=0.0, meaning="sine amplitude"),
         "f0_hz": Param("number", gt=0.0, meaning="start frequency in Hz"),
         "f1_hz": Param("number", gt=0.0, meaning="end frequency in Hz"),
-        "sweep_s": Param("number", gt=0.0, meaning="duration of one sweep in s"),
-        "method": Param("choice", "linear", choices=("linear", "logarithmic"), meaning="sweep law"),
+        "t1_s": Param("number", gt=0.0, meaning="duration of one sweep in s"),
+        "method": Param("choice", "linear", choices=("linear", "log"), meaning="sweep law"),
         "repeat": Param("bool", True, meaning="repeat the sweep; else hold the offset after it"),
     },
     "prbs": {
         "offset": Param("number", 0.0, meaning="mean command"),
         "amplitude": Param("number", gt=0.0, meaning="the command is offset +/- amplitude"),
-        "order": Param("int", 7, ge=3, le=16, meaning="LFSR length; the sequence repeats after 2^order-1 bits"),
-        "bit_period_s": Param("number", gt=0.0, meaning="duration of one bit in s"),
-        "seed": Param("int", 1, ge=1, meaning="non-zero LFSR start state"),
+        "bit_s": Param("number", gt=0.0, meaning="duration of one bit in s"),
+        "order": Param("int", 9, ge=3, le=16, meaning="LFSR length; the sequence repeats after 2^order-1 bits"),
+        "seed": Param("int", 0, ge=0, meaning="selects the LFSR start state"),
     },
 }
 for _table in PARAMS.values():
     _table.update(_COMMON)
 
 KINDS = tuple(PARAMS)
+MAX_TONES = 200   # more tones add nothing to an identification run and cost render time
 
 
 def natural_period_s(kind: str, p: dict) -> float | None:
@@ -96,36 +103,58 @@ def natural_period_s(kind: str, p: dict) -> float | None:
     if kind == "multisine":
         return p["period_s"]
     if kind == "chirp":
-        return p["sweep_s"]
+        return p["t1_s"]
     if kind == "prbs":
-        return p["bit_period_s"] * (2 ** p["order"] - 1)
-    if kind == "trapezoid":
-        return p["rise_s"] + p["hold_s"] + p["fall_s"] + p["pause_s"]
+        return p["bit_s"] * (2 ** p["order"] - 1)
+    if kind == "trapezoid" and p["repeat_s"] is not None:
+        return p["repeat_s"]
     return None
 
 
 def check(kind: str, p: dict, period_s: float) -> tuple[str, str, str] | None:
     """Cross-parameter checks; returns (param, problem, fix) or None when fine."""
     nyquist = 0.5 / period_s
+    if kind == "ramp" and p["final"] is not None and (p["final"] - p["offset"]) * p["slope"] <= 0:
+        return "slope", "must point from offset toward final", "change the sign of slope or fix final"
+    if kind == "ramp" and p["slope"] == 0:
+        return "slope", "must not be 0", "use kind: constant for a constant command"
+    if kind == "trapezoid":
+        width = 2 * p["ramp_s"] + p["hold_s"]
+        if p["repeat_s"] is not None and p["repeat_s"] < width:
+            return "repeat_s", f"must be >= 2*ramp_s + hold_s ({width:g} s)", "lengthen repeat_s"
+        if p["alternate"] and p["repeat_s"] is None:
+            return "alternate", "needs repeat_s", "add repeat_s (the repetition period)"
     if kind == "multisine":
-        if p["f_min_hz"] > p["f_max_hz"]:
-            return "f_min_hz", f"must be <= f_max_hz ({p['f_max_hz']:g})", "swap or fix the tone range"
-        if p["f_max_hz"] >= nyquist:
-            return "f_max_hz", f"must be below the Nyquist frequency {nyquist:g} Hz", "lower f_max_hz"
-        if len(multisine_harmonics(p)) == 0:
-            return "period_s", (f"no tone k/period_s falls in [{p['f_min_hz']:g}, {p['f_max_hz']:g}] Hz"),\
-                "lengthen period_s or widen the tone range"
+        has_range = p["f_min_hz"] is not None or p["f_max_hz"] is not None
+        if (p["freqs_hz"] is None) == (not has_range) or (has_range and None in (p["f_min_hz"], p["f_max_hz"])):
+            return "freqs_hz", "give either freqs_hz or both f_min_hz and f_max_hz", \
+                "e.g. f_min_hz: 0.5, f_max_hz: 8"
+        if p["freqs_hz"] is not None:
+            if max(p["freqs_hz"]) >= nyquist:
+                return "freqs_hz", f"must be below the Nyquist frequency {nyquist:g} Hz", "lower the highest tone"
+            if len(p["freqs_hz"]) > MAX_TONES:
+                return "freqs_hz", f"more than {MAX_TONES} tones", "use fewer tones"
+            for f in p["freqs_hz"]:
+                k = round(f * p["period_s"])
+                if k < 1 or abs(k - f * p["period_s"]) > 1e-6:
+                    return "freqs_hz", f"{f:g} Hz is not a multiple of 1/period_s = {1 / p['period_s']:g} Hz", \
+                        "use multiples of 1/period_s so the multisine is periodic"
+        else:
+            if p["f_min_hz"] > p["f_max_hz"]:
+                return "f_min_hz", f"must be <= f_max_hz ({p['f_max_hz']:g})", "swap or fix the tone range"
+            if p["f_max_hz"] >= nyquist:
+                return "f_max_hz", f"must be below the Nyquist frequency {nyquist:g} Hz", "lower f_max_hz"
+            if (p["f_max_hz"] - p["f_min_hz"]) * p["period_s"] > MAX_TONES:
+                return "period_s", f"gives more than {MAX_TONES} tones", "shorten period_s or narrow the tone range"
+            if len(multisine_harmonics(p)) == 0:
+                return "period_s", f"no tone k/period_s falls in [{p['f_min_hz']:g}, {p['f_max_hz']:g}] Hz", \
+                    "lengthen period_s or widen the tone range"
     if kind == "chirp":
         for name in ("f0_hz", "f1_hz"):
             if p[name] >= nyquist:
                 return name, f"must be below the Nyquist frequency {nyquist:g} Hz", f"lower {name}"
-        if p["method"] == "logarithmic" and p["f0_hz"] == p["f1_hz"]:
-            return "f1_hz", "must differ from f0_hz for a logarithmic sweep", "use method: linear or change f1_hz"
-    if kind == "prbs":
-        if p["bit_period_s"] < period_s * (1 - 1e-9):
-            return "bit_period_s", f"must be >= the sample period {period_s:g} s", "lengthen bit_period_s"
-        if p["seed"] >= 2 ** p["order"]:
-            return "seed", f"must be < 2^order = {2 ** p['order']}", "use a smaller seed"
+    if kind == "prbs" and p["bit_s"] < period_s * (1 - 1e-9):
+        return "bit_s", f"must be >= the sample period {period_s:g} s", "lengthen bit_s"
     return None
 
 
@@ -145,32 +174,40 @@ def _constant(p, t):
 
 
 def _step(p, t):
-    return np.where(t < p["step_time_s"], p["initial"], p["final"]).astype(float)
+    return p["offset"] + p["amplitude"] * (t >= p["t_step_s"])
 
 
 def _ramp(p, t):
-    frac = np.clip((t - p["delay_s"]) / p["ramp_time_s"], 0.0, 1.0)
-    return p["start"] + (p["end"] - p["start"]) * frac
+    y = p["offset"] + p["slope"] * np.clip(t - p["t0_s"], 0.0, None)
+    if p["final"] is not None:
+        y = np.minimum(y, p["final"]) if p["slope"] > 0 else np.maximum(y, p["final"])
+    return y
 
 
 def _trapezoid(p, t):
-    rise, hold, fall, pause = p["rise_s"], p["hold_s"], p["fall_s"], p["pause_s"]
-    period = rise + hold + fall + pause
-    tau = np.mod(t, period) if p["repeat"] else np.clip(t, 0.0, period)
-    frac = np.interp(tau, [0.0, rise, rise + hold, rise + hold + fall, period], [0.0, 1.0, 1.0, 0.0, 0.0])
-    level = np.full_like(t, p["level"])
-    if p["alternate"]:
-        level = np.where(np.floor(t / period).astype(np.int64) % 2 == 1, -level, level)
-    return p["low"] + (level - p["low"]) * frac
+    ramp, hold, t0, rep = p["ramp_s"], p["hold_s"], p["t0_s"], p["repeat_s"]
+    width = 2 * ramp + hold
+    tau = t - t0
+    sign = np.ones_like(t)
+    if rep is not None:
+        if p["alternate"]:
+            sign = np.where(np.floor(np.maximum(tau, 0.0) / rep).astype(np.int64) % 2 == 1, -1.0, 1.0)
+        tau = np.where(tau >= 0, np.mod(tau, rep), tau)
+    shape = np.interp(tau, [0.0, ramp, ramp + hold, width], [0.0, 1.0, 1.0, 0.0], left=0.0, right=0.0)
+    return p["offset"] + p["amplitude"] * sign * shape
 
 
 def multisine_harmonics(p: dict) -> np.ndarray:
     """Harmonic numbers k with k/period_s in [f_min_hz, f_max_hz]."""
     period = p["period_s"]
+    if p.get("freqs_hz") is not None and (p["f_min_hz"] is not None or p["f_max_hz"] is not None):
+        return np.arange(0)  # ambiguous: check() reports it
+    if p.get("freqs_hz") is not None:
+        return np.array(sorted({int(round(f * period)) for f in p["freqs_hz"]}))
     k_lo = math.ceil(p["f_min_hz"] * period - 1e-9)
     k_hi = math.floor(p["f_max_hz"] * period + 1e-9)
     k_lo = max(k_lo, 1)
-    return np.arange(k_lo, k_hi + 1) if k_hi >= k_lo and k_hi - k_lo < 100_000 else np.arange(0)
+    return np.arange(k_lo, k_hi + 1) if k_hi >= k_lo else np.arange(0)
 
 
 def _multisine_phases(p: dict, n: int) -> np.ndarray:
@@ -180,18 +217,25 @@ def _multisine_phases(p: dict, n: int) -> np.ndarray:
     return -np.pi * k * (k - 1) / n    # Schroeder (1970), low crest factor
 
 
+@functools.lru_cache(maxsize=64)
+def _multisine_peak(harmonics: tuple, phases: tuple) -> float:
+    """Peak of sum_k sin(2 pi k u + phi_k) over one period u in [0, 1) (independent of period_s)."""
+    u = np.linspace(0.0, 1.0, min(200_000, max(4096, 40 * max(harmonics))), endpoint=False)
+    acc = np.zeros_like(u)
+    for k, ph in zip(harmonics, phases):
+        acc += np.sin(2 * np.pi * k * u + ph)
+    return float(np.max(np.abs(acc)))
+
+
 def _multisine_unit(p, t):
     """Sum of equal-amplitude tones, scaled so its peak over one period is 1."""
     k = multisine_harmonics(p)
     phi = _multisine_phases(p, len(k))
-    w = 2 * np.pi * k / p["period_s"]
-    grid = np.linspace(0.0, p["period_s"], max(4096, min(200_000, 40 * int(k[-1]))), endpoint=False)
-    peak = np.max(np.abs(np.sin(np.outer(grid, w) + phi).sum(axis=1)))
-    flat = t.reshape(-1)
-    acc = np.zeros_like(flat)
-    for wk, ph in zip(w, phi):   # loop over tones: memory stays O(len(t))
-        acc += np.sin(wk * flat + ph)
-    return (acc / peak).reshape(t.shape)
+    peak = _multisine_peak(tuple(int(x) for x in k), tuple(float(x) for x in phi))
+    acc = np.zeros_like(t)
+    for kk, ph in zip(k, phi):   # loop over tones: memory stays O(len(t))
+        acc += np.sin(2 * np.pi * kk * t / p["period_s"] + ph)
+    return acc / peak
 
 
 def _multisine(p, t):
@@ -199,9 +243,9 @@ def _multisine(p, t):
 
 
 def _chirp(p, t):
-    s, f0, f1 = p["sweep_s"], p["f0_hz"], p["f1_hz"]
+    s, f0, f1 = p["t1_s"], p["f0_hz"], p["f1_hz"]
     tau = np.mod(t, s) if p["repeat"] else np.clip(t, 0.0, s)
-    if p["method"] == "logarithmic":
+    if p["method"] == "log" and f1 != f0:
         ratio = f1 / f0
         phase = 2 * np.pi * f0 * s / math.log(ratio) * (np.power(ratio, tau / s) - 1.0)
     else:
@@ -218,10 +262,11 @@ _TAPS = {3: (3, 2), 4: (4, 3), 5: (5, 3), 6: (6, 5), 7: (7, 6), 8: (8, 6, 5, 4),
          15: (15, 14), 16: (16, 15, 13, 4)}
 
 
-def prbs_bits(order: int, seed: int = 1) -> np.ndarray:
-    """One period (2^order - 1 bits, 0/1) of a maximum-length sequence."""
+@functools.lru_cache(maxsize=16)
+def prbs_bits(order: int, seed: int = 0) -> np.ndarray:
+    """One period (2^order - 1 bits, 0/1) of a maximum-length sequence (read-only, cached)."""
     n = 2 ** order - 1
-    state = seed & n or 1
+    state = seed % n + 1   # any non-zero start state
     bits = np.empty(n, dtype=np.int8)
     taps = _TAPS[order]
     for i in range(n):
@@ -230,12 +275,13 @@ def prbs_bits(order: int, seed: int = 1) -> np.ndarray:
         for tap in taps:
             fb ^= (state >> (order - tap)) & 1
         state = (state >> 1) | (fb << (order - 1))
+    bits.setflags(write=False)
     return bits
 
 
 def _prbs(p, t):
     bits = prbs_bits(p["order"], p["seed"])
-    idx = np.floor(np.maximum(t, 0.0) / p["bit_period_s"] + 1e-9).astype(np.int64) % len(bits)
+    idx = np.floor(np.maximum(t, 0.0) / p["bit_s"] + 1e-9).astype(np.int64) % len(bits)
     return p["offset"] + p["amplitude"] * (2.0 * bits[idx] - 1.0)
 
 

@@ -22,7 +22,7 @@ from ..errors import ProfileError
 Path_ = tuple  # a location inside the document: ("motors", "in", "kt_datasheet") or ("steps", 2)
 
 
-class _Loader(yaml.SafeLoader):
+class _Loader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # libyaml's parser is ~10x faster
     """SafeLoader whose float resolver also accepts ``1e-5`` and ``3E2``."""
 
 
@@ -38,15 +38,25 @@ _Loader.add_implicit_resolver(
     list("-+0123456789."))
 
 
+_PLAIN_KEY = re.compile(r"[^\s.\[\]'\"]{1,40}")
+
+
 def format_path(path: Path_) -> str:
-    """``("steps", 2, "motor")`` -> ``steps[2].motor``."""
+    """``("steps", 2, "motor")`` -> ``steps[2].motor``; odd keys are quoted: ``motors['a b']``."""
     out = ""
     for part in path:
         if isinstance(part, int):
             out += f"[{part}]"
+        elif _PLAIN_KEY.fullmatch(part):
+            out += ("." if out else "") + part
         else:
-            out += ("." if out else "") + str(part)
+            out += f"[{one_line(repr(part[:40]))}]"
     return out or "<document>"
+
+
+def one_line(text: str) -> str:
+    """Messages are one line: escape line breaks and other control characters."""
+    return "".join(ch if ch.isprintable() else repr(ch)[1:-1] for ch in text)
 
 
 @dataclass
@@ -80,13 +90,13 @@ class MarkedDoc:
         msg = f"{self.filename}:{line}:{col}: {format_path(path)}: {problem}"
         if fix:
             msg += f"; {fix}"
-        return ProfileError(msg)
+        return ProfileError(one_line(msg))
 
 
 def did_you_mean(word: str, choices) -> str:
     """``"did you mean 'rated_current_a'?"`` or a list of the allowed words."""
     choices = sorted(str(c) for c in choices)
-    close = difflib.get_close_matches(str(word), choices, n=1, cutoff=0.6)
+    close = difflib.get_close_matches(str(word)[:80], choices, n=1, cutoff=0.6)
     if close:
         return f"did you mean '{close[0]}'?"
     return "allowed: " + ", ".join(choices) if choices else "remove it"
@@ -106,16 +116,21 @@ def load_with_marks(text: str, filename: str) -> MarkedDoc:
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         line, col = (mark.line + 1, mark.column + 1) if mark else (1, 1)
-        problem = exc.problem or exc.context or "invalid YAML"
+        problem = one_line(exc.problem or exc.context or "invalid YAML")
         raise ProfileError(f"{filename}:{line}:{col}: YAML syntax error: {problem}; "
                            f"fix the indentation/quoting at that position") from None
+    except RecursionError:
+        raise ProfileError(f"{filename}:1:1: YAML nested too deeply; flatten the profile") from None
     except yaml.YAMLError as exc:  # e.g. reader errors (control characters)
-        raise ProfileError(f"{filename}:1:1: unreadable YAML: {str(exc).splitlines()[0]}; "
+        raise ProfileError(f"{filename}:1:1: unreadable YAML: {one_line(str(exc).splitlines()[0])}; "
                            f"save the profile as plain UTF-8 text") from None
     doc = MarkedDoc(filename, None)
     if root is None:
         return doc
-    doc.data = _convert(loader, root, (), doc, set())
+    try:
+        doc.data = _convert(loader, root, (), doc, set())
+    except RecursionError:
+        raise ProfileError(f"{filename}:1:1: YAML nested too deeply; flatten the profile") from None
     return doc
 
 
@@ -154,13 +169,13 @@ def _convert(loader: _Loader, node, path: Path_, doc: MarkedDoc, active: set):
                 key = None
             if not isinstance(key, str):
                 line, col = _mark(key_node)
-                raise ProfileError(f"{doc.filename}:{line}:{col}: {format_path(path)}: key "
-                                   f"'{key_node.value}' is not text (YAML reads it as "
-                                   f"{type(key).__name__}); quote it, e.g. \"{key_node.value}\":")
+                raise ProfileError(one_line(f"{doc.filename}:{line}:{col}: {format_path(path)}: key "
+                                            f"'{key_node.value}' is not text (YAML reads it as "
+                                            f"{type(key).__name__}); quote it, e.g. \"{key_node.value}\":"))
             if key in out:
                 line, col = _mark(key_node)
-                raise ProfileError(f"{doc.filename}:{line}:{col}: {format_path(path + (key,))}: "
-                                   f"duplicate key; keep only one '{key}:'")
+                raise ProfileError(one_line(f"{doc.filename}:{line}:{col}: {format_path(path + (key,))}: "
+                                            f"duplicate key; keep only one '{key}:'"))
             doc.key_marks[path + (key,)] = _mark(key_node)
             out[key] = _convert(loader, value_node, path + (key,), doc, active)
         return out

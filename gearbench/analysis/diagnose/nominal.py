@@ -193,10 +193,25 @@ def fit_windows(sig: Signals, mask: np.ndarray) -> Windows:
 def integrated_rows(sig: Signals, F: np.ndarray, win: Windows):
     """Rows of the integrated equation error: dw = dt * sum(F) over each window."""
     L, s = win.length, win.start
-    cum = np.vstack([np.zeros((1, F.shape[1])), np.cumsum(F, axis=0)])
-    X = sig.dt_s * (cum[s + L] - cum[s])
+    X = np.empty((len(s), F.shape[1]))
+    for j in range(F.shape[1]):
+        cum = np.concatenate([[0.0], np.cumsum(F[:, j])])
+        X[:, j] = sig.dt_s * (cum[s + L] - cum[s])
     y = sig.velocity_rad_s[s + L] - sig.velocity_rad_s[s]
     return X, y
+
+
+_ROWS_CACHE: dict = {}
+
+
+def _term_rows(sig: Signals, term: Term, win: Windows):
+    """Integrated rows of one term, cached: grid scans reuse the nominal's columns."""
+    key = (id(sig), id(win), term)
+    if key not in _ROWS_CACHE:
+        if len(_ROWS_CACHE) > 32:
+            _ROWS_CACHE.clear()
+        _ROWS_CACHE[key] = integrated_rows(sig, measured_features(sig, [term]), win)
+    return _ROWS_CACHE[key]
 
 
 def solve(X: np.ndarray, y: np.ndarray, overlap: float = 4.0):
@@ -221,8 +236,9 @@ def fit_model(sig: Signals, terms, win: Windows, fixed: dict[int, float] | None 
     ``fixed`` maps coefficient index -> value kept constant (a given nominal model).
     Returns the model and the residual sum of squares (for grid scans).
     """
-    F = measured_features(sig, terms)
-    X, y = integrated_rows(sig, F, win)
+    parts = [_term_rows(sig, t, win) for t in terms]
+    X = np.hstack([p[0] for p in parts])
+    y = parts[0][1]
     fixed = fixed or {}
     free = [j for j in range(X.shape[1]) if j not in fixed]
     coef = np.zeros(X.shape[1])
@@ -308,8 +324,10 @@ class GivenNominal(Term):
     kt_over_j: float = 0.0
     d_over_j: float = 0.0
     c_over_j: float = 0.0
+    delay: int = 0
+    sat_a: float = 0.0
 
     def simulate(self, sig, theta, omega, idx, state):
-        i0, i1 = CurrentTaps()._i(sig)
+        i0, i1 = CurrentTaps(delay=self.delay, sat_a=self.sat_a)._i(sig)
         base = self.kt_over_j * i0[idx] - self.d_over_j * omega - self.c_over_j * theta
         return [base, self.kt_over_j * (i1[idx] - i0[idx])]

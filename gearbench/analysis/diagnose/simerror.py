@@ -115,10 +115,25 @@ def lattice_step(theta: np.ndarray, max_divisor: int = 64) -> float | None:
     x = theta - theta[0]
     for k in range(1, max_divisor + 1):
         q = dmin / k
+        if q < 1e-7:
+            break
+        for span in (1e3, 1e5, np.inf):  # refine q on ever wider ranges (file rounding)
+            near = np.abs(x / q) < span
+            n = np.round(x[near] / q)
+            if np.any(n):
+                q = float(np.sum(x[near] * n) / np.sum(n * n))
         frac = x / q - np.round(x / q)
-        if np.max(np.abs(frac)) < 0.05 and q > 1e-7:
+        if np.max(np.abs(frac)) < 0.05:
             return q
     return None
+
+
+def velocity_noise(angle_noise_rad: float, dt_s: float) -> float:
+    """Std of the SG velocity estimate for white angle noise (noise gain ||h||/dt)."""
+    w = VELOCITY_WINDOW
+    k = np.arange(w) - w // 2
+    gain = np.sqrt(np.sum((k / np.sum(k ** 2)) ** 2))
+    return float(angle_noise_rad * gain / dt_s)
 
 
 def noise_floor(sig: Signals, kt_over_j: float, horizon: int) -> NoiseFloor:
@@ -128,10 +143,7 @@ def noise_floor(sig: Signals, kt_over_j: float, horizon: int) -> NoiseFloor:
     q = lattice_step(sig.position_rad)
     if q:  # a quantised angle: uniform noise of one step (the residual misses it at low speed)
         s_th = max(s_th, q / np.sqrt(12.0))
-    w = VELOCITY_WINDOW
-    k = np.arange(w) - w // 2
-    gain = np.sqrt(np.sum((k / np.sum(k ** 2)) ** 2))
-    s_w = s_th * gain / sig.dt_s
+    s_w = velocity_noise(s_th, sig.dt_s)
     m = np.arange(1, horizon + 1)
     var = m * (kt_over_j * sig.dt_s * s_i) ** 2 + 2 * s_w ** 2
     return NoiseFloor(s_i, float(s_w), var)

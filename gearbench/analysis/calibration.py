@@ -1,0 +1,157 @@
+"""Motor calibration: two runs (alone, with a known disk) → Kt, J, D, Tc.
+
+``calibrate_motor`` is what the sequencer and ``gearbench calibrate`` call.
+``MotorCalibration.to_dict()`` is exactly the ``calibrate --json`` object and
+``from_dict`` reads it back (``efficiency --motor-in IN.json``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import GearbenchError
+from ..trace import Trace
+from .identify import C_J, D_J, KT_J, TC_J, IdentificationResult, identify_trace
+from .torque_constant import torque_constant
+
+REQUIRED_KEYS = ("Kt", "J", "D", "Tc")
+
+
+@dataclass(frozen=True)
+class MotorCalibration:
+    """One motor's identified model ``J θ'' + D θ' + Tc s(θ') = Kt i`` (SI units).
+
+    ``loss_covariance`` is the 2x2 covariance of (D, Tc): with one rotation direction
+    they trade off against each other, and only their combination at the operating
+    speed, ``D ω + Tc``, is well known.
+    """
+
+    Kt: float
+    Kt_ci95: tuple[float, float]
+    J: float
+    D: float
+    Tc: float
+    method: str
+    fit: dict = field(default_factory=dict)
+    loss_covariance: tuple[tuple[float, float], tuple[float, float]] = ((0.0, 0.0), (0.0, 0.0))
+
+    @property
+    def Kt_std(self) -> float:
+        """Standard uncertainty implied by the 95 % interval (normal approximation)."""
+        lo, hi = self.Kt_ci95
+        return max(hi - lo, 0.0) / (2 * 1.96)
+
+    def loss_torque_nm(self, speed_rad_s: float) -> float:
+        """Friction torque D ω + Tc sign(ω) the motor itself consumes at ``speed_rad_s``."""
+        return self.D * speed_rad_s + self.Tc * float(np.sign(speed_rad_s))
+
+    def to_dict(self) -> dict:
+        return {"Kt": self.Kt, "Kt_ci95": list(self.Kt_ci95), "J": self.J, "D": self.D,
+                "Tc": self.Tc, "method": self.method,
+                "fit": {**self.fit, "loss_covariance": [list(r) for r in self.loss_covariance]}}
+
+    @classmethod
+    def from_dict(cls, d: dict, where: str = "calibration") -> "MotorCalibration":
+        """Read a ``calibrate --json`` object; raise naming ``where`` and the key."""
+        if not isinstance(d, dict):
+            raise GearbenchError(f"{where}: expected a JSON object from 'gearbench calibrate "
+                                 f"--json', got {type(d).__name__}")
+        missing = [k for k in REQUIRED_KEYS if k not in d]
+        if missing:
+            raise GearbenchError(f"{where}: missing key(s) {', '.join(missing)}; use the output of "
+                                 f"'gearbench calibrate --json' or pass --kt-in/--kt-out")
+        vals = {}
+        for k in REQUIRED_KEYS:
+            v = d[k]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+                raise GearbenchError(f"{where}: key '{k}' must be a finite number, got {v!r}")
+            vals[k] = float(v)
+        if vals["Kt"] <= 0:
+            raise GearbenchError(f"{where}: Kt = {vals['Kt']} must be positive; recalibrate")
+        ci = d.get("Kt_ci95", [vals["Kt"], vals["Kt"]])
+        try:
+            lo, hi = (float(ci[0]), float(ci[1]))
+        except (TypeError, ValueError, IndexError, KeyError):
+            raise GearbenchError(f"{where}: key 'Kt_ci95' must be [low, high], got {ci!r}") from None
+        fit = dict(d.get("fit") or {})
+        cov = fit.pop("loss_covariance", None)
+        try:
+            loss_cov = tuple(tuple(float(x) for x in row) for row in cov) if cov else ((0.0, 0.0), (0.0, 0.0))
+            assert len(loss_cov) == 2 and all(len(r) == 2 for r in loss_cov)
+        except (TypeError, ValueError, AssertionError):
+            raise GearbenchError(f"{where}: 'fit.loss_covariance' must be a 2x2 list") from None
+        return cls(vals["Kt"], (lo, hi), vals["J"], vals["D"], vals["Tc"],
+                   str(d.get("method", "unknown")), fit, loss_cov)
+
+    @classmethod
+    def from_kt(cls, kt: float, where: str = "--kt") -> "MotorCalibration":
+        """Kt only (no losses known): absolute efficiency then ignores the motor's friction."""
+        if not (np.isfinite(kt) and kt > 0):
+            raise GearbenchError(f"{where}: torque constant must be a positive number of N m/A, got {kt}")
+        return cls(float(kt), (float(kt), float(kt)), float("nan"), 0.0, 0.0, "given")
+
+
+def calibrate_from_fits(unloaded: IdentificationResult, loaded: IdentificationResult,
+                        disk_kgm2: float, *, unloaded_name: str = "unloaded run",
+                        loaded_name: str = "loaded run") -> MotorCalibration:
+    """Kt by corrected eq. 17, J = Kt/b2~, and D, Tc as the inverse-variance mean of
+    the two runs' (D/J)·J and (Tc/J)·J."""
+    kt = torque_constant(unloaded, loaded, disk_kgm2, unloaded_name=unloaded_name,
+                         loaded_name=loaded_name)
+    J = kt.rotor_inertia_kgm2
+    ests = []
+    for fit, inertia in ((unloaded, J), (loaded, J + disk_kgm2)):
+        names = fit.names
+        idx = [names.index(n) if n in names else None for n in (D_J, TC_J)]
+        v = np.array([fit.values[k] if k is not None else 0.0 for k in idx]) * inertia
+        c = np.zeros((2, 2))
+        for a, ka in enumerate(idx):
+            for b, kb in enumerate(idx):
+                if ka is not None and kb is not None:
+                    c[a, b] = fit.covariance[ka, kb] * inertia ** 2
+        ests.append((v, c))
+    (v1, c1), (v2, c2) = ests
+    try:
+        w1, w2 = np.linalg.inv(c1 + 1e-30 * np.eye(2)), np.linalg.inv(c2 + 1e-30 * np.eye(2))
+        cov = np.linalg.inv(w1 + w2)
+        v = cov @ (w1 @ v1 + w2 @ v2)
+    except np.linalg.LinAlgError:
+        v, cov = (v1 + v2) / 2, (c1 + c2) / 4
+    if not np.all(np.isfinite(v)):
+        v, cov = (v1 + v2) / 2, (c1 + c2) / 4
+    fit = {
+        "b2_unloaded": unloaded.b2, "b2_loaded": loaded.b2,
+        "b2_std_unloaded": unloaded.b2_std, "b2_std_loaded": loaded.b2_std,
+        "Kt_std": kt.torque_constant_std, "J_std": kt.rotor_inertia_std, "dof": kt.dof,
+        "r2": min(unloaded.r2, loaded.r2), "rmse": max(unloaded.rmse, loaded.rmse),
+        "n_samples": unloaded.n_samples + loaded.n_samples,
+        "condition": max(unloaded.condition, loaded.condition),
+        "disk_inertia_kgm2": disk_kgm2,
+        "unloaded": _fit_summary(unloaded), "loaded": _fit_summary(loaded),
+    }
+    if C_J in unloaded.names:
+        fit["C"] = unloaded.value(C_J) * J
+    return MotorCalibration(
+        Kt=kt.torque_constant_nm_a, Kt_ci95=kt.torque_constant_ci95, J=J,
+        D=float(v[0]), Tc=float(v[1]), method=unloaded.method, fit=fit,
+        loss_covariance=tuple(tuple(float(x) for x in r) for r in cov))
+
+
+def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
+                    method: str = "default", **options) -> MotorCalibration:
+    """Identify both runs with ``method`` (``default``, ``paper``, ``paper-15ms``) and
+    combine them (corrected eq. 17). Raises GearbenchError subclasses on bad input."""
+    if not (np.isfinite(disk_kgm2) and disk_kgm2 > 0):
+        raise GearbenchError(f"inertia must be > 0 kg m^2 (got {disk_kgm2}); pass the disk's "
+                             f"inertia, e.g. --inertia 1.5e-5")
+    fu = identify_trace(unloaded, method=method, **options)
+    fl = identify_trace(loaded, method=method, **options)
+    return calibrate_from_fits(fu, fl, disk_kgm2, unloaded_name=unloaded.source,
+                               loaded_name=loaded.source)
+
+
+def _fit_summary(f: IdentificationResult) -> dict:
+    return {"b2": f.b2, "b2_std": f.b2_std, "params": dict(zip(f.names, f.values)),
+            "r2": f.r2, "rmse": f.rmse, "n_samples": f.n_samples, "condition": f.condition,
+            "dof": f.dof, **{k: v for k, v in f.extras.items() if isinstance(v, (int, float))}}

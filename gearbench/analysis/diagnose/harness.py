@@ -1,0 +1,143 @@
+"""Injection harness: each effect, at several amplitudes and under several excitations,
+put into the simulated motor (``gearbench.sim.simulate_motor``) and diagnosed blind.
+
+The diagnoser sees only ``time_s, position_rad, current_a, command`` (truth, the
+drive's velocity estimate and the simulation metadata are stripped).  The base motor
+has every effect off (the paper's model plus the drive, sensors and noise); clean
+controls are that base motor.  ``inertia_mismatch`` is diagnosed against the motor's
+own model (Kt, J, D without the added disk) given as the nominal, as a user with an
+earlier calibration would.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ...sim import MotorParams, simulate_motor, waveforms
+from ...trace import Trace
+from .nominal import GivenModel
+from .pipeline import Diagnosis, diagnose
+
+DURATION_S = 6.0
+EXCITATIONS = ("multisine", "reversing", "sweep_slow")
+
+#: effect -> (MotorParams changes per amplitude level low/moderate/high, extra kwargs)
+INJECTIONS: dict[str, list[dict]] = {
+    "coulomb_friction": [{"Tc": 0.002}, {"Tc": 0.005}, {"Tc": 0.01}],
+    "stribeck_friction": [{"Ts": 0.002}, {"Ts": 0.005}, {"Ts": 0.01}],
+    "cogging": [{"cog_amp": 0.0005}, {"cog_amp": 0.0015}, {"cog_amp": 0.003}],
+    "torque_ripple": [{"ripple_amp": 0.02}, {"ripple_amp": 0.05}, {"ripple_amp": 0.1}],
+    "current_offset": [{"current_offset_a": 0.01}, {"current_offset_a": 0.03},
+                       {"current_offset_a": 0.08}],
+    "time_delay": [{"delay_samples": 1}, {"delay_samples": 2}, {"delay_samples": 4}],
+    "kt_saturation": [{"kt_sat_a": 3.0}, {"kt_sat_a": 1.5}, {"kt_sat_a": 0.8}],
+    "shaft_compliance": [{"shaft_stiffness": 2.0, "shaft_damping": 2e-4},
+                         {"shaft_stiffness": 0.5, "shaft_damping": 1e-4},
+                         {"shaft_stiffness": 0.15, "shaft_damping": 5e-5}],
+    "backlash": [{"backlash_rad": 0.005}, {"backlash_rad": 0.02}, {"backlash_rad": 0.05}],
+    "encoder_quantization": [{"counts_per_rev": 4000}, {"counts_per_rev": 1000},
+                             {"counts_per_rev": 500}],
+    "inertia_mismatch": [{"_disk": 1.5e-6}, {"_disk": 5e-6}, {"_disk": 1.5e-5}],
+}
+#: Effects that need a disk on the shaft to exist at all.
+DISK_KGM2 = {"shaft_compliance": 1.5e-5, "backlash": 1.5e-5}
+LEVELS = ("low", "moderate", "high")
+
+
+def clean_motor(seed: int = 0) -> MotorParams:
+    """A motor with every unmodelled effect off; Kt and J vary with the seed."""
+    rng = np.random.default_rng(1000 + seed)
+    return MotorParams(Kt=float(rng.uniform(0.04, 0.07)), J=float(rng.uniform(1e-5, 2.5e-5)),
+                       D=float(rng.uniform(1e-6, 4e-6)), Tc=0.0, cog_amp=0.0)
+
+
+def excitation(kind: str, seed: int = 0, duration_s: float = DURATION_S) -> np.ndarray:
+    """Speed command (rad/s): one-way multisine, reversing multisine, slow sweep."""
+    t = waveforms.time_base(duration_s)
+    rng = np.random.default_rng(seed)
+    if kind == "multisine":
+        f = np.sort(rng.uniform(0.3, 6.0, 5))
+        return waveforms.multisine(t, amplitude=110.0, freqs_hz=f, offset=165.0, seed=seed)
+    if kind == "reversing":
+        f = np.sort(rng.uniform(0.3, 3.0, 4))
+        return waveforms.multisine(t, amplitude=150.0, freqs_hz=f, offset=0.0, seed=seed)
+    if kind == "sweep_slow":
+        return waveforms.ramp(t, slope=290.0 / duration_s, offset=10.0)
+    raise ValueError(f"unknown excitation {kind!r}")
+
+
+@dataclass(frozen=True)
+class Case:
+    effect: str | None          # None = clean control
+    level: str
+    excitation: str
+    seed: int
+    changes: dict
+
+
+@dataclass(frozen=True)
+class Outcome:
+    case: Case
+    diagnosis: Diagnosis
+
+    @property
+    def called(self) -> str | None:
+        return self.diagnosis.verdict.effect
+
+    @property
+    def isolated(self) -> bool:
+        return self.called == self.case.effect
+
+    @property
+    def detected(self) -> bool:
+        """Right, or named among the effects this data cannot tell apart."""
+        return self.isolated or (self.case.effect is not None and
+                                 self.case.effect in self.diagnosis.verdict.confused_with)
+
+    @property
+    def true_shrink(self) -> float | None:
+        for c in self.diagnosis.candidates:
+            if c.effect == self.case.effect:
+                return c.shrink
+        return None
+
+
+def cases(effects=None, levels=LEVELS, excitations=EXCITATIONS, seeds=(0,), clean_seeds=(0, 1, 2)):
+    out = []
+    for eff in (effects if effects is not None else list(INJECTIONS)):
+        for li, lev in enumerate(LEVELS):
+            if lev not in levels:
+                continue
+            for ex in excitations:
+                for s in seeds:
+                    out.append(Case(eff, lev, ex, s, INJECTIONS[eff][li]))
+    for ex in excitations:
+        for s in clean_seeds:
+            out.append(Case(None, "-", ex, s, {}))
+    return out
+
+
+def blind_trace(case: Case) -> tuple[Trace, GivenModel | None]:
+    """Simulate a case; return only what a rig records, plus a given model if any."""
+    motor = clean_motor(case.seed)
+    changes = dict(case.changes)
+    disk = changes.pop("_disk", DISK_KGM2.get(case.effect or "", 0.0))
+    if case.effect == "cogging":
+        changes["cog_order"] = (6, 10, 8)[case.seed % 3]
+    if case.effect == "torque_ripple":
+        changes["ripple_order"] = (6, 12, 4)[case.seed % 3]
+    motor = replace(motor, **changes)
+    cmd = excitation(case.excitation, case.seed)
+    tr = simulate_motor(motor, cmd, mode="velocity", disk_kgm2=disk, seed=case.seed)
+    blind = Trace(tr.time_s, {k: tr[k] for k in ("position_rad", "current_a", "command")},
+                  {}, source=f"<injected {case.effect or 'clean'} {case.level} {case.excitation}>")
+    given = None
+    if case.effect == "inertia_mismatch":
+        given = GivenModel(motor.Kt / motor.J, motor.D / motor.J, 0.0, "<motor model>")
+    return blind, given
+
+
+def run_case(case: Case) -> Outcome:
+    trace, given = blind_trace(case)
+    return Outcome(case, diagnose(trace, given))

@@ -1,0 +1,150 @@
+"""Scoring candidates on held-out data, ranking them, naming confusable pairs.
+
+Per candidate, on the held-out horizons only:
+  * ``nrmse_before``/``nrmse_after``: RMS simulation error of the nominal / augmented
+    model over the RMS of the measured velocity;
+  * ``shrink`` = 1 - gap_after/gap_before, where gap = sqrt(max(MSE - floor, 0)) is
+    the error in excess of the data's noise floor (1 = the gap is closed);
+  * ``delta_bic`` = n ln(MSE_after/MSE_before) + dk ln n, n = held-out horizons
+    (Schwarz 1978; negative favours the candidate);
+  * ``significant``: very strong evidence by BIC (dBIC < -BIC_STRONG, Kass & Raftery
+    1995), a consistent reduction (paired t over horizons > T_CRIT; an effect that
+    shows only in part of the trace, e.g. cogging at low speed, keeps t modest), and a
+    reduction of at least MATERIAL of the noise-floor MSE.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: Paired t statistic a candidate's improvement must exceed.
+T_CRIT = 2.0
+#: dBIC below -BIC_STRONG is "very strong" evidence (Kass & Raftery 1995).
+BIC_STRONG = 10.0
+#: Smallest MSE reduction that counts, as a fraction of the noise-floor MSE.
+MATERIAL = 0.1
+#: Below this paired t, two candidates' held-out errors are indistinguishable ...
+T_CONFUSED = 2.0
+#: ... and so they are when one closes the gap within this much of the other.
+SHRINK_CONFUSED = 0.1
+
+#: Which experiment separates two confusable effects (unordered pairs).
+EXPERIMENTS: dict[frozenset, str] = {
+    frozenset({"coulomb_friction", "current_offset"}):
+        "add velocity reversals (or speed steps through zero): Coulomb friction flips "
+        "sign with the direction of motion, a current-sensor offset does not",
+    frozenset({"coulomb_friction", "stribeck_friction"}):
+        "run slow constant-speed steps near zero speed (0.5-20 rad/s): Stribeck friction "
+        "falls with speed, Coulomb friction does not",
+    frozenset({"stribeck_friction", "current_offset"}):
+        "add velocity reversals and slow speed steps: an offset is independent of speed "
+        "and direction",
+    frozenset({"cogging", "torque_ripple"}):
+        "repeat a slow sweep at two load or acceleration levels: ripple scales with "
+        "current, cogging does not",
+    frozenset({"time_delay", "shaft_compliance"}):
+        "excite with current steps or a broadband multisine: a delay shifts all "
+        "frequencies alike, a compliant shaft shows a resonance",
+    frozenset({"time_delay", "backlash"}):
+        "excite with steps and torque reversals: backlash shows only at reversals",
+    frozenset({"shaft_compliance", "backlash"}):
+        "excite with torque reversals at small amplitude: backlash shows a dead band "
+        "at each reversal, a shaft stays linear",
+    frozenset({"kt_saturation", "inertia_mismatch"}):
+        "repeat at two current amplitudes: saturation depends on current level, an "
+        "inertia error does not",
+    frozenset({"kt_saturation", "coulomb_friction"}):
+        "repeat at two current amplitudes in one direction: saturation grows with "
+        "current, friction does not",
+}
+DEFAULT_EXPERIMENT = ("record a richer excitation (speed reversals, slow sweep, steps at "
+                      "two current levels) and diagnose again")
+
+
+@dataclass(frozen=True)
+class Score:
+    """One candidate scored on the held-out horizons."""
+
+    effect: str
+    params: dict
+    nrmse_before: float
+    nrmse_after: float
+    shrink: float
+    delta_bic: float
+    significant: bool
+    t_stat: float
+    mse_h: np.ndarray = field(repr=False)
+    nominal_shift: dict = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        return {"effect": self.effect, "params": self.params,
+                "nrmse_before": self.nrmse_before, "nrmse_after": self.nrmse_after,
+                "shrink": self.shrink, "delta_bic": self.delta_bic,
+                "significant": self.significant, "t_stat": self.t_stat,
+                "nominal_shift": self.nominal_shift}
+
+
+def paired_t(before_h: np.ndarray, after_h: np.ndarray) -> float:
+    """t statistic of the mean per-horizon reduction before - after."""
+    d = before_h - after_h
+    n = len(d)
+    if n < 3:
+        return 0.0
+    sd = float(np.std(d, ddof=1))
+    if sd == 0.0:
+        return 0.0 if float(np.mean(d)) == 0.0 else float(np.sign(np.mean(d)) * np.inf)
+    return float(np.mean(d) / (sd / np.sqrt(n)))
+
+
+def excess(mse: float, floor_mse: float) -> float:
+    return float(np.sqrt(max(mse - floor_mse, 0.0)))
+
+
+def score(effect: str, params: dict, before_h: np.ndarray, after_h: np.ndarray,
+          extra_params: int, floor_mse: float, velocity_rms: float,
+          nominal_shift: dict | None = None) -> Score:
+    """Score one candidate against the nominal on the same held-out horizons."""
+    n = len(before_h)
+    b, a = float(np.mean(before_h)), float(np.mean(after_h))
+    gb, ga = excess(b, floor_mse), excess(a, floor_mse)
+    shrink = 1.0 - ga / gb if gb > 0 else 0.0
+    dbic = n * np.log(max(a, 1e-300) / max(b, 1e-300)) + extra_params * np.log(max(n, 2))
+    t = paired_t(before_h, after_h)
+    sig = bool(t > T_CRIT and dbic < -BIC_STRONG and (b - a) > MATERIAL * floor_mse)
+    return Score(effect, params, float(np.sqrt(b)) / velocity_rms,
+                 float(np.sqrt(a)) / velocity_rms, float(shrink), float(dbic), sig, float(t),
+                 after_h, nominal_shift or {})
+
+
+@dataclass(frozen=True)
+class Verdict:
+    effect: str | None
+    confused_with: list[str]
+    experiment: str | None
+
+    def as_dict(self) -> dict:
+        return {"effect": self.effect, "confused_with": self.confused_with,
+                "experiment": self.experiment}
+
+
+def rank(scores: list[Score]) -> list[Score]:
+    """Significant first, then by dBIC on held-out data (which charges each extra
+    parameter and scanned setting, so between look-alikes the simpler effect wins)."""
+    return sorted(scores, key=lambda s: (not s.significant, s.delta_bic, s.nrmse_after))
+
+
+def verdict(ranked: list[Score]) -> Verdict:
+    """Name the best significant effect (or none) and those the data cannot tell apart."""
+    if not ranked or not ranked[0].significant:
+        return Verdict(None, [], None)
+    best = ranked[0]
+    confused = [s.effect for s in ranked[1:]
+                if s.significant and (paired_t(s.mse_h, best.mse_h) < T_CONFUSED
+                                      or s.shrink >= best.shrink - SHRINK_CONFUSED)]
+    experiment = None
+    if confused:
+        texts = [EXPERIMENTS.get(frozenset({best.effect, c}), DEFAULT_EXPERIMENT)
+                 for c in confused]
+        experiment = "; ".join(dict.fromkeys(texts))
+    return Verdict(best.effect, confused, experiment)

@@ -1,0 +1,278 @@
+"""Reducer efficiency from a two-motor bench trace (paper eq. 18 and P_out/P_in).
+
+The bench: input motor in speed control, output motor in current control stepping
+through braking currents (``out_command`` < 0), zero-load levels (``out_command`` = 0)
+first and last. Steady windows come from the command columns; zero-load windows are
+the reference, every loaded window is one point, in trace order.
+
+Per point
+    incremental (eq. 18)  η = K_out·Δi_out / (n·K_in·Δi_in), written with signs as
+                          η = −K_out·Δi_out / (n_s·K_in·Δi_in), n_s = ω_in/ω_out signed,
+                          because a braking output current is negative. The reducer's
+                          no-load loss cancels in Δi (reference interpolated in time
+                          between the zero-load windows before and after, cancelling drift).
+    absolute              P_in  = (Kt_in·i_in − D_in·ω_in − Tc_in·s(ω_in))·ω_in   at the input shaft
+                          P_out = (−Kt_out·i_out + D_out·ω_out + Tc_out·s(ω_out))·ω_out
+                          (the output motor's own friction is also driven by the shaft).
+Uncertainty: first-order propagation of the window means' standard errors (block
+means, so ripple and coloured noise count), the Kt intervals, the (D, Tc)
+covariances and the ratio.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import ExcitationError, GearbenchError, TraceError
+from ..trace import BENCH_COLUMNS, Trace
+from .calibration import MotorCalibration
+
+Z95 = 1.96
+
+
+@dataclass(frozen=True)
+class SteadyWindow:
+    """One steady command level after dropping the settle time."""
+
+    start: int                    # first sample index (inclusive)
+    stop: int                     # last sample index (exclusive)
+    t_mid_s: float
+    in_command: float
+    out_command: float
+    current_in_a: float
+    current_in_sem: float         # standard error of the mean
+    current_out_a: float
+    current_out_sem: float
+    speed_in_rad_s: float
+    speed_out_rad_s: float
+
+    @property
+    def is_reference(self) -> bool:
+        return self.out_command == 0.0
+
+
+@dataclass(frozen=True)
+class EfficiencyPoint:
+    window: SteadyWindow
+    speed_in_rad_s: float
+    torque_in_nm: float           # delivered into the input shaft, along its rotation
+    torque_out_nm: float          # delivered by the output shaft, along its rotation (load)
+    delta_current_in_a: float
+    delta_current_out_a: float
+    eta_incremental: float
+    eta_incremental_ci95: tuple[float, float]
+    eta_absolute: float
+    eta_absolute_ci95: tuple[float, float]
+    power_in_w: float
+    power_out_w: float
+
+    def to_dict(self) -> dict:
+        w = self.window
+        return {"eta_incremental": self.eta_incremental,
+                "eta_incremental_ci95": list(self.eta_incremental_ci95),
+                "eta_absolute": self.eta_absolute, "eta_absolute_ci95": list(self.eta_absolute_ci95),
+                "speed_in_rad_s": self.speed_in_rad_s, "torque_out_nm": self.torque_out_nm,
+                "torque_in_nm": self.torque_in_nm, "power_in_w": self.power_in_w,
+                "power_out_w": self.power_out_w, "out_command": w.out_command,
+                "in_command": w.in_command, "delta_current_in_a": self.delta_current_in_a,
+                "delta_current_out_a": self.delta_current_out_a,
+                "t_mid_s": w.t_mid_s}
+
+
+@dataclass(frozen=True)
+class EfficiencyResult:
+    ratio: float                  # |n| used
+    ratio_sign: float             # +1 same direction, −1 the reducer reverses
+    ratio_measured: float         # |n| from the encoders
+    points: tuple[EfficiencyPoint, ...]
+    references: tuple[SteadyWindow, ...]
+
+    def to_dict(self) -> dict:
+        return {"ratio": self.ratio, "ratio_measured": self.ratio_measured,
+                "direction": "same" if self.ratio_sign > 0 else "reversed",
+                "points": [p.to_dict() for p in self.points],
+                "references": [{"t_mid_s": r.t_mid_s, "in_command": r.in_command,
+                                "current_in_a": r.current_in_a, "current_out_a": r.current_out_a,
+                                "speed_in_rad_s": r.speed_in_rad_s} for r in self.references]}
+
+
+# ------------------------------------------------------------------ steady windows
+def steady_windows(time_s: np.ndarray, in_command: np.ndarray, out_command: np.ndarray,
+                   *, settle_s: float = 0.5, min_window_s: float = 0.3) -> list[tuple[int, int]]:
+    """Index ranges where both commands are constant, minus ``settle_s`` after each change.
+
+    Ramps (a command changing every sample) produce no window. Windows shorter than
+    ``min_window_s`` after settling are dropped.
+    """
+    change = np.flatnonzero((np.diff(in_command) != 0) | (np.diff(out_command) != 0)) + 1
+    bounds = np.concatenate([[0], change, [len(time_s)]])
+    out = []
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        if b - a < 2:
+            continue
+        t0 = time_s[a] + (settle_s if a > 0 else 0.0)
+        s = int(np.searchsorted(time_s, t0))
+        if s < b and time_s[b - 1] - time_s[s] >= min_window_s:
+            out.append((s, int(b)))
+    return out
+
+
+def _mean_sem(x: np.ndarray, blocks: int = 10) -> tuple[float, float]:
+    """Mean and its standard error from block means (robust to coloured noise)."""
+    m = float(np.mean(x))
+    nb = min(blocks, len(x) // 10)
+    if nb < 3:
+        return m, float(np.std(x) / np.sqrt(max(len(x) - 1, 1)))
+    size = len(x) // nb
+    bm = x[: nb * size].reshape(nb, size).mean(axis=1)
+    return m, float(np.std(bm, ddof=1) / np.sqrt(nb))
+
+
+def measure_windows(trace: Trace, *, settle_s: float = 0.5) -> list[SteadyWindow]:
+    t = trace.time_s
+    ranges = steady_windows(t, trace["in_command"], trace["out_command"], settle_s=settle_s)
+    res = []
+    for s, e in ranges:
+        ci, ci_sem = _mean_sem(trace["in_current_a"][s:e])
+        co, co_sem = _mean_sem(trace["out_current_a"][s:e])
+        dt = t[e - 1] - t[s]
+        res.append(SteadyWindow(
+            s, e, float((t[s] + t[e - 1]) / 2), float(trace["in_command"][s]),
+            float(trace["out_command"][s]) + 0.0, ci, ci_sem, co, co_sem,
+            float((trace["in_position_rad"][e - 1] - trace["in_position_rad"][s]) / dt),
+            float((trace["out_position_rad"][e - 1] - trace["out_position_rad"][s]) / dt)))
+    return res
+
+
+def measured_ratio(windows: list[SteadyWindow], trace: Trace) -> float:
+    """Signed n = Δθ_in/Δθ_out summed over the steady windows (free of start-up backlash)."""
+    din = sum(trace["in_position_rad"][w.stop - 1] - trace["in_position_rad"][w.start] for w in windows)
+    dout = sum(trace["out_position_rad"][w.stop - 1] - trace["out_position_rad"][w.start] for w in windows)
+    if abs(dout) < 1e-9 * max(abs(din), 1.0) or abs(dout) == 0:
+        raise ExcitationError(f"{trace.source}: column 'out_position_rad' does not move while "
+                              f"the input turns; check the coupling or pass --ratio")
+    return float(din / dout)
+
+
+# ---------------------------------------------------------------------- equations
+def incremental_efficiency(kt_in: float, kt_out: float, delta_current_in_a: float,
+                           delta_current_out_a: float, ratio_signed: float) -> float:
+    """Paper eq. 18 with signs: η = −K_out Δi_out / (n_s K_in Δi_in)."""
+    return -kt_out * delta_current_out_a / (ratio_signed * kt_in * delta_current_in_a)
+
+
+def shaft_powers(current_in_a: float, current_out_a: float, speed_in_rad_s: float,
+                 speed_out_rad_s: float, motor_in: MotorCalibration,
+                 motor_out: MotorCalibration) -> tuple[float, float, float, float]:
+    """(T_in, T_out, P_in, P_out) at the reducer's shafts, signs in the module docstring."""
+    t_in = motor_in.Kt * current_in_a - motor_in.loss_torque_nm(speed_in_rad_s)
+    t_out = -motor_out.Kt * current_out_a + motor_out.loss_torque_nm(speed_out_rad_s)
+    return t_in, t_out, t_in * speed_in_rad_s, t_out * speed_out_rad_s
+
+
+def absolute_efficiency(current_in_a: float, current_out_a: float, speed_in_rad_s: float,
+                        speed_out_rad_s: float, motor_in: MotorCalibration,
+                        motor_out: MotorCalibration) -> float:
+    """P_out / P_in at the reducer's shafts using each motor's identified losses."""
+    _, _, p_in, p_out = shaft_powers(current_in_a, current_out_a, speed_in_rad_s,
+                                     speed_out_rad_s, motor_in, motor_out)
+    return p_out / p_in
+
+
+# ------------------------------------------------------------------------ the job
+def efficiency(trace: Trace, motor_in: MotorCalibration, motor_out: MotorCalibration, *,
+               ratio: float | None = None, settle_s: float = 0.5) -> EfficiencyResult:
+    """Efficiency points of a bench trace (see module docstring)."""
+    trace.validate(BENCH_COLUMNS, min_samples=100)
+    if ratio is not None and not (np.isfinite(ratio) and ratio > 0):
+        raise GearbenchError(f"--ratio must be a positive number, got {ratio}")
+    wins = measure_windows(trace, settle_s=settle_s)
+    refs = [w for w in wins if w.is_reference]
+    loaded = [w for w in wins if not w.is_reference]
+    if not refs:
+        raise TraceError(f"{trace.source}: column 'out_command' has no zero-load level "
+                         f"(out_command = 0) to reference; record one before and after the loads")
+    if not loaded:
+        raise TraceError(f"{trace.source}: column 'out_command' has no loaded level "
+                         f"(out_command != 0); step the output motor through braking currents")
+    n_meas = measured_ratio(wins, trace)
+    sign = float(np.sign(n_meas))
+    n_abs = float(ratio) if ratio is not None else abs(n_meas)
+    n_signed = sign * n_abs
+    # Ratio from encoders: quantisation over the summed travel only.
+    n_rel_std = 0.0 if ratio is not None else 1e-5
+
+    points = []
+    for w in loaded:
+        ref_in, ref_in_sem, ref_out, ref_out_sem = _reference(w, refs, trace.source)
+        p = _point(w, ref_in, ref_in_sem, ref_out, ref_out_sem, motor_in, motor_out,
+                   n_signed, n_rel_std, trace.source)
+        points.append(p)
+    return EfficiencyResult(n_abs, sign, abs(n_meas), tuple(points), tuple(refs))
+
+
+def _reference(w: SteadyWindow, refs: list[SteadyWindow], source: str):
+    """Zero-load currents for window ``w``: linear in time between the nearest reference
+    windows before and after at the same speed command, else the nearest one."""
+    same = [r for r in refs if np.isclose(r.in_command, w.in_command, rtol=1e-6, atol=1e-9)]
+    if not same:
+        raise TraceError(f"{source}: no zero-load level at in_command = {w.in_command:g}; "
+                         f"record one (out_command = 0) at that speed")
+    before = [r for r in same if r.t_mid_s < w.t_mid_s]
+    after = [r for r in same if r.t_mid_s > w.t_mid_s]
+    if before and after:
+        a, b = before[-1], after[0]
+        f = (w.t_mid_s - a.t_mid_s) / (b.t_mid_s - a.t_mid_s)
+        cin = (1 - f) * a.current_in_a + f * b.current_in_a
+        cout = (1 - f) * a.current_out_a + f * b.current_out_a
+        sin = float(np.hypot((1 - f) * a.current_in_sem, f * b.current_in_sem))
+        sout = float(np.hypot((1 - f) * a.current_out_sem, f * b.current_out_sem))
+        return cin, sin, cout, sout
+    r = before[-1] if before else after[0]
+    return r.current_in_a, r.current_in_sem, r.current_out_a, r.current_out_sem
+
+
+def _point(w, ref_in, ref_in_sem, ref_out, ref_out_sem, m_in, m_out, n_signed, n_rel_std,
+           source) -> EfficiencyPoint:
+    di_in, di_out = w.current_in_a - ref_in, w.current_out_a - ref_out
+    if di_in * np.sign(w.speed_in_rad_s or 1.0) <= 0:
+        raise ExcitationError(
+            f"{source}: input current does not rise under load at out_command = "
+            f"{w.out_command:g} (Δi_in = {di_in:.4g} A); check that out_command brakes "
+            f"(negative for forward rotation) and the current signs")
+
+    def etas(v):
+        (i_in, i_ref_in, i_out, i_ref_out, kt_in, kt_out, n, d_in, tc_in, d_out, tc_out) = v
+        mi = MotorCalibration(kt_in, (kt_in, kt_in), m_in.J, d_in, tc_in, "")
+        mo = MotorCalibration(kt_out, (kt_out, kt_out), m_out.J, d_out, tc_out, "")
+        inc = incremental_efficiency(kt_in, kt_out, i_in - i_ref_in, i_out - i_ref_out, n)
+        ab = absolute_efficiency(i_in, i_out, w.speed_in_rad_s, w.speed_out_rad_s, mi, mo)
+        return np.array([inc, ab])
+
+    v0 = np.array([w.current_in_a, ref_in, w.current_out_a, ref_out, m_in.Kt, m_out.Kt,
+                   n_signed, m_in.D, m_in.Tc, m_out.D, m_out.Tc])
+    cov = np.zeros((11, 11))
+    sd = [w.current_in_sem, ref_in_sem, w.current_out_sem, ref_out_sem, m_in.Kt_std,
+          m_out.Kt_std, abs(n_signed) * n_rel_std]
+    cov[np.arange(7), np.arange(7)] = np.square(sd)
+    cov[7:9, 7:9] = np.asarray(m_in.loss_covariance)
+    cov[9:11, 9:11] = np.asarray(m_out.loss_covariance)
+    # First-order propagation with a numerical Jacobian (central differences).
+    jac = np.zeros((2, 11))
+    for k in range(11):
+        h = 1e-6 * max(abs(v0[k]), 1e-6)
+        vp, vm = v0.copy(), v0.copy()
+        vp[k] += h
+        vm[k] -= h
+        jac[:, k] = (etas(vp) - etas(vm)) / (2 * h)
+    eta = etas(v0)
+    std = np.sqrt(np.maximum(np.diag(jac @ cov @ jac.T), 0.0))
+    t_in, t_out, p_in, p_out = shaft_powers(w.current_in_a, w.current_out_a, w.speed_in_rad_s,
+                                            w.speed_out_rad_s, m_in, m_out)
+    return EfficiencyPoint(
+        w, w.speed_in_rad_s, t_in * np.sign(w.speed_in_rad_s), t_out * np.sign(w.speed_out_rad_s),
+        di_in, di_out,
+        float(eta[0]), (float(eta[0] - Z95 * std[0]), float(eta[0] + Z95 * std[0])),
+        float(eta[1]), (float(eta[1] - Z95 * std[1]), float(eta[1] + Z95 * std[1])),
+        p_in, p_out)

@@ -1,0 +1,79 @@
+"""Torque constant from two runs, one with a known inertia disk (paper eqs. 11–17).
+
+Run 1 (motor alone) gives b2~ = Kt/J (eq. 11); run 2 (disk j added) gives
+b2^ = Kt/(J + j) (eq. 15). Eliminating J:
+
+    Kt = j · b2~ · b2^ / (b2~ − b2^)          (eq. 17, corrected)
+
+The paper prints eq. 16 as b2^ = Kt/(b2~ + j) and eq. 17 with the denominator
+(b2^ − b2~), which is negative for any real disk; ``paper_printed_eq17`` keeps that
+form only so a test can show it. Rotor inertia follows as J = Kt / b2~.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import ExcitationError, GearbenchError
+from .identify import IdentificationResult, t_quantile
+
+
+@dataclass(frozen=True)
+class TorqueConstant:
+    """Kt and rotor inertia with 95 % intervals (Student-t, ``dof`` degrees of freedom)."""
+
+    torque_constant_nm_a: float
+    torque_constant_ci95: tuple[float, float]
+    torque_constant_std: float
+    rotor_inertia_kgm2: float
+    rotor_inertia_std: float
+    dof: int
+
+
+def torque_constant_from_b2(b2_unloaded: float, b2_loaded: float, disk_inertia_kgm2: float) -> float:
+    """Corrected eq. 17: ``Kt = j b2~ b2^ / (b2~ − b2^)``."""
+    return disk_inertia_kgm2 * b2_unloaded * b2_loaded / (b2_unloaded - b2_loaded)
+
+
+def paper_printed_eq17(b2_unloaded: float, b2_loaded: float, disk_inertia_kgm2: float) -> float:
+    """Eq. 17 as printed (denominator b2^ − b2~): negative Kt. For tests only."""
+    return disk_inertia_kgm2 * b2_unloaded * b2_loaded / (b2_loaded - b2_unloaded)
+
+
+def torque_constant(unloaded: IdentificationResult, loaded: IdentificationResult,
+                    disk_inertia_kgm2: float, *, disk_inertia_std: float = 0.0,
+                    unloaded_name: str = "unloaded run", loaded_name: str = "loaded run") -> TorqueConstant:
+    """Kt from two fits (corrected eq. 17) with its uncertainty by first-order propagation.
+
+    With u = 1/b2^ − 1/b2~ = j/Kt:  ∂Kt/∂b2~ = −Kt²/(j b2~²),  ∂Kt/∂b2^ = Kt²/(j b2^²),
+    ∂Kt/∂j = Kt/j; the two runs are independent. The interval uses the smaller of
+    the two runs' degrees of freedom.
+    """
+    j = float(disk_inertia_kgm2)
+    if not (j > 0) or not np.isfinite(j):
+        raise GearbenchError(f"disk inertia must be a positive number of kg m^2, got {j!r}; "
+                             f"pass the disk's inertia, e.g. --inertia 1.5e-5")
+    bu, bl = unloaded.b2, loaded.b2
+    if not (bu > 0 and bl > 0):
+        raise ExcitationError(f"{unloaded_name if bu <= 0 else loaded_name}: identified Kt/J = "
+                              f"{min(bu, bl):.4g} is not positive; check the current sign and "
+                              f"the excitation")
+    if bl >= bu:
+        raise GearbenchError(
+            f"{loaded_name} accelerates more per ampere (Kt/J = {bl:.5g}) than {unloaded_name} "
+            f"({bu:.5g}), which would give a negative Kt: swap --loaded and --unloaded")
+    kt = torque_constant_from_b2(bu, bl, j)
+    dkt_dbu = -kt * kt / (j * bu * bu)
+    dkt_dbl = kt * kt / (j * bl * bl)
+    var = (dkt_dbu * unloaded.b2_std) ** 2 + (dkt_dbl * loaded.b2_std) ** 2 \
+        + (kt / j * disk_inertia_std) ** 2
+    std = float(np.sqrt(var))
+    dof = int(min(unloaded.dof, loaded.dof))
+    half = t_quantile(dof) * std
+    # J = Kt / b2~ :  dJ = dKt / b2~ − Kt dbu / b2~² (correlated through bu).
+    jr = kt / bu
+    dj_dbu = dkt_dbu / bu - kt / bu ** 2
+    dj_dbl = dkt_dbl / bu
+    j_std = float(np.hypot(dj_dbu * unloaded.b2_std, dj_dbl * loaded.b2_std))
+    return TorqueConstant(kt, (kt - half, kt + half), std, jr, j_std, dof)

@@ -1,0 +1,142 @@
+"""``gearbench diagnose TRACE``: where the paper's model and the bench disagree, which
+unmodelled effect explains it, and how far adding it closes the gap (issue 6)."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import GearbenchError, TraceError
+from ..trace import Trace
+
+NAME = "diagnose"
+HELP = "diagnose the sim-to-real gap of a single-motor trace (where, which effect, how far)"
+
+
+def add_arguments(p) -> None:
+    p.add_argument("trace", metavar="TRACE", help="single-motor trace (.csv or .parquet) with "
+                   "time_s, position_rad, current_a")
+    p.add_argument("--model", metavar="MODEL.json",
+                   help='nominal model {"Kt":..,"J":..,"D":..} instead of identifying it on the trace')
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--report", metavar="DIR", help="write PNG residual maps to DIR")
+    p.add_argument("--rrd", metavar="FILE", help="log residuals to a Rerun .rrd file")
+
+
+def _jsonable(o):
+    if isinstance(o, dict):
+        return {str(k): _jsonable(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_jsonable(v) for v in o]
+    if isinstance(o, np.generic):
+        o = o.item()
+    if isinstance(o, float) and not math.isfinite(o):
+        return None
+    return o
+
+
+def run(args) -> int:
+    from ..analysis.diagnose import diagnose, load_model
+
+    p = Path(args.trace)
+    if p.is_dir():
+        raise TraceError(f"{p}: is a folder, not a trace file; pass a .csv or .parquet file")
+    trace = Trace.read(p)
+    model = load_model(args.model) if args.model else None
+    result = diagnose(trace, model)
+    out = _jsonable(result.as_dict())
+    if args.report:
+        out["report"] = write_report(result, Path(args.report))
+    if args.rrd:
+        out["rrd"] = write_rrd(result, Path(args.rrd))
+    if args.json:
+        print(json.dumps(out, indent=1))
+    else:
+        print(summary(out, str(p)))
+    return 0
+
+
+def summary(d: dict, name: str) -> str:
+    fit, v = d["nominal"]["fit"], d["verdict"]
+    par = d["nominal"]["params"]
+    lines = [f"{name}: nominal Kt/J = {par['kt_over_j']:.4g} 1/(A s^2), D/J = {par['d_over_j']:.4g} 1/s; "
+             f"held-out sim error {fit['sim_rms_rad_s']:.3g} rad/s vs noise floor "
+             f"{fit['noise_floor_rad_s']:.3g} rad/s ({fit['gap_ratio']:.2f}x)"]
+    hot = [c for c in d["where"] if c["above_floor"]]
+    if hot:
+        hot.sort(key=lambda c: -c["ratio"])
+        lines.append("where: " + "; ".join(f"{c['dimension']} {c['label']} {c['ratio']:.1f}x"
+                                           for c in hot[:6]))
+    else:
+        lines.append("where: no cell above 1.5x its noise floor")
+    lines.append(f"{'effect':22s}{'nrmse before':>14s}{'after':>10s}{'shrink':>8s}{'dBIC':>9s}  sig")
+    for c in d["candidates"]:
+        lines.append(f"{c['effect']:22s}{c['nrmse_before']:14.4g}{c['nrmse_after']:10.4g}"
+                     f"{(c['shrink'] if c['shrink'] is not None else float('nan')):8.2f}"
+                     f"{(c['delta_bic'] if c['delta_bic'] is not None else float('nan')):9.1f}"
+                     f"  {'yes' if c['significant'] else 'no'}")
+    if v["effect"]:
+        best = d["candidates"][0]
+        lines.append(f"verdict: {v['effect']} (shrink {best['shrink']:.0%}); params "
+                     + ", ".join(f"{k}={val:.4g}" if isinstance(val, float) else f"{k}={val}"
+                                 for k, val in best["params"].items()))
+        if v["confused_with"]:
+            lines.append(f"  cannot be told apart here from: {', '.join(v['confused_with'])}")
+            lines.append(f"  experiment: {v['experiment']}")
+    else:
+        lines.append("verdict: none — the gap is at the noise floor")
+    return "\n".join(lines)
+
+
+def write_report(result, folder: Path) -> list[str]:
+    """PNG heat maps of the nominal model's residuals (pure-numpy PNG writer)."""
+    from ..analysis.diagnose.png import heatmap_png
+
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise GearbenchError(f"{folder}: cannot create report folder ({exc.strerror}); "
+                             f"choose a writable --report DIR") from None
+    maps = result.residuals
+    floor = float(maps["floor_rad_s"])
+    files = {
+        # rows: horizon step (bottom = start), columns: horizon (time) — |error| / floor
+        "horizon_error.png": (np.abs(maps["horizon_error_rad_s"]).T / floor, 4),
+        # rows: rotor angle 0..2pi, columns: |speed| bins — rms error / floor
+        "speed_angle.png": (maps["speed_angle_rms"] / floor, 12),
+        # rows: current bins, columns: |speed| bins — rms error / floor
+        "speed_current.png": (maps["speed_current_rms"] / floor, 12),
+    }
+    written = []
+    for name, (arr, scale) in files.items():
+        path = folder / name
+        path.write_bytes(heatmap_png(arr, scale=scale, vmin=0.0, vmax=max(3.0, float(np.nanmax(arr)) if np.isfinite(arr).any() else 3.0)))
+        written.append(str(path))
+    (folder / "diagnosis.json").write_text(json.dumps(_jsonable(result.as_dict()), indent=1))
+    written.append(str(folder / "diagnosis.json"))
+    return written
+
+
+def write_rrd(result, path: Path) -> str:
+    """Log the residuals as time series to a Rerun recording saved at ``path``."""
+    import rerun as rr
+
+    maps = result.residuals
+    rec = rr.RecordingStream("gearbench_diagnose")
+    try:
+        rec.save(str(path))
+    except Exception as exc:  # rerun raises its own error types for bad paths
+        raise GearbenchError(f"{path}: cannot write Rerun file ({exc}); choose a writable --rrd FILE") from None
+    t = maps["time_s"]
+    rec.send_columns("diagnose/sim_error_rad_s", indexes=[rr.TimeColumn("time", duration=t)],
+                     columns=rr.Scalars.columns(scalars=maps["error_flat"]))
+    rec.send_columns("diagnose/noise_floor_rad_s", indexes=[rr.TimeColumn("time", duration=t)],
+                     columns=rr.Scalars.columns(scalars=np.full(t.shape, float(maps["floor_rad_s"]))))
+    rec.send_columns("diagnose/equation_error_rad_s2",
+                     indexes=[rr.TimeColumn("time", duration=maps["ee_time_s"])],
+                     columns=rr.Scalars.columns(scalars=maps["equation_error"]))
+    rec.flush()
+    rec.disconnect()
+    return str(path)

@@ -1,0 +1,98 @@
+"""``gearbench emulate``: the simulated two-motor bench behind real drive protocols.
+
+One physics world (the profile's ``simulation:`` section, default plant if absent)
+behind CANopen nodes 1 and 2 (``--can``) and/or Modbus TCP unit ids 1 and 2
+(``--modbus``). Prints ``ready`` once every endpoint listens, reads fixture commands
+(JSON lines, see ``gearbench.emulate.bench``) on stdin, answers on stdout, and stops
+cleanly on SIGINT/SIGTERM. Without endpoints it serves CANopen on
+``udp_multicast:239.74.163.2:43113`` (multicast TTL 1: this host's network only).
+"""
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+from pathlib import Path
+
+import yaml
+
+from ..errors import DriveError, ProfileError
+
+NAME = "emulate"
+HELP = "run the simulated bench behind CANopen CiA 402 and/or Modbus TCP drive endpoints"
+DEFAULT_CAN = "udp_multicast:239.74.163.2:43113"
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("profile", nargs="?", help="profile YAML whose 'simulation:' section is the plant")
+    parser.add_argument("--can", metavar="INTERFACE:CHANNEL",
+                        help="CAN bus for nodes 1 and 2, e.g. udp_multicast:239.74.163.2:43113, socketcan:vcan0")
+    parser.add_argument("--modbus", metavar="HOST:PORT", help="Modbus TCP endpoint, e.g. 127.0.0.1:5020")
+    parser.add_argument("--lockstep", action="store_true",
+                        help="Modbus: advance the world on each write of the 'sync' register (CANopen always "
+                             "advances one period per SYNC)")
+    parser.add_argument("--seed", type=int, default=None, help="noise seed (default: the plant's)")
+
+
+def load_plant(profile: str | None):
+    """PlantParams from a profile's ``simulation:`` section; ProfileError names the file."""
+    from ..sim import PlantParams
+
+    if not profile:
+        return PlantParams()
+    path = Path(profile)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise ProfileError(f"{profile}: cannot read ({exc.strerror})") from exc
+    except yaml.YAMLError as exc:
+        raise ProfileError(f"{profile}: not valid YAML ({exc})") from exc
+    if doc is None:
+        doc = {}
+    if not isinstance(doc, dict):
+        raise ProfileError(f"{profile}: expected a mapping at the top level")
+    try:
+        return PlantParams.from_dict(doc.get("simulation") or {}, where="simulation")
+    except ProfileError as exc:
+        raise ProfileError(f"{profile}: {exc}") from exc
+
+
+def _host_port(text: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit():
+        raise DriveError(f"--modbus '{text}': expected HOST:PORT, e.g. 127.0.0.1:5020")
+    return host or "127.0.0.1", int(port)
+
+
+def run(args) -> int:
+    from ..drives.buses import parse_bus
+    from ..emulate.bench import EmulatedBench
+    from ..emulate.canopen_server import start_canopen_server
+
+    plant = load_plant(args.profile)
+    bench = EmulatedBench(plant, seed=plant.seed if args.seed is None else args.seed)
+    can_spec = args.can or (None if args.modbus else DEFAULT_CAN)
+    handles = []
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        if can_spec:
+            bs = parse_bus(can_spec)
+            handles.append(start_canopen_server(bench, bs.interface, bs.channel, port=bs.port))
+        if args.modbus:
+            from ..emulate.modbus_server import start_modbus_server
+            host, port = _host_port(args.modbus)
+            handles.append(start_modbus_server(bench, host, port, lockstep=args.lockstep))
+        print("ready", flush=True)
+        bench.run_control_loop(sys.stdin, sys.stdout)
+        while not stop.wait(0.2):
+            pass
+    finally:
+        for h in reversed(handles):
+            try:
+                h.stop()
+            except Exception as exc:   # keep stopping the others
+                print(f"gearbench emulate: stopping {type(h).__name__}: {exc}", file=sys.stderr)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return 0

@@ -1,0 +1,79 @@
+"""gearbench validate PROFILE: check a test profile without moving anything."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+NAME = "validate"
+HELP = "Check a test profile (YAML) and print a summary; nothing moves."
+
+
+def add_arguments(p) -> None:
+    p.add_argument("profile", help="test profile YAML, e.g. profiles/cvt.yaml")
+
+
+def run(args) -> int:
+    from ..profile import load_profile
+
+    profile = load_profile(args.profile)
+    print("\n".join(summary_lines(profile, args.profile)))
+    return 0
+
+
+def _rel(path: str) -> str:
+    try:
+        return os.path.relpath(path)
+    except ValueError:  # another drive on Windows
+        return path
+
+
+def _fmt(x: float) -> str:
+    return f"{x:g}"
+
+
+def summary_lines(profile, shown: str | Path) -> list[str]:
+    """The human summary ``gearbench validate`` prints (one fact per line)."""
+    from ..profile import CalibrateStep, EfficiencyStep, LoadStep
+
+    b = profile.bench
+    bus = b.bus
+    if bus.family == "modbus":
+        where = f"modbus TCP {bus.host}:{bus.port}"
+    else:
+        where = f"{bus.family} over {bus.interface or '?'}" + (f" {bus.channel}" if bus.channel else "")
+    lines = [f"{shown}: OK (sha256 {profile.sha256[:12]})",
+             f"profile    {profile.name}" + (f" - {profile.description}" if profile.description else ""),
+             f"bench      {b.name}: {where}, sample period {b.period_s * 1e3:g} ms"]
+    for i, m in enumerate(profile.motors.values()):
+        head = "motors    " if i == 0 else "          "
+        lines.append(f"{head} {m.name:<4} address {m.address}, {_rel(m.drive)}, Kt {_fmt(m.kt_datasheet)} N m/A, "
+                     f"rated {_fmt(m.rated_current_a)} A, limit {_fmt(m.current_limit_a)} A, "
+                     f"{_fmt(m.speed_limit_rad_s)} rad/s")
+    r = profile.reducer
+    if r is None:
+        lines.append("reducer    none (motors only)")
+    else:
+        ratio = "measured" if r.ratio is None else _fmt(r.ratio)
+        cvt = f", CVT setting {r.cvt_setting:.0%}" if r.cvt_setting is not None else ""
+        lines.append(f"reducer    {r.name}: ratio {ratio}{cvt}, expected efficiency "
+                     f"{_fmt(r.efficiency_range[0])}-{_fmt(r.efficiency_range[1])}")
+    for i, s in enumerate(profile.steps):
+        head = "steps     " if i == 0 else "          "
+        if isinstance(s, CalibrateStep):
+            what = (f"calibrate motor {s.motor} with {s.waveform} ({profile.waveforms[s.waveform].kind}, "
+                    f"{s.mode}), alone then with disk {s.disk}: 2 x {_fmt(s.duration_s)} s")
+        elif isinstance(s, LoadStep):
+            what = f"prompt: {s.prompt}"
+        else:
+            assert isinstance(s, EfficiencyStep)
+            what = (f"{len(s.speeds_in_rad_s)} speeds x {len(s.torques_out_nm)} torques = {s.operating_points} "
+                    f"operating points, {len(s.levels())} levels x ({_fmt(s.settle_s)} + {_fmt(s.measure_s)}) s")
+        lines.append(f"{head} {i + 1}. {s.name:<14} {what}  [{s.bench_time_s:.1f} s]")
+    limits = ", ".join(f"{lim.name} [{'-inf' if lim.low is None else f'{lim.low:.4g}'}, "
+                       f"{'inf' if lim.high is None else f'{lim.high:.4g}'}]" for lim in profile.limits)
+    lines.append(f"limits     {limits or 'none'}")
+    sim = profile.simulation
+    lines.append("simulation " + ("plant defined (used by --sim)" if sim is not None else "none (--sim uses defaults)"))
+    lines.append(f"operating points {profile.operating_points}; estimated bench time "
+                 f"{profile.estimated_bench_time_s:.1f} s (motors running; operator prompts not included)")
+    return lines

@@ -1,0 +1,144 @@
+"""One simulated two-motor bench behind any number of drive front-ends.
+
+``EmulatedBench`` owns the physics world (``gearbench.sim.BenchWorld``) and one
+``Cia402Axis`` per drive; the CANopen and Modbus front-ends only translate their
+protocol into calls on these, under ``lock``. ``advance()`` is the one place time
+moves: drive commands -> one physics period -> drive protections.
+
+Fixture commands (one JSON object per line on ``gearbench emulate``'s stdin; the
+reply is one JSON line ``{"ok": true, ...}`` or ``{"ok": false, "error": ...}``):
+
+- ``{"cmd": "mount", "coupling": "none"|"reducer", "disk_kgm2": {"in": 1.5e-5, "out": 0}}``
+- ``{"cmd": "fault", "axis": "in", "code": 8976, "at_s": 0.5}`` — drive fault now or
+  at world time ``at_s`` (EMCY with ``code``; 8976 = 0x2310 over-current);
+- ``{"cmd": "drop", "rate": 0.1}`` — each TPDO frame is dropped with this probability;
+- ``{"cmd": "mute", "axis": "in", "on": true}`` — the drive stops answering (no PDO,
+  SDO or heartbeat), like a cut cable;
+- ``{"cmd": "status"}`` — sample index, time, states and modes.
+"""
+from __future__ import annotations
+
+import json
+import random
+import threading
+
+from .cia402_axis import Cia402Axis
+
+AXES = {1: "in", 2: "out"}   # drive address (CANopen node id / Modbus unit id) -> axis
+
+
+class EmulatedBench:
+    """One BenchWorld behind any number of drive front-ends; thread-safe via ``lock``."""
+
+    def __init__(self, plant=None, *, seed: int = 0, world=None):
+        if world is None:
+            from ..sim import BenchWorld, PlantParams
+            plant = plant if plant is not None else PlantParams()
+            world = BenchWorld(plant, seed=seed)
+        self.plant = plant
+        self.world = world
+        self.lock = threading.RLock()
+        self.axes: dict[int, str] = dict(AXES)
+        self.drives: dict[str, Cia402Axis] = {}
+        for name in self.axes.values():
+            motor = getattr(plant, f"motor_{name}", None) if plant is not None else None
+            self.drives[name] = Cia402Axis(
+                name,
+                rated_current_a=getattr(motor, "rated_current_a", 1.0),
+                max_current_a=getattr(motor, "current_limit_a", 3.0),
+                speed_limit_rad_s=getattr(motor, "speed_limit_rad_s", 420.0),
+                counts_per_rev=getattr(motor, "counts_per_rev", 10000))
+        self.latest: dict = {}
+        self._world_modes: dict[str, str] = {}
+        self.sample_index = 0
+        # fault options for tests of the masters' error handling
+        self.pdo_drop_rate = 0.0
+        self.muted: set[str] = set()
+        self._scheduled: list[tuple[float, str, int]] = []
+        self._rng = random.Random(seed)
+
+    @property
+    def period_s(self) -> float:
+        return self.world.period_s
+
+    def drive(self, address: int) -> Cia402Axis:
+        return self.drives[self.axes[address]]
+
+    def advance(self, steps: int = 1) -> dict:
+        """Advance ``steps`` periods (lockstep); returns the last measurements."""
+        with self.lock:
+            for _ in range(steps):
+                time_s = (self.sample_index + 1) * self.world.period_s
+                for due in [f for f in self._scheduled if f[0] <= time_s + 1e-12]:
+                    self._scheduled.remove(due)
+                    self.drives[due[1]].inject_fault(due[2])
+                for name, axis in self.drives.items():
+                    mode, setpoint = axis.command()
+                    if mode != self._world_modes.get(name):   # set_mode resets the drive loop
+                        self.world.set_mode(name, mode)
+                        self._world_modes[name] = mode
+                    self.world.set_setpoint(name, setpoint)
+                self.latest = self.world.step()
+                self.sample_index += 1
+                for name, axis in self.drives.items():
+                    m = self.latest[name]
+                    axis.observe(m.velocity_rad_s, m.current_cmd_a)
+            return self.latest
+
+    def drop_frame(self) -> bool:
+        """True when the PDO drop option says this frame is lost."""
+        return self.pdo_drop_rate > 0 and self._rng.random() < self.pdo_drop_rate
+
+    # ------------------------------------------------------------- fixture commands
+    def handle_control_line(self, line: str) -> str:
+        try:
+            reply = self._handle(json.loads(line))
+            return json.dumps({"ok": True, **reply})
+        except Exception as exc:   # a fixture mistake must not stop the emulator
+            return json.dumps({"ok": False, "error": f"{type(exc).__name__}: {exc}"})
+
+    def _axis_name(self, cmd: dict) -> str:
+        name = cmd.get("axis")
+        if name not in self.drives:
+            raise ValueError(f"'axis' must be one of {sorted(self.drives)}, got {name!r}")
+        return name
+
+    def _handle(self, cmd: dict) -> dict:
+        kind = cmd.get("cmd")
+        with self.lock:
+            if kind == "mount":
+                self.world.mount(coupling=cmd.get("coupling", "none"), disk_kgm2=cmd.get("disk_kgm2"))
+                return {}
+            if kind == "fault":
+                name, code = self._axis_name(cmd), int(cmd.get("code", 0x1000))
+                if "at_s" in cmd:
+                    self._scheduled.append((float(cmd["at_s"]), name, code))
+                else:
+                    self.drives[name].inject_fault(code)
+                return {}
+            if kind == "drop":
+                rate = float(cmd["rate"])
+                if not 0 <= rate <= 1:
+                    raise ValueError("'rate' must be within 0..1")
+                self.pdo_drop_rate = rate
+                return {}
+            if kind == "mute":
+                name = self._axis_name(cmd)
+                (self.muted.add if cmd.get("on", True) else self.muted.discard)(name)
+                return {}
+            if kind == "status":
+                return {"sample_index": self.sample_index,
+                        "time_s": self.sample_index * self.world.period_s,
+                        "drives": {n: a.snapshot() for n, a in self.drives.items()}}
+        raise ValueError(f"unknown cmd {kind!r}; known: mount, fault, drop, mute, status")
+
+    def run_control_loop(self, stdin, stdout) -> threading.Thread:
+        """Serve fixture commands from ``stdin`` in a daemon thread until EOF."""
+        def loop():
+            for line in stdin:
+                if line.strip():
+                    stdout.write(self.handle_control_line(line) + "\n")
+                    stdout.flush()
+        t = threading.Thread(target=loop, name="emulate-fixture", daemon=True)
+        t.start()
+        return t

@@ -1,0 +1,48 @@
+"""Entity paths and timelines of the gearbench recording (one place for each name).
+
+Samples (``send_columns``, timelines ``bench_time`` and ``sample``)::
+
+    /bench/<motor>/current_a | position_rad | velocity_rad_s | command   Scalars
+
+Events and results (logged at the bench time of the last sample seen)::
+
+    /log                                   TextLog: run/step/operating point/operator prompts
+    /results/summary                       TextDocument (markdown): parameters, map, limits, verdict
+    /results/motors/<motor>                AnyValues: Kt, Kt_ci95_low, Kt_ci95_high, J, D, Tc
+    /results/efficiency/points             AnyValues, one row per operating point
+    /results/efficiency/map/in_<speed>_rad_s  BarChart: eta_incremental [%] vs torque_out_nm
+    /results/limits/<name>                 AnyValues: value, low, high, passed
+    /diagnosis/<name>                      Scalars: residuals (``RerunView.log_residuals``)
+"""
+from __future__ import annotations
+
+import rerun as rr
+
+TIMELINE = "bench_time"      # drive time base, duration (s)
+SAMPLE_TIMELINE = "sample"   # drive sample counter, sequence
+BENCH = "/bench"
+LOG = "/log"
+RESULTS = "/results"
+SUMMARY = "/results/summary"
+MOTORS = "/results/motors"
+EFFICIENCY_POINTS = "/results/efficiency/points"
+EFFICIENCY_MAP = "/results/efficiency/map"
+LIMITS = "/results/limits"
+DIAGNOSIS = "/diagnosis"
+
+
+def part(name: str) -> str:
+    """One entity-path part from a free name (motor, limit, speed label)."""
+    return rr.escape_entity_path_part(str(name))
+
+
+def motor_path(motor: str) -> str:
+    return f"{BENCH}/{part(motor)}"
+
+
+def sample_path(column: str) -> str | None:
+    """``in.current_a`` -> ``/bench/in/current_a``; None for a column without a motor."""
+    motor, dot, quantity = column.partition(".")
+    if not dot or not motor or not quantity:
+        return None
+    return f"{motor_path(motor)}/{part(quantity)}"

@@ -1,0 +1,64 @@
+"""From recorded steps to results: the sequencer's bridge to the pure analysis.
+
+Recorded steps carry columns ``<motor>.<quantity>``; the analysis functions take
+the single-motor and bench layouts. This module only re-arranges columns and
+calls ``gearbench.analysis``; no numbers are computed here.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .analysis.calibration import MotorCalibration, calibrate_motor
+from .analysis.efficiency import efficiency as _efficiency
+from .recorder import bench_trace, motor_trace
+from .errors import TraceError
+from .trace import Trace
+
+MAX_LOST_FRACTION = 0.01   # more lost samples than this: the step is not analysed
+
+
+def fill_lost_samples(step: Trace) -> Trace:
+    """Put a recorded step back on its regular sample grid.
+
+    Samples lost on the bus leave gaps in the ``sample`` counter. Up to 1 % of a
+    step is filled by linear interpolation (the count goes into ``meta``) so the
+    derivative filters stay aligned; more than that is refused, never hidden.
+    """
+    if "sample" not in step or len(step) < 2:
+        return step
+    idx = np.asarray(step["sample"], dtype=np.int64)
+    full = np.arange(idx[0], idx[-1] + 1)
+    missing = len(full) - len(idx)
+    if missing == 0:
+        return step
+    if missing > MAX_LOST_FRACTION * len(full):
+        raise TraceError(f"step {step.source}: {missing} of {len(full)} samples were lost on the "
+                         f"bus; check the bus load/wiring and repeat the step")
+    per = (step.time_s[-1] - step.time_s[0]) / (idx[-1] - idx[0])
+    cols = {n: np.interp(full, idx, step[n]) for n in step.names if n != "sample"}
+    meta = dict(step.meta, interpolated_samples=int(missing))
+    return Trace(step.time_s[0] + (full - idx[0]) * per, {"sample": full, **cols}, meta, step.source)
+
+
+def calibrate(unloaded: Trace, loaded: Trace, *, motor: str, disk_kgm2: float,
+              method: str = "default") -> dict:
+    """Kt, J, D, Tc of ``motor`` from its unloaded and disk runs (corrected eq. 17)."""
+    u, l_ = motor_trace(fill_lost_samples(unloaded), motor), motor_trace(fill_lost_samples(loaded), motor)
+    u.source, l_.source = f"step {unloaded.source}", f"step {loaded.source}"
+    return calibrate_motor(u, l_, disk_kgm2, method=method).to_dict()
+
+
+def efficiency(step: Trace, motor_in: dict, motor_out: dict, *, ratio: float | None,
+               settle_s: float, skip_samples: int = 0) -> dict:
+    """Efficiency points of one recorded efficiency segment (eq. 18 and P_out/P_in)."""
+    bench = bench_trace(fill_lost_samples(step).slice(skip_samples, None))
+    bench.source = f"step {step.source}"
+    m_in = MotorCalibration.from_dict(_complete(motor_in), "motor in")
+    m_out = MotorCalibration.from_dict(_complete(motor_out), "motor out")
+    return _efficiency(bench, m_in, m_out, ratio=ratio, settle_s=settle_s).to_dict()
+
+
+def _complete(d: dict) -> dict:
+    out = {"Kt_ci95": [d["Kt"], d["Kt"]], "J": 0.0, "D": 0.0, "Tc": 0.0, "method": "datasheet"}
+    out.update(d)
+    return out

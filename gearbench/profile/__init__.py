@@ -1,0 +1,60 @@
+"""Test profiles: YAML in, a validated ``Profile`` out, before anything moves.
+
+>>> from gearbench.profile import load_profile
+>>> profile = load_profile("profiles/cvt.yaml")
+>>> profile.estimated_bench_time_s
+
+Every problem raises one ``ProfileError`` line ``file:line:col: key.path: problem; fix``.
+The format is documented in ``docs/profile-format.md``.
+"""
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+from ..errors import ProfileError
+from .model import (BenchSpec, BusSpec, CalibrateStep, DiskSpec, EfficiencyStep, LimitSpec, LoadStep, MotorSpec,
+                    Profile, ReducerSpec, Step, WaveformSpec)
+from .parse import build_profile
+from .yamlmarks import load_with_marks
+
+__all__ = ["load_profile", "parse_profile_text", "Profile", "BenchSpec", "BusSpec", "MotorSpec", "ReducerSpec",
+           "DiskSpec", "WaveformSpec", "CalibrateStep", "LoadStep", "EfficiencyStep", "Step", "LimitSpec",
+           "ProfileError"]
+
+
+def load_profile(path: str | Path) -> Profile:
+    """Read and validate a profile file; ``ProfileError`` (one line, file:line:col) on any problem.
+
+    Relative drive paths resolve against the profile's folder, then the current
+    directory, then the repository root.
+    """
+    shown = str(path)
+    p = Path(path)
+    try:
+        data = p.read_bytes()
+    except FileNotFoundError:
+        raise ProfileError(f"{shown}: no such profile file; check the path "
+                           f"(shipped profiles: profiles/cvt.yaml, profiles/cyclo.yaml)") from None
+    except IsADirectoryError:
+        raise ProfileError(f"{shown}: is a folder, not a profile; give a .yaml file inside it") from None
+    except OSError as exc:
+        raise ProfileError(f"{shown}: cannot read the profile ({exc.strerror}); check permissions") from None
+    return _parse(data, shown, p, p.resolve().parent)
+
+
+def parse_profile_text(text: str | bytes, filename: str = "<profile>", base_dir: str | Path = ".") -> Profile:
+    """Validate profile YAML given as text (tests, tools); drive paths resolve from ``base_dir``."""
+    data = text.encode("utf-8") if isinstance(text, str) else text
+    return _parse(data, filename, Path(filename), Path(base_dir).resolve())
+
+
+def _parse(data: bytes, shown: str, path: Path, base_dir: Path) -> Profile:
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data[:exc.start].count(b"\n") + 1
+        col = exc.start - (data.rfind(b"\n", 0, exc.start) + 1) + 1
+        raise ProfileError(f"{shown}:{line}:{col}: not UTF-8 text; save the profile as UTF-8") from None
+    doc = load_with_marks(text, shown)
+    return build_profile(doc, path, hashlib.sha256(data).hexdigest(), base_dir)

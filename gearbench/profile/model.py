@@ -1,0 +1,194 @@
+"""The validated profile: plain frozen dataclasses, SI units, no YAML left in them.
+
+``gearbench.profile.load_profile`` builds these; the sequencer only reads them.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Union
+
+import numpy as np
+
+from . import waveforms as _wf
+
+
+@dataclass(frozen=True)
+class BusSpec:
+    """Where the drives are: a CAN bus (``cia402``) or a Modbus TCP endpoint (``modbus``)."""
+
+    family: str                      # "cia402" | "modbus" | a plugin family name
+    interface: str | None = None     # cia402: "udp_multicast" | "socketcan" | "virtual"
+    channel: str | None = None       # cia402: "can0", "vcan0", a multicast group; None = interface default
+    host: str | None = None          # modbus: IP or host name
+    port: int | None = None          # modbus: TCP port (default 502)
+    options: dict = field(default_factory=dict)   # passed through to the drive family
+
+
+@dataclass(frozen=True)
+class BenchSpec:
+    name: str
+    bus: BusSpec
+    period_s: float = 1e-3           # sample (SYNC) period
+
+
+@dataclass(frozen=True)
+class MotorSpec:
+    """One motor + drive. ``drive`` is the resolved absolute path of its description file."""
+
+    name: str                        # "in" | "out"
+    drive: str
+    address: int                     # CANopen node id / Modbus unit id
+    kt_datasheet: float              # N m/A
+    rated_current_a: float
+    current_limit_a: float
+    speed_limit_rad_s: float
+    counts_per_rev: int = 10000
+    rotor_inertia_kgm2: float | None = None   # datasheet value; used only for feasibility checks
+
+
+@dataclass(frozen=True)
+class ReducerSpec:
+    name: str
+    ratio: float | None              # n = input speed / output speed; None = "measure"
+    cvt_setting: float | None        # CVT adjuster position, fraction of travel (0, 1]
+    efficiency_range: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class DiskSpec:
+    name: str
+    inertia_kgm2: float
+
+
+@dataclass(frozen=True)
+class WaveformSpec:
+    """A named command waveform; ``params`` are complete (defaults filled in) and validated."""
+
+    name: str
+    kind: str                        # one of gearbench.profile.waveforms.KINDS
+    params: dict
+
+    def render(self, time_s: np.ndarray) -> np.ndarray:
+        """The command (rad/s in velocity mode, A in current mode) at each time."""
+        return _wf.render(self.kind, self.params, time_s)
+
+    @property
+    def natural_period_s(self) -> float | None:
+        """Length of one full period (multisine, chirp sweep, PRBS, trapezoid), else None."""
+        return _wf.natural_period_s(self.kind, self.params)
+
+
+@dataclass(frozen=True)
+class CalibrateStep:
+    """Run ``motor`` alone with ``waveform`` for ``duration_s``, prompt to mount ``disk``,
+    run again, prompt to remove it (Kt from two inertias, paper eq. 17 corrected)."""
+
+    motor: str
+    disk: str
+    waveform: str
+    duration_s: float
+    prompt: str
+    name: str = ""
+    mode: str = "velocity"           # the waveform is a velocity (rad/s) or a current (A) command
+    remove_prompt: str = ""
+
+    @property
+    def bench_time_s(self) -> float:
+        return 2.0 * self.duration_s
+
+
+@dataclass(frozen=True)
+class LoadStep:
+    """The operator mounts the reducer between the motors (sim: coupling="reducer")."""
+
+    prompt: str
+    name: str = "load"
+
+    @property
+    def bench_time_s(self) -> float:
+        return 0.0
+
+
+@dataclass(frozen=True)
+class EfficiencyStep:
+    """Efficiency map: input motor in speed control, output motor brakes in current control.
+
+    For each speed: a zero-load level, each braking torque, zero-load again (when
+    ``include_zero_load``); every level is held ``settle_s`` then measured ``measure_s``.
+    """
+
+    speeds_in_rad_s: list[float]
+    torques_out_nm: list[float]
+    settle_s: float
+    measure_s: float
+    include_zero_load: bool = True
+    name: str = "efficiency"
+
+    def levels(self) -> list[tuple[float, float]]:
+        """The (input speed rad/s, output braking torque N m) levels in run order."""
+        out = []
+        for speed in self.speeds_in_rad_s:
+            seq = list(self.torques_out_nm)
+            if self.include_zero_load:
+                seq = [0.0] + seq + [0.0]
+            out += [(speed, torque) for torque in seq]
+        return out
+
+    @property
+    def operating_points(self) -> int:
+        return len(self.speeds_in_rad_s) * len(self.torques_out_nm)
+
+    @property
+    def bench_time_s(self) -> float:
+        return len(self.levels()) * (self.settle_s + self.measure_s)
+
+
+Step = Union[CalibrateStep, LoadStep, EfficiencyStep]
+
+
+@dataclass(frozen=True)
+class LimitSpec:
+    """Pass/fail on one result quantity; ``None`` bound = unbounded on that side.
+
+    quantity: ``motors.<m>.Kt`` | ``motors.<m>.Kt_rel_datasheet`` | ``motors.<m>.J`` |
+    ``motors.<m>.D`` | ``motors.<m>.Tc`` | ``ratio`` | ``efficiency.eta_incremental`` |
+    ``efficiency.eta_absolute`` (efficiency limits apply to every operating point).
+    """
+
+    name: str
+    quantity: str
+    low: float | None
+    high: float | None
+
+    def passed(self, value: float) -> bool:
+        if value != value:  # NaN never passes
+            return False
+        return (self.low is None or value >= self.low) and (self.high is None or value <= self.high)
+
+
+@dataclass(frozen=True)
+class Profile:
+    path: Path
+    sha256: str
+    name: str
+    description: str
+    bench: BenchSpec
+    motors: dict[str, MotorSpec]
+    reducer: ReducerSpec | None
+    disks: dict[str, DiskSpec]
+    waveforms: dict[str, WaveformSpec]
+    steps: list[Step]
+    limits: list[LimitSpec]
+    simulation: dict | None
+    raw: dict
+
+    @property
+    def operating_points(self) -> int:
+        return sum(s.operating_points for s in self.steps if isinstance(s, EfficiencyStep))
+
+    @property
+    def estimated_bench_time_s(self) -> float:
+        """Motor-running time on a real tester: 2 runs per calibration + every efficiency
+        level's settle and measure. Operator prompts and drive start-up are not included."""
+        return float(sum(s.bench_time_s for s in self.steps))

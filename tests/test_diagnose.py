@@ -1,0 +1,146 @@
+"""Fast subset of the diagnoser checks (issue 6); the full scorecard is
+``python -m gearbench.bench.diagnose_scorecard``."""
+from __future__ import annotations
+
+import json
+import struct
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gearbench.analysis.diagnose import NAMES, diagnose
+from gearbench.analysis.diagnose.png import heatmap_png
+from gearbench.cli import main
+from gearbench.trace import Trace
+
+DEV = Path("/work/shared/datasets/dev")
+needs_dev = pytest.mark.skipif(not (DEV / "truth.json").exists(), reason="dev data not present")
+
+
+@pytest.fixture(scope="module")
+def dev_results():
+    truth = json.loads((DEV / "truth.json").read_text())["diagnosis"]
+    return {name: (t["effect"], diagnose(Trace.read(DEV / name))) for name, t in truth.items()}
+
+
+@needs_dev
+@pytest.mark.parametrize("name", ["diag_clean.csv", "diag_a.csv", "diag_b.csv", "diag_c.csv"])
+def test_dev_file_verdicts(dev_results, name):
+    effect, d = dev_results[name]
+    assert d.verdict.effect == effect
+    if effect is None:
+        assert not any(c.significant for c in d.candidates)
+    else:
+        best = d.candidates[0]
+        assert best.effect == effect and best.significant
+        assert best.shrink > 0.6
+        assert best.nrmse_after < best.nrmse_before
+
+
+@needs_dev
+def test_dev_parameters_recovered(dev_results):
+    cog = dev_results["diag_b.csv"][1].candidates[0].params
+    assert cog["cog_order"] == 10
+    delay = dev_results["diag_c.csv"][1].candidates[0].params
+    assert delay["delay_samples"] == 3
+
+
+sim = pytest.importorskip("gearbench.sim")
+from gearbench.analysis.diagnose import harness  # noqa: E402
+
+
+@pytest.mark.parametrize("effect,excitation", [
+    ("coulomb_friction", "reversing"),
+    ("cogging", "sweep_slow"),
+    ("kt_saturation", "multisine"),
+    ("shaft_compliance", "multisine"),
+    ("inertia_mismatch", "multisine"),
+])
+def test_injected_effect_isolated(effect, excitation):
+    case = harness.Case(effect, "moderate", excitation, 0,
+                        harness.INJECTIONS[effect][harness.LEVELS.index("moderate")])
+    out = harness.run_case(case)
+    assert out.called == effect
+    assert out.true_shrink > 0.8
+
+
+@pytest.mark.parametrize("excitation,seed", [("multisine", 1), ("reversing", 2), ("sweep_slow", 0)])
+def test_no_false_alarm_on_clean(excitation, seed):
+    out = harness.run_case(harness.Case(None, "-", excitation, seed, {}))
+    assert out.called is None
+
+
+def test_coulomb_and_offset_confused_without_reversals():
+    case = harness.Case("current_offset", "high", "multisine", 0,
+                        harness.INJECTIONS["current_offset"][2])
+    v = harness.run_case(case).diagnosis.verdict
+    assert {v.effect, *v.confused_with} >= {"current_offset", "coulomb_friction"}
+    assert "reversal" in v.experiment
+
+
+# ------------------------------------------------------------------ CLI contract
+@needs_dev
+def test_cli_json_keys_report_and_rrd(tmp_path, capsys):
+    rc = main(["diagnose", str(DEV / "diag_b.csv"), "--json", "--report", str(tmp_path / "rep"),
+               "--rrd", str(tmp_path / "d.rrd")])
+    assert rc == 0
+    out = json.loads(capsys.readouterr().out)
+    assert set(out) >= {"nominal", "where", "candidates", "verdict"}
+    assert set(out["nominal"]) >= {"params", "fit"}
+    assert {c["effect"] for c in out["candidates"]} == set(NAMES)
+    for c in out["candidates"]:
+        assert set(c) >= {"effect", "params", "nrmse_before", "nrmse_after", "shrink",
+                          "delta_bic", "significant"}
+    assert set(out["verdict"]) == {"effect", "confused_with", "experiment"}
+    dims = {c["dimension"] for c in out["where"]}
+    assert dims >= {"time", "speed", "angle_order", "frequency", "current", "acceleration"}
+    pngs = sorted((tmp_path / "rep").glob("*.png"))
+    assert len(pngs) == 3 and all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in pngs)
+    assert (tmp_path / "d.rrd").stat().st_size > 1000
+
+
+def test_png_writer_roundtrip():
+    data = heatmap_png(np.array([[0.0, 1.0], [np.nan, 0.5]]), scale=3)
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    w, h = struct.unpack(">II", data[16:24])
+    assert (w, h) == (6, 6)
+    idat = data.index(b"IDAT")
+    n = struct.unpack(">I", data[idat - 4:idat])[0]
+    raw = zlib.decompress(data[idat + 4:idat + 4 + n])
+    assert len(raw) == h * (1 + 3 * w)
+
+
+def _write(tmp_path, cols, name="t.csv"):
+    t = np.arange(500) * 1e-3
+    Trace(t, cols(t)).write_csv(tmp_path / name)
+    return str(tmp_path / name)
+
+
+def test_bad_input_missing_column(tmp_path, capsys):
+    path = _write(tmp_path, lambda t: {"position_rad": t * 10})
+    assert main(["diagnose", path]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "current_a" in err[0]
+
+
+def test_bad_input_nan_and_missing_file(tmp_path, capsys):
+    def cols(t):
+        i = np.sin(t)
+        i[100] = np.nan
+        return {"position_rad": t * 10, "current_a": i}
+
+    assert main(["diagnose", _write(tmp_path, cols)]) == 2
+    assert "current_a" in capsys.readouterr().err
+    assert main(["diagnose", str(tmp_path / "nope.csv")]) == 2
+    assert "not found" in capsys.readouterr().err
+
+
+@needs_dev
+def test_bad_model_file(tmp_path, capsys):
+    bad = tmp_path / "m.json"
+    bad.write_text('{"Kt": 0.05}')
+    assert main(["diagnose", str(DEV / "diag_clean.csv"), "--model", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "'J'" in err and "m.json" in err

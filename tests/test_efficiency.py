@@ -1,0 +1,128 @@
+"""Efficiency: signs on a hand-made bench, drift cancellation, windows, dev and sim data."""
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gearbench.analysis.calibration import MotorCalibration, calibrate_motor
+from gearbench.analysis.efficiency import efficiency, steady_windows
+from gearbench.errors import ExcitationError, TraceError
+from gearbench.trace import Trace
+
+DEV = Path("/work/shared/datasets/dev")
+M_IN = MotorCalibration(0.05, (0.05, 0.05), 2e-5, 2e-6, 0.008, "hand")
+M_OUT = MotorCalibration(0.04, (0.04, 0.04), 1e-5, 1e-6, 0.005, "hand")
+
+
+def hand_bench(*, ratio=5.0, eta=0.9, drag=0.003, speed_in=100.0, levels=(0, 0.5, 1.0, 2.0, 0),
+               dwell=2.0, drift_a_per_s=0.0, noise=0.0, seed=0):
+    """Steady-state bench built from the power balance, no simulator:
+    P_out = η (P_in − drag ω_in); shaft torques from each motor's Kt and losses."""
+    rate = 1000.0
+    n = int(dwell * rate) * len(levels)
+    t = np.arange(n) / rate
+    lvl = np.asarray(levels, float)[np.minimum((t // dwell).astype(int), len(levels) - 1)]
+    w_out = speed_in / ratio
+    brake = -np.sign(w_out) * lvl                     # braking current opposes the output speed
+    t_out = -M_OUT.Kt * brake + M_OUT.D * w_out + M_OUT.Tc * np.sign(w_out)
+    t_in = t_out * w_out / (eta * speed_in) + drag
+    i_in = (t_in + M_IN.D * speed_in + M_IN.Tc) / M_IN.Kt + drift_a_per_s * t
+    rng = np.random.default_rng(seed)
+    cols = {"in_position_rad": speed_in * t, "in_current_a": i_in + rng.normal(0, noise, n),
+            "out_position_rad": w_out * t, "out_current_a": brake + rng.normal(0, noise, n),
+            "in_command": np.full(n, speed_in), "out_command": brake}
+    expect_abs = (t_out * w_out) / (t_in * speed_in)
+    return Trace(t, cols, source="hand.csv"), expect_abs, lvl
+
+
+@pytest.mark.parametrize("ratio", [5.0, -5.0])
+def test_signs_on_a_hand_made_bench(ratio):
+    tr, expect_abs, lvl = hand_bench(ratio=ratio)
+    res = efficiency(tr, M_IN, M_OUT)
+    assert res.ratio == pytest.approx(5.0) and res.ratio_sign == np.sign(ratio)
+    assert len(res.points) == 3 and len(res.references) == 2          # zero loads are references
+    for p, level in zip(res.points, (0.5, 1.0, 2.0)):
+        assert p.eta_incremental == pytest.approx(0.9, abs=1e-9)
+        k = int(np.flatnonzero(lvl == level)[-1])
+        assert p.eta_absolute == pytest.approx(expect_abs[k], abs=1e-9)
+        assert p.torque_out_nm == pytest.approx(M_OUT.Kt * level + M_OUT.D * 20 + M_OUT.Tc, rel=1e-9)
+    assert [p.window.out_command for p in res.points] == [-np.sign(ratio) * v for v in (0.5, 1.0, 2.0)]
+
+
+def test_reference_interpolation_cancels_a_linear_drift():
+    tr, _, _ = hand_bench(drift_a_per_s=0.002)
+    res = efficiency(tr, M_IN, M_OUT)
+    for p in res.points:
+        assert p.eta_incremental == pytest.approx(0.9, abs=1e-9)
+    one_ref = efficiency(tr.slice(0, 8000), M_IN, M_OUT)                 # drop the last zero level
+    assert abs(one_ref.points[-1].eta_incremental - 0.9) > 1e-3
+
+
+def test_interval_covers_truth_about_95_percent_and_widens_with_kt_uncertainty():
+    hits = total = 0
+    for seed in range(30):
+        tr, _, _ = hand_bench(noise=0.004, seed=seed, levels=(0, 1.0, 0))
+        (p,) = efficiency(tr, M_IN, M_OUT).points
+        lo, hi = p.eta_incremental_ci95
+        hits += lo < 0.9 < hi
+        total += 1
+    assert 0.8 <= hits / total <= 1.0
+    wide_in = MotorCalibration(0.05, (0.0499, 0.0501), 2e-5, 2e-6, 0.008, "hand")
+    (q,) = efficiency(tr, wide_in, M_OUT).points
+    assert (q.eta_incremental_ci95[1] - q.eta_incremental_ci95[0]) > 1.5 * (hi - lo)
+
+
+def test_steady_windows_drop_settle_time_and_ramps():
+    t = np.arange(5000) / 1000.0
+    cin = np.minimum(t * 400, 100.0)                  # ramp for 0.25 s, then constant
+    cout = np.where(t < 2.5, 0.0, -1.0)
+    w = steady_windows(t, cin, cout, settle_s=0.5)
+    assert [(a, b) for a, b in w] == [(750, 2500), (3000, 5000)]
+
+
+def test_bench_without_zero_load_or_with_wrong_sign_is_refused():
+    tr, _, _ = hand_bench(levels=(0.5, 1.0))
+    with pytest.raises(TraceError, match="out_command.*zero-load"):
+        efficiency(tr, M_IN, M_OUT)
+    tr, _, _ = hand_bench()
+    tr = tr.with_(**{}) if hasattr(tr, "with_") else tr
+    flipped = tr.with_columns(out_current_a=-tr["out_current_a"], out_command=-tr["out_command"],
+                              in_current_a=2 * tr["in_current_a"][0] - tr["in_current_a"])
+    with pytest.raises(ExcitationError, match="does not rise under load"):
+        efficiency(flipped, M_IN, M_OUT)
+
+
+def test_dev_bench_meets_targets():
+    truth = json.loads((DEV / "truth.json").read_text())
+    cal = {}
+    for name, t in truth["calibration"].items():
+        cal[name] = calibrate_motor(Trace.read(DEV / f"calib_{name}_unloaded.csv"),
+                                    Trace.read(DEV / f"calib_{name}_loaded.csv"), t["disk_inertia"])
+    b = truth["bench"]
+    res = efficiency(Trace.read(DEV / b["file"]), cal[b["motor_in"]], cal[b["motor_out"]])
+    assert res.ratio == pytest.approx(b["n"], rel=1e-4)
+    loaded = [p for p in b["points"] if p["out_current_cmd"] != 0]
+    assert len(res.points) == len(loaded)
+    for p, tp in zip(res.points, loaded):
+        assert abs(p.eta_incremental - b["eta_mesh"]) <= 0.002
+        assert abs(p.eta_absolute - tp["eta_abs"]) <= 0.003
+        assert p.eta_absolute_ci95[0] < tp["eta_abs"] < p.eta_absolute_ci95[1]
+
+
+def test_simulated_bench_with_true_motor_models():
+    sim = pytest.importorskip("gearbench.sim")
+    from gearbench.sim import waveforms as wf
+
+    mi, mo = sim.MotorParams(), sim.MotorParams(Kt=0.046, J=1.2e-5, D=1.5e-6, Tc=0.006)
+    plant = sim.PlantParams(motor_in=mi, motor_out=mo, ratio=5.0, eta_mesh=0.9, drag_torque_nm=0.005)
+    t = wf.time_base(12.0)
+    cout = -wf.staircase(t, levels=[0, 0.5, 1.0, 0], dwell_s=3.0)
+    tr = sim.simulate_bench(plant, wf.ramp(t, slope=400, final=150.0), cout, seed=3)
+    cal = [MotorCalibration(m.Kt, (m.Kt, m.Kt), m.J, m.D, m.Tc, "truth") for m in (mi, mo)]
+    res = efficiency(tr, *cal)
+    assert len(res.points) == 2
+    for p in res.points:
+        truth = sim.bench_operating_point(plant, p.speed_in_rad_s, p.window.out_command)
+        assert abs(p.eta_incremental - truth["eta_incremental"]) <= 0.002
+        assert abs(p.eta_absolute - truth["eta_absolute"]) <= 0.003

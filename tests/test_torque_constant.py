@@ -1,0 +1,72 @@
+"""Kt from two runs: corrected eq. 17, its erratum, uncertainty, bad input, JSON form."""
+import numpy as np
+import pytest
+
+from gearbench.analysis.calibration import MotorCalibration, calibrate_from_fits
+from gearbench.analysis.identify import D_J, KT_J, TC_J, IdentificationResult
+from gearbench.analysis.torque_constant import (paper_printed_eq17, torque_constant,
+                                                torque_constant_from_b2)
+from gearbench.errors import GearbenchError
+
+KT, J, DISK = 0.0527, 1.5e-5, 2.01398e-5
+
+
+def fake_fit(b2, b2_std=0.0, d_j=0.1, tc_j=500.0, dof=30):
+    cov = np.diag([b2_std ** 2, 1e-4, 1.0])
+    return IdentificationResult("default", (KT_J, D_J, TC_J), (b2, d_j, tc_j), cov, dof, 1e-3,
+                                3000, 300.0, 0.999, 1.0, 5.0, np.eye(2), np.array([0.0, b2]))
+
+
+def test_corrected_eq17_recovers_kt_and_printed_one_is_negative():
+    b_unloaded, b_loaded = KT / J, KT / (J + DISK)          # eqs. 11 and 15
+    assert torque_constant_from_b2(b_unloaded, b_loaded, DISK) == pytest.approx(KT, rel=1e-12)
+    assert paper_printed_eq17(b_unloaded, b_loaded, DISK) == pytest.approx(-KT, rel=1e-12)
+    # eq. 16 as printed, b2^ = Kt/(b2~ + j), is dimensionally wrong: it is not b_loaded
+    assert KT / (b_unloaded + DISK) != pytest.approx(b_loaded, rel=0.1)
+
+
+def test_rotor_inertia_and_interval_from_propagation_match_monte_carlo():
+    su, sl = 3.0, 1.0
+    res = torque_constant(fake_fit(KT / J, su), fake_fit(KT / (J + DISK), sl), DISK)
+    assert res.torque_constant_nm_a == pytest.approx(KT, rel=1e-12)
+    assert res.rotor_inertia_kgm2 == pytest.approx(J, rel=1e-12)
+    rng = np.random.default_rng(0)
+    bu = KT / J + rng.normal(0, su, 200_000)
+    bl = KT / (J + DISK) + rng.normal(0, sl, 200_000)
+    kts = torque_constant_from_b2(bu, bl, DISK)
+    assert res.torque_constant_std == pytest.approx(np.std(kts), rel=0.03)
+    assert res.rotor_inertia_std == pytest.approx(np.std(kts / bu), rel=0.05)
+    lo, hi = res.torque_constant_ci95
+    assert lo < KT < hi and (hi - lo) / 2 == pytest.approx(2.042 * np.std(kts), rel=0.05)
+
+
+def test_swapped_runs_say_swap():
+    with pytest.raises(GearbenchError, match="swap --loaded and --unloaded"):
+        torque_constant(fake_fit(KT / (J + DISK)), fake_fit(KT / J), DISK)
+
+
+@pytest.mark.parametrize("bad", [0.0, -1e-5, float("nan")])
+def test_non_positive_inertia_is_refused(bad):
+    with pytest.raises(GearbenchError, match="inertia"):
+        torque_constant(fake_fit(KT / J), fake_fit(KT / (J + DISK)), bad)
+
+
+def test_calibration_combines_losses_and_round_trips_through_json():
+    cal = calibrate_from_fits(fake_fit(KT / J, 2.0, d_j=2e-6 / J, tc_j=0.008 / J),
+                              fake_fit(KT / (J + DISK), 1.0, d_j=2e-6 / (J + DISK),
+                                       tc_j=0.008 / (J + DISK)), DISK)
+    assert cal.Kt == pytest.approx(KT) and cal.J == pytest.approx(J)
+    assert cal.D == pytest.approx(2e-6) and cal.Tc == pytest.approx(0.008)
+    d = cal.to_dict()
+    assert {"Kt", "Kt_ci95", "J", "D", "Tc", "method", "fit"} <= set(d)
+    back = MotorCalibration.from_dict(d)
+    assert back.Kt == cal.Kt and back.Kt_ci95 == cal.Kt_ci95 and back.Tc == cal.Tc
+    np.testing.assert_allclose(back.loss_covariance, cal.loss_covariance)
+    assert back.loss_torque_nm(-100.0) == pytest.approx(-(2e-6 * 100 + 0.008))
+
+
+def test_from_dict_names_the_missing_key():
+    with pytest.raises(GearbenchError, match=r"IN\.json: missing key\(s\) Tc"):
+        MotorCalibration.from_dict({"Kt": 0.05, "J": 1e-5, "D": 0.0}, where="IN.json")
+    with pytest.raises(GearbenchError, match="'Kt' must be a finite number"):
+        MotorCalibration.from_dict({"Kt": "x", "J": 1e-5, "D": 0.0, "Tc": 0.0}, where="IN.json")
