@@ -118,40 +118,43 @@ class Sequencer:
     def plan(self) -> list:
         """The profile's steps as a flat list of actions: Segment, ("prompt", text,
         mount kwargs) and ("analyse", what, args). Plain data, easy to print and test."""
+        return [a for step in self.profile.steps for a in self.plan_step(step)]
+
+    def plan_step(self, step) -> list:
+        """The actions of one profile step."""
         from .profile import CalibrateStep, EfficiencyStep, LoadStep
 
         p = self.profile
         actions: list = []
-        for step in p.steps:
-            if isinstance(step, CalibrateStep):
-                m = step.motor
-                disk = p.disks[step.disk]
-                wave = p.waveforms[step.waveform]
-                n = int(round(step.duration_s / self.period_s))
-                cmd = np.asarray(wave.render(np.arange(n) * self.period_s), dtype=float)
-                mode = Mode.TORQUE if step.mode in ("current", "torque") else Mode.VELOCITY
-                actions.append(("prompt", f"Motor '{m}': shafts free, no disk, no reducer",
-                                dict(coupling="none", disk_kgm2={})))
-                actions.append(Segment(f"calibrate-{m}-unloaded", "calibrate",
-                                       {m: (mode, cmd)}, f"motor {m} without disk"))
-                actions.append(("prompt", step.prompt or f"Mount disk '{disk.name}' on motor '{m}'",
-                                dict(coupling="none", disk_kgm2={m: disk.inertia_kgm2})))
-                actions.append(Segment(f"calibrate-{m}-{disk.name}", "calibrate",
-                                       {m: (mode, cmd)}, f"motor {m} with disk {disk.name}"))
-                actions.append(("prompt", step.remove_prompt or f"Remove disk '{disk.name}' from motor '{m}'",
-                                dict(coupling="none", disk_kgm2={})))
-                actions.append(("analyse", "calibrate", dict(motor=m, disk=disk.inertia_kgm2,
-                                unloaded=f"calibrate-{m}-unloaded",
-                                loaded=f"calibrate-{m}-{disk.name}")))
-            elif isinstance(step, LoadStep):
-                name = p.reducer.name if p.reducer else "reducer"
-                actions.append(("prompt", step.prompt or f"Mount reducer '{name}' between the motors",
-                                dict(coupling="reducer", disk_kgm2={})))
-            elif isinstance(step, EfficiencyStep):
-                for k, speed in enumerate(step.speeds_in_rad_s):
-                    actions.append(self._efficiency_segment(step, k, speed))
-                    actions.append(("analyse", "efficiency", dict(segment=f"efficiency-{k}",
-                                                                   speed=speed)))
+        if isinstance(step, CalibrateStep):
+            m = step.motor
+            disk = p.disks[step.disk]
+            wave = p.waveforms[step.waveform]
+            n = int(round(step.duration_s / self.period_s))
+            cmd = np.asarray(wave.render(np.arange(n) * self.period_s), dtype=float)
+            mode = Mode.TORQUE if step.mode in ("current", "torque") else Mode.VELOCITY
+            actions.append(("prompt", f"Motor '{m}': shafts free, no disk, no reducer",
+                            dict(coupling="none", disk_kgm2={})))
+            actions.append(Segment(f"calibrate-{m}-unloaded", "calibrate",
+                                   {m: (mode, cmd)}, f"motor {m} without disk"))
+            actions.append(("prompt", step.prompt or f"Mount disk '{disk.name}' on motor '{m}'",
+                            dict(coupling="none", disk_kgm2={m: disk.inertia_kgm2})))
+            actions.append(Segment(f"calibrate-{m}-{disk.name}", "calibrate",
+                                   {m: (mode, cmd)}, f"motor {m} with disk {disk.name}"))
+            actions.append(("prompt", step.remove_prompt or f"Remove disk '{disk.name}' from motor '{m}'",
+                            dict(coupling="none", disk_kgm2={})))
+            actions.append(("analyse", "calibrate", dict(motor=m, disk=disk.inertia_kgm2,
+                            unloaded=f"calibrate-{m}-unloaded",
+                            loaded=f"calibrate-{m}-{disk.name}")))
+        elif isinstance(step, LoadStep):
+            name = p.reducer.name if p.reducer else "reducer"
+            actions.append(("prompt", step.prompt or f"Mount reducer '{name}' between the motors",
+                            dict(coupling="reducer", disk_kgm2={})))
+        elif isinstance(step, EfficiencyStep):
+            for k, speed in enumerate(step.speeds_in_rad_s):
+                actions.append(self._efficiency_segment(step, k, speed))
+                actions.append(("analyse", "efficiency", dict(segment=f"efficiency-{k}",
+                                                               speed=speed)))
         return actions
 
     def _efficiency_segment(self, step, k: int, speed: float) -> Segment:
@@ -180,20 +183,35 @@ class Sequencer:
     # ------------------------------------------------------------------- run
     def run(self) -> dict:
         """Run every step; return the result dict (also emitted in RunStop)."""
+        self.begin()
+        try:
+            for step in self.profile.steps:
+                self.run_step(step)
+        except GearbenchError as exc:
+            return self.finish(error=exc)
+        except BaseException:
+            self.net.stop_all()
+            self._restore_signals()
+            raise
+        return self.finish()
+
+    def begin(self) -> None:
+        """Emit RunStart and take over Ctrl-C/SIGTERM (they request a safe stop)."""
         p = self.profile
-        started = now_utc()
+        self._started = now_utc()
         self._wall0 = time.monotonic()
-        actions = self.plan()
         self._samples_total = max(1, sum(len(next(iter(a.commands.values()))[1])
-                                         for a in actions if isinstance(a, Segment)))
-        self.emit(RunStart(self.run_id, self.serial, p.name, str(p.path), p.sha256, started,
+                                         for a in self.plan() if isinstance(a, Segment)))
+        self.emit(RunStart(self.run_id, self.serial, p.name, str(p.path), p.sha256, self._started,
                            self.sim_truth is not None, tuple(p.motors), self.period_s,
                            str(self.out_dir)))
-        old = self._install_signals()
-        status, exit_code, reason = "passed", 0, ""
-        limits: list[dict] = []
+        self._old_signals = self._install_signals()
+
+    def run_step(self, step) -> None:
+        """Run one profile step (calibrate / load / efficiency). A fault quick-stops
+        the drives and raises BenchFault (samples so far are already emitted)."""
         try:
-            for action in actions:
+            for action in self.plan_step(step):
                 if self._abort_reason:
                     raise BenchFault(self._abort_reason)
                 if isinstance(action, Segment):
@@ -202,29 +220,33 @@ class Sequencer:
                     self._prompt(action[1], action[2])
                 else:
                     self._analyse(action[1], action[2])
+        except GearbenchError:
+            self.net.stop_all()
+            raise
+
+    def finish(self, error: Exception | None = None) -> dict:
+        """Check limits (unless the run stopped early), emit RunStop, return the result."""
+        self._restore_signals()
+        status, exit_code, reason = "passed", 0, ""
+        limits: list[dict] = []
+        if error is not None:
+            # a bench fault, an abort, or analysis refusing the data: drives are safe, run over
+            aborted = isinstance(error, BenchFault) and ("abort" in str(error) or "terminated" in str(error))
+            status, exit_code, reason = ("aborted" if aborted else "fault"), 3, str(error)
+            self.emit(Message(f"run stopped: {error}", level="error"))
+        else:
             limits = self._check_limits()
             if not all(lim["passed"] for lim in limits):
                 status, exit_code = "failed", 1
                 reason = ", ".join(lim["name"] for lim in limits if not lim["passed"])
-        except BenchFault as exc:
-            self.net.stop_all()
-            status, exit_code, reason = ("aborted" if "abort" in str(exc) or "terminated" in str(exc)
-                                         else "fault"), 3, str(exc)
-            self.emit(Message(f"run stopped: {exc}", level="error"))
-        except GearbenchError as exc:
-            # analysis refused the data (e.g. no excitation): drives safe, run failed
-            self.net.stop_all()
-            status, exit_code, reason = "fault", exc.exit_code if exc.exit_code == 3 else 3, str(exc)
-            self.emit(Message(f"run stopped: {exc}", level="error"))
-        except BaseException:
-            self.net.stop_all()
-            raise
-        finally:
-            for sig, h in old.items():
-                signal.signal(sig, h)
-        result = self._result(started, status, exit_code, reason, limits)
+        result = self._result(self._started, status, exit_code, reason, limits)
         self.emit(RunStop(status, exit_code, reason, result))
         return result
+
+    def _restore_signals(self) -> None:
+        for sig, h in getattr(self, "_old_signals", {}).items():
+            signal.signal(sig, h)
+        self._old_signals = {}
 
     def _prompt(self, text: str, mount: dict) -> None:
         self.emit(Message(text, level="prompt"))

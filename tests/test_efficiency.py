@@ -86,7 +86,6 @@ def test_bench_without_zero_load_or_with_wrong_sign_is_refused():
     with pytest.raises(TraceError, match="out_command.*zero-load"):
         efficiency(tr, M_IN, M_OUT)
     tr, _, _ = hand_bench()
-    tr = tr.with_(**{}) if hasattr(tr, "with_") else tr
     flipped = tr.with_columns(out_current_a=-tr["out_current_a"], out_command=-tr["out_command"],
                               in_current_a=2 * tr["in_current_a"][0] - tr["in_current_a"])
     with pytest.raises(ExcitationError, match="does not rise under load"):

@@ -106,22 +106,22 @@ class _Checker:
             if key not in m:
                 self.fail(path, f"missing key '{key}'", f"add '{key}:' with {MEANING.get(key, 'a value')}")
 
-    def _get(self, m, path, key, default):
+    def _get(self, m, path, key, default, meaning=None):
         if key in m and m[key] is not None:
             return m[key], False
         if default is _MISSING:
             self.fail(path, f"missing key '{key}'" if key not in m else f"'{key}' is empty",
-                      f"set '{key}:' to {MEANING.get(key, 'a value')}")
+                      f"set '{key}:' to {meaning or MEANING.get(key, 'a value')}")
         return default, True
 
-    def number(self, m, path, key, default=_MISSING, *, gt=None, ge=None, le=None, lt=None):
-        value, defaulted = self._get(m, path, key, default)
+    def number(self, m, path, key, default=_MISSING, *, gt=None, ge=None, le=None, lt=None, meaning=None):
+        value, defaulted = self._get(m, path, key, default, meaning)
         if defaulted:
             return value
-        return self.check_number(value, tuple(path) + (key,), key, gt=gt, ge=ge, le=le, lt=lt)
+        return self.check_number(value, tuple(path) + (key,), key, gt=gt, ge=ge, le=le, lt=lt, meaning=meaning)
 
-    def check_number(self, value, path, key, *, gt=None, ge=None, le=None, lt=None) -> float:
-        fix = f"set {MEANING.get(key, 'a number')}"
+    def check_number(self, value, path, key, *, gt=None, ge=None, le=None, lt=None, meaning=None) -> float:
+        fix = f"set {meaning or MEANING.get(key, 'a number')}"
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             self.fail(path, f"must be a number (got {_describe(value)})", fix)
         value = float(value)
@@ -133,12 +133,12 @@ class _Checker:
                 self.fail(path, f"must be {sign} {bound:g} (got {value:g})", fix)
         return value
 
-    def integer(self, m, path, key, default=_MISSING, *, ge=None, le=None) -> int:
-        value, defaulted = self._get(m, path, key, default)
+    def integer(self, m, path, key, default=_MISSING, *, ge=None, le=None, meaning=None) -> int:
+        value, defaulted = self._get(m, path, key, default, meaning)
         if defaulted:
             return value
         kpath = tuple(path) + (key,)
-        fix = f"set {MEANING.get(key, 'a whole number')}"
+        fix = f"set {meaning or MEANING.get(key, 'a whole number')}"
         if isinstance(value, bool) or not isinstance(value, int):
             self.fail(kpath, f"must be a whole number (got {_describe(value)})", fix)
         if ge is not None and value < ge or le is not None and value > le:
@@ -168,15 +168,15 @@ class _Checker:
             self.fail(tuple(path) + (key,), f"must be true or false (got {_describe(value)})", "write true or false")
         return value
 
-    def number_list(self, m, path, key, *, gt=None, le=None) -> list[float]:
-        value, _ = self._get(m, path, key, _MISSING)
+    def number_list(self, m, path, key, *, gt=None, le=None, meaning=None) -> list[float]:
+        value, _ = self._get(m, path, key, _MISSING, meaning)
         kpath = tuple(path) + (key,)
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             value = [value]  # a single level is a one-element list
         if not isinstance(value, list) or not value:
             self.fail(kpath, f"must be a non-empty list of numbers (got {_describe(value)})",
-                      f"set {MEANING.get(key, 'a list of numbers')}", at_value=True)
-        return [self.check_number(x, kpath + (i,), key, gt=gt, le=le) for i, x in enumerate(value)]
+                      f"set {meaning or MEANING.get(key, 'a list of numbers')}", at_value=True)
+        return [self.check_number(x, kpath + (i,), key, gt=gt, le=le, meaning=meaning) for i, x in enumerate(value)]
 
     def ident(self, name, path, what: str) -> str:
         if not isinstance(name, str) or not _NAME_RE.match(name):
@@ -378,13 +378,14 @@ def _waveforms(c: _Checker, top, period_s: float) -> dict[str, WaveformSpec]:
             default = _MISSING if spec.default is wf.REQUIRED else spec.default
             if key not in d and default is _MISSING:
                 c.fail(wp, f"a {kind} waveform needs '{key}'", f"add '{key}:' ({spec.meaning})")
-            MEANING.setdefault(key, spec.meaning)
+            meaning = f"'{key}' ({spec.meaning})"
             if spec.type == "number":
-                params[key] = c.number(d, wp, key, default, gt=spec.gt, ge=spec.ge, le=spec.le)
+                params[key] = c.number(d, wp, key, default, gt=spec.gt, ge=spec.ge, le=spec.le, meaning=meaning)
             elif spec.type == "int":
-                params[key] = c.integer(d, wp, key, default, ge=spec.ge, le=spec.le)
+                params[key] = c.integer(d, wp, key, default, ge=spec.ge, le=spec.le, meaning=meaning)
             elif spec.type == "list":
-                params[key] = c.number_list(d, wp, key, gt=spec.gt) if d.get(key) is not None else default
+                params[key] = (c.number_list(d, wp, key, gt=spec.gt, meaning=meaning) if d.get(key) is not None
+                               else default)
             elif spec.type == "bool":
                 params[key] = c.boolean(d, wp, key, default)
             else:

@@ -1,0 +1,174 @@
+"""Offline commands end to end (calibrate, identify, efficiency) and bad input, case by case:
+exit code 2, one line on stderr naming the file/column and the fix, no traceback."""
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gearbench.cli import main
+from gearbench.trace import Trace
+
+DEV = Path("/work/shared/datasets/dev")
+UA, LA = DEV / "calib_motor_a_unloaded.csv", DEV / "calib_motor_a_loaded.csv"
+UB, LB = DEV / "calib_motor_b_unloaded.csv", DEV / "calib_motor_b_loaded.csv"
+BENCH = DEV / "bench_motor_a_in_motor_b_out.csv"
+DISK = "1.5e-5"
+
+
+def run(capsys, *argv):
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def bad(capsys, *argv, must=()):
+    code, out, err = run(capsys, *argv)
+    assert code == 2, (out, err)
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    for m in must:
+        assert m in err, err
+    return err
+
+
+def test_calibrate_json_and_text(capsys, tmp_path):
+    code, out, _ = run(capsys, "calibrate", "--unloaded", UA, "--loaded", LA, "--inertia", DISK, "--json")
+    assert code == 0
+    d = json.loads(out)
+    assert {"Kt", "Kt_ci95", "J", "D", "Tc", "method", "fit"} <= set(d)
+    assert d["Kt_ci95"][0] < d["Kt"] < d["Kt_ci95"][1]
+    assert abs(d["Kt"] / 0.0612 - 1) < 0.002
+    assert {"r2", "rmse", "n_samples", "condition", "b2_unloaded", "b2_loaded"} <= set(d["fit"])
+    code, out, _ = run(capsys, "calibrate", "--unloaded", UA, "--loaded", LA, "--inertia", DISK,
+                       "--method", "paper")
+    assert code == 0 and "method       paper" in out and "Kt" in out
+
+
+def test_identify_json(capsys):
+    code, out, _ = run(capsys, "identify", UB, "--json")
+    d = json.loads(out)
+    assert code == 0 and d["method"] == "default"
+    assert d["b2"] == pytest.approx(0.0455 / 1.1e-5, rel=0.002)
+    assert {"Kt/J", "D/J", "Tc/J"} <= set(d["params"]) and d["covariance"]["matrix"]
+    code, out, _ = run(capsys, "identify", UB, "--method", "paper-15ms")
+    assert code == 0 and "C/J" in out
+
+
+def test_efficiency_from_calibration_files_and_from_kt(capsys, tmp_path):
+    for name, (u, l) in {"a": (UA, LA), "b": (UB, LB)}.items():
+        code, out, _ = run(capsys, "calibrate", "--unloaded", u, "--loaded", l, "--inertia", DISK, "--json")
+        (tmp_path / f"{name}.json").write_text(out)
+    code, out, _ = run(capsys, "efficiency", BENCH, "--motor-in", tmp_path / "a.json",
+                       "--motor-out", tmp_path / "b.json", "--json")
+    assert code == 0
+    d = json.loads(out)
+    assert d["ratio"] == pytest.approx(7.0, rel=1e-4) and len(d["points"]) == 4
+    for p in d["points"]:
+        assert {"eta_incremental", "eta_incremental_ci95", "eta_absolute", "eta_absolute_ci95",
+                "speed_in_rad_s", "torque_out_nm"} <= set(p)
+        assert p["eta_incremental"] == pytest.approx(0.88, abs=0.002)
+    torques = [p["torque_out_nm"] for p in d["points"]]
+    assert torques == sorted(torques)                            # trace order: rising load
+    code, out, _ = run(capsys, "efficiency", BENCH, "--kt-in", "0.0612", "--kt-out", "0.0455", "--ratio", "7")
+    assert code == 0 and "eta incr" in out and "ignores its friction" in out
+
+
+# ------------------------------------------------------------------ bad input
+def _copy_with(tmp_path, src, name, edit):
+    tr = Trace.read(src)
+    tr = edit(tr)
+    p = tmp_path / name
+    tr.write_csv(p)
+    return p
+
+
+def test_missing_column(capsys, tmp_path):
+    p = _copy_with(tmp_path, UA, "nocur.csv", lambda t: t.select(["position_rad", "command"]))
+    bad(capsys, "calibrate", "--unloaded", p, "--loaded", LA, "--inertia", DISK,
+        must=("nocur.csv", "current_a"))
+
+
+def test_misnamed_column(capsys, tmp_path):
+    p = _copy_with(tmp_path, UA, "renamed.csv",
+                   lambda t: t.select(["position_rad", "current_a"], rename={"current_a": "current"}))
+    bad(capsys, "identify", p, must=("renamed.csv", "current_a"))
+
+
+def test_bench_missing_column(capsys, tmp_path):
+    p = _copy_with(tmp_path, BENCH, "bench.csv", lambda t: t.select(
+        [n for n in t.names if n != "out_command"]))
+    bad(capsys, "efficiency", p, "--kt-in", "0.06", "--kt-out", "0.045", must=("bench.csv", "out_command"))
+
+
+def test_non_monotonic_time(capsys, tmp_path):
+    def edit(t):
+        ts = t.time_s.copy()
+        ts[100], ts[101] = ts[101], ts[100]
+        return Trace(ts, t.columns, {}, t.source)
+    p = _copy_with(tmp_path, UA, "order.csv", edit)
+    bad(capsys, "identify", p, must=("order.csv", "time_s", "not strictly increasing"))
+
+
+def test_irregular_time(capsys, tmp_path):
+    def edit(t):
+        keep = np.ones(len(t), bool)
+        keep[500:520] = False                     # 20 lost samples
+        return Trace(t.time_s[keep], {k: v[keep] for k, v in t.columns.items()}, {}, t.source)
+    p = _copy_with(tmp_path, UA, "gap.csv", edit)
+    bad(capsys, "identify", p, must=("gap.csv", "irregular sampling"))
+
+
+def test_nan_and_inf(capsys, tmp_path):
+    for val, name in ((np.nan, "nan.csv"), (np.inf, "inf.csv")):
+        def edit(t, val=val):
+            c = t["current_a"].copy()
+            c[200] = val
+            return t.with_columns(current_a=c)
+        p = _copy_with(tmp_path, UA, name, edit)
+        bad(capsys, "identify", p, must=(name, "current_a", "non-finite"))
+
+
+def test_too_few_samples(capsys, tmp_path):
+    p = _copy_with(tmp_path, UA, "short.csv", lambda t: t.slice(0, 30))
+    bad(capsys, "identify", p, must=("short.csv", "samples"))
+
+
+def test_no_excitation(capsys, tmp_path):
+    t = np.arange(3000) * 1e-3
+    q = 2 * np.pi / 10000
+    tr = Trace(t, {"position_rad": np.floor(150 * t / q) * q,
+                   "current_a": 0.2 + np.random.default_rng(0).normal(0, 0.004, t.size)}, {}, "flat")
+    p = tmp_path / "flat.csv"
+    tr.write_csv(p)
+    bad(capsys, "identify", p, must=("flat.csv", "rad/s amplitude"))
+
+
+def test_loaded_and_unloaded_swapped(capsys):
+    bad(capsys, "calibrate", "--unloaded", LA, "--loaded", UA, "--inertia", DISK,
+        must=("swap --loaded and --unloaded",))
+
+
+@pytest.mark.parametrize("inertia", ["0", "-1e-5", "nan"])
+def test_inertia_not_positive(capsys, inertia):
+    bad(capsys, "calibrate", "--unloaded", UA, "--loaded", LA, f"--inertia={inertia}",
+        must=("--inertia", "> 0"))
+
+
+def test_unreadable_and_missing_files(capsys, tmp_path):
+    p = tmp_path / "garbage.csv"
+    p.write_bytes(b"\xff\xfe\x00\x01binary\x00")
+    bad(capsys, "identify", p, must=("garbage.csv",))
+    bad(capsys, "identify", tmp_path / "nope.csv", must=("nope.csv", "not found"))
+    q = tmp_path / "text.csv"
+    q.write_text("time_s,position_rad,current_a\n0,0,abc\n")
+    bad(capsys, "identify", q, must=("text.csv", "not a number"))
+
+
+def test_motor_json_missing_keys_or_invalid(capsys, tmp_path):
+    p = tmp_path / "IN.json"
+    p.write_text(json.dumps({"Kt": 0.06, "J": 1.8e-5}))
+    bad(capsys, "efficiency", BENCH, "--motor-in", p, "--kt-out", "0.0455",
+        must=("IN.json", "D, Tc", "calibrate --json"))
+    p.write_text("{not json")
+    bad(capsys, "efficiency", BENCH, "--motor-in", p, "--kt-out", "0.0455", must=("IN.json", "JSON"))
+    bad(capsys, "efficiency", BENCH, "--kt-in", "0.06", must=("--motor-out", "--kt-out"))
