@@ -1,30 +1,47 @@
 """The Python API the CLI itself uses: load a profile, open a bench, run it.
 
-    from gearbench.api import load_profile, run_profile
+Whole job (what ``gearbench run`` does)::
+
+    from gearbench.api import run_profile
     result = run_profile("profiles/cvt.yaml", sim=True, out_dir="results/demo", serial="SN1")
     result["passed"], result["motors"]["in"]["Kt"], result["efficiency"][0]["eta_incremental"]
+
+Step by step, with typed results (what the OpenHTF phases do)::
+
+    from gearbench.api import open_bench
+    with open_bench("profiles/cvt.yaml", sim=True, out_dir="results/sn1", serial="SN1") as bench:
+        kt_in = bench.calibrate("in").kt_nm_per_a
+        bench.calibrate("out")
+        bench.load()
+        points = bench.efficiency()
+        result = bench.finish()          # RunResult; result.json, junit.xml, traces written
+
+Both paths are one code path: ``open_bench`` -> ``Bench`` -> ``Sequencer.begin /
+run_step / finish``. Nothing here imports OpenHTF.
 """
 from __future__ import annotations
 
 import contextlib
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable, Iterable
 
 from .drives.base import AxisConfig, DriveNetwork
 from .drives.registry import network_class
-from .errors import GearbenchError
+from .errors import BenchFault, GearbenchError
 from .profile import load_profile
 from .records import RecordStream
 
-__all__ = ["load_profile", "open_network", "run_profile"]
+__all__ = ["load_profile", "open_network", "open_bench", "run_profile", "Bench", "RunResult",
+           "MotorResult", "EfficiencyPointResult", "LimitCheck", "AutoOperator", "TerminalOperator"]
 
 
+# ---------------------------------------------------------------------- operators
 class TerminalOperator:
     """Prompts at the terminal; Enter confirms, 'a' aborts."""
 
     def confirm(self, prompt: str) -> None:
-        from .errors import BenchFault
-
         try:
             answer = input(f"\n>>> {prompt} — press Enter when done, 'a' to abort: ")
         except EOFError:
@@ -33,6 +50,120 @@ class TerminalOperator:
             raise BenchFault("operator abort at prompt")
 
 
+class AutoOperator:
+    """Every prompt answered at once (``--yes``, the simulated bench)."""
+
+    def confirm(self, prompt: str) -> None:
+        pass
+
+
+# ------------------------------------------------------------------ typed results
+def _pair(v) -> tuple[float, float]:
+    return (float(v[0]), float(v[1])) if v is not None else (float("nan"), float("nan"))
+
+
+@dataclass(frozen=True)
+class MotorResult:
+    """One motor's identified parameters (Kt from two inertias, paper eq. 17 corrected)."""
+
+    motor: str
+    kt_nm_per_a: float
+    kt_ci95_nm_per_a: tuple[float, float]
+    inertia_kgm2: float
+    viscous_nm_s_per_rad: float
+    coulomb_nm: float
+    method: str
+    fit: dict = field(default_factory=dict, repr=False)
+
+    @classmethod
+    def from_dict(cls, motor: str, d: dict) -> "MotorResult":
+        """From the ``motors.<m>`` entry of result.json (keys Kt, Kt_ci95, J, D, Tc)."""
+        return cls(motor, float(d["Kt"]), _pair(d.get("Kt_ci95")), float(d.get("J", "nan")),
+                   float(d.get("D", "nan")), float(d.get("Tc", "nan")), str(d.get("method", "")),
+                   dict(d.get("fit") or {}))
+
+
+@dataclass(frozen=True)
+class EfficiencyPointResult:
+    """One operating point (eq. 18 incremental efficiency and P_out/P_in)."""
+
+    speed_setpoint_rad_s: float
+    speed_in_rad_s: float
+    torque_out_nm: float
+    torque_in_nm: float
+    eta_incremental: float
+    eta_incremental_ci95: tuple[float, float]
+    eta_absolute: float
+    eta_absolute_ci95: tuple[float, float]
+    power_in_w: float
+    power_out_w: float
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "EfficiencyPointResult":
+        """From one entry of result.json's ``efficiency`` list."""
+        return cls(float(d.get("speed_setpoint_rad_s", d["speed_in_rad_s"])), float(d["speed_in_rad_s"]),
+                   float(d["torque_out_nm"]), float(d.get("torque_in_nm", "nan")),
+                   float(d["eta_incremental"]), _pair(d.get("eta_incremental_ci95")),
+                   float(d.get("eta_absolute", "nan")), _pair(d.get("eta_absolute_ci95")),
+                   float(d.get("power_in_w", "nan")), float(d.get("power_out_w", "nan")))
+
+
+@dataclass(frozen=True)
+class LimitCheck:
+    """One profile limit applied to one value (efficiency limits: one per point)."""
+
+    name: str
+    quantity: str
+    value: float | None
+    low: float | None
+    high: float | None
+    passed: bool
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "LimitCheck":
+        return cls(d["name"], d.get("quantity", ""), d.get("value"), d.get("low"), d.get("high"),
+                   bool(d["passed"]))
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """A finished run: the typed view of result.json (``raw`` is the dict itself).
+
+    ``status``: passed | failed (a limit) | fault | aborted; ``exit_code`` 0 / 1 / 3.
+    """
+
+    serial: str
+    run_id: str
+    profile: str
+    status: str
+    passed: bool
+    exit_code: int
+    reason: str
+    motors: dict[str, MotorResult]
+    ratio: float | None
+    efficiency: tuple[EfficiencyPointResult, ...]
+    limits: tuple[LimitCheck, ...]
+    out_dir: str
+    samples: int
+    lost_samples: int
+    bench_time_s: float
+    wall_time_s: float
+    raw: dict = field(default_factory=dict, repr=False)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "RunResult":
+        """From a result dict (``run_profile``'s return value or a result.json)."""
+        return cls(str(d.get("serial", "")), str(d.get("run_id", "")), str(d.get("profile", "")),
+                   str(d["status"]), bool(d["passed"]), int(d["exit_code"]), str(d.get("reason", "")),
+                   {m: MotorResult.from_dict(m, v) for m, v in (d.get("motors") or {}).items()},
+                   None if d.get("ratio") is None else float(d["ratio"]),
+                   tuple(EfficiencyPointResult.from_dict(p) for p in d.get("efficiency") or ()),
+                   tuple(LimitCheck.from_dict(x) for x in d.get("limits") or ()),
+                   str(d.get("out_dir", "")), int(d.get("samples", 0)), int(d.get("lost_samples", 0)),
+                   float(d.get("bench_time_s", 0.0)), float(d.get("wall_time_s", 0.0)), dict(d))
+
+
+# ------------------------------------------------------------------------ network
 def open_network(bus, profile) -> DriveNetwork:
     """Open the profile's bus and add its motors' drives (not yet enabled)."""
     cls = network_class(bus.family)
@@ -57,6 +188,182 @@ def open_network(bus, profile) -> DriveNetwork:
     return net
 
 
+# -------------------------------------------------------------------------- bench
+class Bench:
+    """An open bench running one profile for one unit; made by ``open_bench``.
+
+    Steps run in any order the caller likes (the profile's order is what
+    ``run()`` does). A step that faults quick-stops the drives, raises the
+    GearbenchError, and the run ends as ``fault`` at ``finish()``.
+    """
+
+    def __init__(self, profile, network: DriveNetwork, sequencer, stream: RecordStream):
+        self.profile = profile
+        self.network = network
+        self.sequencer = sequencer
+        self.stream = stream
+        self.result: RunResult | None = None
+        self.error: GearbenchError | None = None
+
+    @property
+    def drives(self) -> dict:
+        """The drives by axis name ("in", "out"), for callers' own checks."""
+        return self.network.drives
+
+    @property
+    def operator(self):
+        return self.sequencer.operator
+
+    @operator.setter
+    def operator(self, op) -> None:
+        """Who confirms mounting prompts (anything with ``confirm(prompt)``)."""
+        self.sequencer.operator = op
+
+    def run_step(self, step) -> None:
+        """Run one profile step (a step object, or its index in ``profile.steps``)."""
+        if self.result is not None:
+            raise GearbenchError(f"{self.profile.path}: the run is finished; open a new bench")
+        if self.error is not None:
+            raise GearbenchError(f"run stopped earlier ({self.error}); finish() and open a new bench")
+        if isinstance(step, int):
+            step = self.profile.steps[step]
+        try:
+            self.sequencer.run_step(step)
+        except GearbenchError as exc:
+            self.error = exc
+            raise
+
+    def _steps(self, kind: type, **match) -> list:
+        return [s for s in self.profile.steps if isinstance(s, kind)
+                and all(getattr(s, k) == v for k, v in match.items())]
+
+    def calibrate(self, motor: str) -> MotorResult:
+        """Run the profile's calibrate step for ``motor``; its Kt, J, D, Tc."""
+        from .profile import CalibrateStep
+
+        steps = self._steps(CalibrateStep, motor=motor)
+        if not steps:
+            raise GearbenchError(f"{self.profile.path}: no calibrate step for motor '{motor}'; "
+                                 f"add one under steps: (kind: calibrate, motor: {motor})")
+        self.run_step(steps[0])
+        return MotorResult.from_dict(motor, self.sequencer.motors_result[motor])
+
+    def load(self) -> None:
+        """The operator mounts the reducer (the profile's load step, or the default prompt)."""
+        from .profile import LoadStep
+
+        steps = self._steps(LoadStep)
+        self.run_step(steps[0] if steps else LoadStep(prompt=""))
+
+    def efficiency(self) -> list[EfficiencyPointResult]:
+        """Run the profile's efficiency step(s); the operating points they measured."""
+        from .profile import EfficiencyStep
+
+        steps = self._steps(EfficiencyStep)
+        if not steps:
+            raise GearbenchError(f"{self.profile.path}: no efficiency step; add one under steps: "
+                                 f"(kind: efficiency, speeds_in_rad_s: [...], torques_out_nm: [...])")
+        n0 = len(self.sequencer.efficiency)
+        for s in steps:
+            self.run_step(s)
+        return [EfficiencyPointResult.from_dict(p) for p in self.sequencer.efficiency[n0:]]
+
+    @property
+    def ratio(self) -> float | None:
+        """The reducer ratio used by the last efficiency step (measured or the profile's)."""
+        return self.sequencer.ratio
+
+    def run(self) -> RunResult:
+        """Every profile step in order, then ``finish()``; a fault ends the run (status fault)."""
+        try:
+            for step in self.profile.steps:
+                self.run_step(step)
+        except GearbenchError:
+            pass   # recorded in self.error; finish() reports it
+        return self.finish()
+
+    def finish(self) -> RunResult:
+        """Check the profile's limits, write the outputs; idempotent."""
+        if self.result is None:
+            self.result = RunResult.from_dict(self.sequencer.finish(error=self.error))
+        return self.result
+
+
+@contextlib.contextmanager
+def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str = "",
+               operator=None, subscribers: Iterable[Callable] = (), db=None, seed=None,
+               method: str = "default", quiet: bool = True, live: bool = False, rrd=None,
+               connect=None, fixture=None):
+    """Open the bench for ``profile`` (a path or a loaded Profile); yields a ``Bench``.
+
+    ``sim=True`` starts the emulated bench (the profile's ``simulation:`` plant) in a
+    child process behind the same drive protocol. ``operator`` confirms mounting
+    prompts (default: the terminal; ``AutoOperator()`` on the simulated bench).
+    ``subscribers`` are extra record consumers (callables, see gearbench.records).
+    ``fixture`` does the physical mounting (default: nothing on a real bench, the
+    emulator with ``sim``, or the drive network itself if it has ``mount()``, as an
+    in-process simulated drive family does). On leaving, an unfinished run is
+    finished (a GearbenchError inside the block makes it a fault), drives are
+    disabled and the outputs closed.
+    """
+    from .console import ProgressDisplay
+    from .recorder import ParquetRecorder
+    from .report import ResultWriter
+    from .sequencer import Sequencer
+    from .station_db import StationDatabase
+
+    if not hasattr(profile, "steps"):
+        profile = load_profile(profile)
+    if sim and not profile.simulation:
+        raise GearbenchError(f"{profile.path}: --sim needs a 'simulation:' section describing "
+                             f"the plant; add one (see profiles/cvt.yaml)")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    db_path = Path(db) if db else out.resolve().parent / "station.sqlite"
+    stream = RecordStream([ParquetRecorder(out), ResultWriter(out), StationDatabase(db_path),
+                           ProgressDisplay(sys.stderr, quiet=quiet), *subscribers])
+    if operator is None:
+        operator = AutoOperator() if sim else TerminalOperator()
+    sim_plant = dict(profile.simulation) if sim else None
+    if sim_plant is not None and seed is not None:
+        sim_plant["seed"] = seed
+    with contextlib.ExitStack() as stack:
+        stack.callback(stream.close)
+        if rrd or live or connect:
+            from .live import open_live_view
+
+            view = open_live_view(live=live, connect=connect, rrd=rrd)
+            if view is not None:
+                stream.subscribe(view)
+        bus = profile.bench.bus
+        if sim:
+            from .simbench import SimBench
+
+            simbench = stack.enter_context(SimBench(profile, seed=seed))
+            fixture, bus = fixture or simbench, simbench.bus_spec()
+        net = open_network(bus, profile)
+        stack.callback(net.close)
+        if fixture is None and callable(getattr(net, "mount", None)):
+            fixture = net
+        seq = Sequencer(profile, net, emit=stream.emit, operator=operator, fixture=fixture,
+                        serial=serial, out_dir=str(out), sim_truth=sim_plant, method=method)
+        bench = Bench(profile, net, seq, stream)
+        seq.begin()
+        try:
+            yield bench
+        except GearbenchError as exc:
+            bench.error = bench.error or exc
+            bench.finish()
+            raise
+        except BaseException:
+            net.stop_all()
+            seq._restore_signals()
+            raise
+        bench.finish()
+    if stream.errors:
+        print("gearbench: warning: output problems: " + "; ".join(stream.errors), file=sys.stderr)
+
+
 def run_profile(profile_path, *, sim: bool = False, out_dir="results/run", serial: str = "",
                 db=None, yes: bool = False, rrd=None, live: bool = False, connect=None,
                 method: str = "default", seed=None, quiet: bool = True, subscribers=(),
@@ -66,46 +373,10 @@ def run_profile(profile_path, *, sim: bool = False, out_dir="results/run", seria
     Writes the run folder (Parquet traces, result.json, junit.xml) and a row in the
     station database. ``subscribers`` are extra record consumers (callables).
     """
-    from .console import ProgressDisplay
-    from .recorder import ParquetRecorder
-    from .report import ResultWriter
-    from .sequencer import AutoOperator, Sequencer
-    from .station_db import StationDatabase
-
-    profile = load_profile(profile_path)
-    if sim and not profile.simulation:
-        raise GearbenchError(f"{profile.path}: --sim needs a 'simulation:' section describing "
-                             f"the plant; add one (see profiles/cvt.yaml)")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    db_path = Path(db) if db else out.resolve().parent / "station.sqlite"
-    stream = RecordStream([ParquetRecorder(out), ResultWriter(out), StationDatabase(db_path),
-                           ProgressDisplay(sys.stderr, quiet=quiet), *subscribers])
-    if rrd or live or connect:
-        from .live import open_live_view
-
-        view = open_live_view(live=live, connect=connect, rrd=rrd)
-        if view is not None:
-            stream.subscribe(view)
     if operator is None:
         operator = AutoOperator() if yes else TerminalOperator()
-    sim_plant = dict(profile.simulation) if sim else None
-    if sim_plant is not None and seed is not None:
-        sim_plant["seed"] = seed
-    with contextlib.ExitStack() as stack:
-        stack.callback(stream.close)
-        fixture = None
-        bus = profile.bench.bus
-        if sim:
-            from .simbench import SimBench
-
-            simbench = stack.enter_context(SimBench(profile, seed=seed))
-            fixture, bus = simbench, simbench.bus_spec()
-        net = open_network(bus, profile)
-        stack.callback(net.close)
-        seq = Sequencer(profile, net, emit=stream.emit, operator=operator, fixture=fixture,
-                        serial=serial, out_dir=str(out), sim_truth=sim_plant, method=method)
-        result = seq.run()
-    if stream.errors:
-        print("gearbench: warning: output problems: " + "; ".join(stream.errors), file=sys.stderr)
-    return result
+    with open_bench(profile_path, sim=sim, out_dir=out_dir, serial=serial, operator=operator,
+                    subscribers=subscribers, db=db, seed=seed, method=method, quiet=quiet,
+                    live=live, rrd=rrd, connect=connect) as bench:
+        result = bench.run()
+    return result.raw

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import pkgutil
 import sys
 
@@ -40,6 +41,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    # Library chatter (SDO retries, reconnects) is not for the operator's screen;
+    # faults reach them as one clear line through GearbenchError.
+    for name in ("canopen", "can", "pymodbus"):
+        logging.getLogger(name).setLevel(logging.CRITICAL)
     parser = build_parser()
     args = parser.parse_args(argv)  # argparse itself exits 2 on usage errors
     if not getattr(args, "_run", None):

@@ -13,6 +13,7 @@ import random
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import replace
@@ -55,8 +56,10 @@ class SimBench:
         if self.seed is not None:
             cmd += ["--seed", str(self.seed)]
         env = dict(os.environ, PYTHONUNBUFFERED="1")
+        # the child's diagnostics go to a file: an unread pipe would fill and stall it
+        self._log = tempfile.TemporaryFile(mode="w+")
         self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, text=True, env=env)
+                                     stderr=self._log, text=True, env=env)
         threading.Thread(target=self._reader, daemon=True).start()
         self._wait_line(lambda ln: ln == "ready", READY_TIMEOUT_S, "start")
         return self
@@ -78,7 +81,8 @@ class SimBench:
                         del self._lines[: i + 1]
                         return ln
                 if self.proc.poll() is not None:
-                    err = (self.proc.stderr.read() or "").strip().splitlines()
+                    self._log.seek(0)
+                    err = self._log.read().strip().splitlines()
                     raise DriveError(f"simulated bench stopped during {what} (exit {self.proc.returncode})"
                                      f"{': ' + err[-1] if err else ''}")
                 left = deadline - time.monotonic()
@@ -118,4 +122,5 @@ class SimBench:
                 self.proc.wait(5)
             except subprocess.TimeoutExpired:
                 self.proc.kill()
+        self._log.close()
         return False

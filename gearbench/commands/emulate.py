@@ -64,12 +64,24 @@ def _host_port(text: str) -> tuple[str, int]:
     return host or "127.0.0.1", int(port)
 
 
+def _warm_up(plant) -> None:
+    """Compile the physics kernel before saying ``ready``: on a fresh install numba
+    needs seconds for it, and the master's first SYNC must not wait that long."""
+    from ..sim import BenchWorld
+
+    world = BenchWorld(plant, seed=0)
+    world.step()
+    world.mount(coupling="reducer")
+    world.step()
+
+
 def run(args) -> int:
     from ..drives.buses import parse_bus
     from ..emulate.bench import EmulatedBench
     from ..emulate.canopen_server import start_canopen_server
 
     plant = load_plant(args.profile)
+    _warm_up(plant)
     bench = EmulatedBench(plant, seed=plant.seed if args.seed is None else args.seed)
     can_spec = args.can or (None if args.modbus else DEFAULT_CAN)
     handles = []

@@ -24,7 +24,7 @@ from numba import njit
 # ---- motor block (per axis, base a*MP)
 KT, J, D, C, TC, TS, WS, EPS, COG_A, COG_N, RIP_A, RIP_N, KSAT, OFF, GAIN, NOISE, RES, \
     Q, BETA, DELAY, KSH, CSH, BL, JD, DISK, KP, KI, ILIM, WLIM, LOOPK, VALPHA, LOOPT, \
-    MODE = range(33)
+    MODE, SP_INTERP, NAVG = range(35)
 MP = 40
 # ---- plant block (base PB)
 PB = 2 * MP
@@ -32,8 +32,8 @@ COUPLING, RATIO, ETA0, ETA_SLOPE, ETA_MIN, DRAG_TC, DRAG_D, PULS_A, PULS_K, MESH
     MESH_C, MESH_BL, NSUB, DT, DRAG_EPS, PERIOD = range(16)
 NPP = PB + 20
 # ---- state (per axis, base a*SS)
-TH, W, THD, WD, I, ICMD, INT, VEST, CPREV, SP = range(10)
-SS = 12
+TH, W, THD, WD, I, ICMD, INT, VEST, CPREV, SP, SPA, IACC, IMEAN = range(13)
+SS = 14
 GB = 2 * SS
 SUB, THOUT_OFF, E_IN, E_OUT = range(4)
 NST = GB + 8
@@ -101,9 +101,14 @@ def _gap_torque(delta, ddelta, k, c, gap):
 
 
 @njit(cache=True)
-def _drive_tick(pp, st, a):
+def _drive_tick(pp, st, a, frac):
     """One period of the drive's own loop: velocity estimate from the quantised
-    encoder (count difference, first-order low-pass), then the current command."""
+    encoder (count difference, first-order low-pass), then the current command.
+
+    ``frac`` is how far the SYNC period will be at the *next* loop tick (0..1]: in
+    velocity mode with ``SP_INTERP`` the setpoint ramps linearly from the previous
+    SYNC setpoint (``SPA``) to the new one (``SP``), reaching it at the period's last
+    tick, as cyclic-synchronous drives interpolate; otherwise it is applied as a step."""
     b = a * MP
     s = a * SS
     q = pp[b + Q]
@@ -116,7 +121,10 @@ def _drive_tick(pp, st, a):
     wlim = pp[b + WLIM]
     mode = pp[b + MODE]
     if mode == MODE_VELOCITY:
-        sp = min(max(st[s + SP], -wlim), wlim)
+        sp = st[s + SP]
+        if pp[b + SP_INTERP] > 0.0:
+            sp = st[s + SPA] + (sp - st[s + SPA]) * frac
+        sp = min(max(sp, -wlim), wlim)
         e = sp - v
         new_int = st[s + INT] + pp[b + KI] * e * pp[b + LOOPT]
         u = pp[b + KP] * e + new_int
@@ -271,15 +279,21 @@ def _advance(pp, st):
     dt = pp[PB + DT]
     nsub = int(pp[PB + NSUB])
     coupling = pp[PB + COUPLING]
-    for _ in range(nsub):
+    for a in range(2):
+        st[a * SS + IACC] = 0.0
+    for m in range(nsub):
         sub = st[GB + SUB]
         for a in range(2):
-            if sub % pp[a * MP + LOOPK] == 0.0:
-                _drive_tick(pp, st, a)
+            loopk = pp[a * MP + LOOPK]
+            if sub % loopk == 0.0:
+                _drive_tick(pp, st, a, min(1.0, (m + loopk) / nsub))
         st[GB + SUB] = sub + 1.0
         for a in range(2):
             s = a * SS
             st[s + I] += (st[s + ICMD] - st[s + I]) * pp[a * MP + BETA]
+            # the drive reports the mean current of its last current-loop cycle(s)
+            if m >= nsub - min(pp[a * MP + NAVG], nsub):
+                st[s + IACC] += st[s + I]
         te_in = _em_torque(pp, 0, st[TH], st[I])
         te_out = _em_torque(pp, MP, st[SS + TH], st[SS + I])
         if coupling == COUPLING_RIGID:
@@ -289,13 +303,18 @@ def _advance(pp, st):
         else:
             _free_axis(pp, st, 0, te_in, dt)
             _free_axis(pp, st, 1, te_out, dt)
+    for a in range(2):
+        s = a * SS
+        st[s + SPA] = st[s + SP]
+        st[s + IMEAN] = st[s + IACC] / min(pp[a * MP + NAVG], nsub)
 
 
 @njit(cache=True)
 def measure(pp, st, hist, k, noise, out):
     """What the drives report at sample index ``k`` (state as it is now).
 
-    Encoder: floor to a count. Current: true current ``DELAY`` samples ago,
+    Encoder: floor to a count. Current: the mean true current over the period's last
+    ``NAVG`` substeps (the drive's current-loop cycle), ``DELAY`` samples ago,
     ·gain + offset + noise, rounded to the resolution. Also the true values and the
     mean shaft powers over the last period (for truth checks); resets the energy sums.
     """
@@ -303,7 +322,7 @@ def measure(pp, st, hist, k, noise, out):
         b = a * MP
         s = a * SS
         q = pp[b + Q]
-        hist[a, k % HIST] = st[s + I]
+        hist[a, k % HIST] = st[s + IMEAN]
         d = int(pp[b + DELAY])
         i_d = hist[a, (k - d) % HIST] if k - d >= 0 else 0.0
         im = pp[b + GAIN] * i_d + pp[b + OFF] + noise[a] * pp[b + NOISE]

@@ -52,6 +52,10 @@ class MotorParams:
     shaft_damping: float = 0.0      # N m s/rad across the disk shaft
     backlash_rad: float = 0.0       # total gap of the disk coupling (dead zone)
     contact_stiffness: float = 100.0  # N m/rad in contact when backlash_rad > 0 and shaft_stiffness == 0
+    setpoint_interpolation: int = 1  # velocity mode: 1 = ramp linearly between SYNC setpoints
+    #                                  (cyclic-synchronous drives), 0 = apply each as a step
+    current_avg_s: float = 6.25e-5  # reported current = mean over this last span before the
+    #                                  sample (one 16 kHz current-loop cycle; 0 = the instant)
     vel_kp: float = 0.04            # drive velocity PI: A per rad/s
     vel_ki: float = 1.4             # drive velocity PI: A per rad
     loop_period_s: float = 2.5e-4   # drive velocity-loop period
@@ -71,7 +75,8 @@ class MotorParams:
         non_negative = ("D", "C", "Tc", "Ts", "cog_amp", "ripple_amp", "kt_sat_a",
                         "current_noise_a", "current_resolution_a", "current_lag_s",
                         "delay_samples", "shaft_stiffness", "shaft_damping", "backlash_rad",
-                        "vel_kp", "vel_ki", "vel_filter_s", "cog_order", "ripple_order")
+                        "vel_kp", "vel_ki", "vel_filter_s", "cog_order", "ripple_order",
+                        "current_avg_s")
         _check_numbers(self, where)
         for name in positive:
             if not getattr(self, name) > 0:
@@ -81,6 +86,9 @@ class MotorParams:
                 raise ProfileError(f"{where}.{name}: must be >= 0 (got {getattr(self, name)!r})")
         if self.delay_samples > 255:
             raise ProfileError(f"{where}.delay_samples: at most 255 (got {self.delay_samples})")
+        if self.setpoint_interpolation not in (0, 1):
+            raise ProfileError(f"{where}.setpoint_interpolation: 1 (linear between SYNC "
+                               f"setpoints) or 0 (steps), got {self.setpoint_interpolation!r}")
         if self.ripple_amp >= 1:
             raise ProfileError(f"{where}.ripple_amp: a fraction of Kt*i, must be < 1")
 

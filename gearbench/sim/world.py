@@ -108,6 +108,7 @@ class BenchWorld:
         self._pp[a * K.MP + K.MODE] = MODES[mode]
         self._st[a * K.SS + K.INT] = 0.0
         self._st[a * K.SS + K.SP] = 0.0
+        self._st[a * K.SS + K.SPA] = 0.0
 
     def set_setpoint(self, axis: str, value: float) -> None:
         """rad/s in velocity mode, A in torque mode (clipped to the drive's limits)."""
@@ -244,6 +245,8 @@ class BenchWorld:
                              (K.KP, m.vel_kp), (K.KI, m.vel_ki), (K.ILIM, m.current_limit_a),
                              (K.WLIM, m.speed_limit_rad_s), (K.MODE, MODES[self._modes[axis]])):
                 pp[b + idx] = val
+            pp[b + K.SP_INTERP] = float(m.setpoint_interpolation)
+            pp[b + K.NAVG] = max(1, int(round(m.current_avg_s / dt)))
             pp[b + K.Q] = 2 * math.pi / m.counts_per_rev
             pp[b + K.BETA] = 1.0 - math.exp(-dt / m.current_lag_s) if m.current_lag_s > 0 else 1.0
             jd = self._disks[axis]

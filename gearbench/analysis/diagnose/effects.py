@@ -17,8 +17,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from .nominal import (CurrentTaps, GivenModel, GivenNominal, Model, Signals, Term,
-                      nominal_terms)
+from .nominal import GivenModel, GivenNominal, Model, Signals, Term, nominal_terms
+from .nominal import kt_over_j as _kt_over_j
 
 Z95 = 1.96
 
@@ -43,10 +43,9 @@ class Base:
         return {} if (self.given is None or free_scale) else {0: 1.0}
 
     def kt_over_j(self, model: Model) -> float:
-        p = model.params()
         if self.given is None:
-            return p["a0"] + p["a1"]
-        return self.given.kt_over_j * p["scale"]
+            return _kt_over_j(model)
+        return self.given.kt_over_j * model.params()["scale"]
 
 
 def _pm(model: Model, name: str, scale: float = 1.0) -> tuple[float, float]:
@@ -307,13 +306,14 @@ class DiskTerm(Term):
     gap: float = 0.0
 
     def _track(self, sig):
-        key = (id(sig), self.wn, self.zeta, self.gap)
-        if key not in _DISK_CACHE:
-            if len(_DISK_CACHE) > 256:
-                _DISK_CACHE.clear()
-            _DISK_CACHE[key] = _disk_track(sig.position_rad, sig.velocity_rad_s, sig.dt_s,
-                                           self.wn, self.zeta, self.gap)
-        return _DISK_CACHE[key]
+        # one slot: a scan visits hundreds of disks, each a trace long
+        key = (self.wn, self.zeta, self.gap)
+        slot = sig.cache.get("disk")
+        if slot is None or slot[0] != key:
+            slot = (key, _disk_track(sig.position_rad, sig.velocity_rad_s, sig.dt_s,
+                                     self.wn, self.zeta, self.gap))
+            sig.cache["disk"] = slot
+        return slot[1]
 
     def measured(self, sig):
         th2, w2 = self._track(sig)
@@ -333,9 +333,6 @@ class DiskTerm(Term):
         dz, c = _deadzone(theta - th2, 0.5 * self.gap)
         w2 = w2 + dt * (self.wn ** 2 * dz + 2 * self.zeta * self.wn * c * (omega - w2))
         return [th2 + dt * w2, w2]
-
-
-_DISK_CACHE: dict = {}
 
 
 def _wn_grid(sig, n):

@@ -40,6 +40,9 @@ class Signals:
     current_a: np.ndarray
     dt_s: float
     source: str = "<array>"
+    # per-trace memo (current maps, window rows, disk tracks): tied to this object, so
+    # nothing computed for one trace can leak into another's diagnosis
+    cache: dict = field(default_factory=dict, compare=False, repr=False)
 
     def __len__(self) -> int:
         return len(self.time_s)
@@ -108,21 +111,36 @@ class CurrentTaps(Term):
     sat_a: float = 0.0
 
     def _i(self, sig):
-        key = (id(sig), self.delay, self.sat_a)
-        cache = _CURRENT_CACHE
-        if key not in cache:
-            if len(cache) > 64:
-                cache.clear()
-            i = current_map(sig, self.delay, self.sat_a)
-            cache[key] = (i, np.append(i[1:], i[-1]))
-        return cache[key]
+        return held_current(sig, self.delay, self.sat_a)
 
     def simulate(self, sig, theta, omega, idx, state):
         i0, i1 = self._i(sig)
         return [i0[idx], i1[idx]]
 
 
-_CURRENT_CACHE: dict = {}
+def held_current(sig: Signals, delay: int = 0, sat_a: float = 0.0):
+    """(i[k], i[k+1]) of the mapped current, memoised on the trace."""
+    key = ("current", delay, sat_a)
+    if key not in sig.cache:
+        i = current_map(sig, delay, sat_a)
+        sig.cache[key] = (i, np.append(i[1:], i[-1]))
+    return sig.cache[key]
+
+
+@dataclass(frozen=True)
+class HeldCurrent(Term):
+    """Kt/J * ((1-h) i[k] + h i[k+1]) with the hold fraction h fixed in [0, 1]: used when
+    the free taps would put h outside [0, 1], i.e. extrapolate the current — a causal
+    sampler cannot, and free taps would silently absorb a measurement delay."""
+
+    names: tuple[str, ...] = ("a",)
+    hold: float = 0.5
+    delay: int = 0
+    sat_a: float = 0.0
+
+    def simulate(self, sig, theta, omega, idx, state):
+        i0, i1 = held_current(sig, self.delay, self.sat_a)
+        return [(1.0 - self.hold) * i0[idx] + self.hold * i1[idx]]
 
 
 @dataclass(frozen=True)
@@ -177,6 +195,7 @@ class Windows:
 
     start: np.ndarray
     length: int
+    key: int = 0        # content hash, for memoising rows on the trace
 
 
 def fit_windows(sig: Signals, mask: np.ndarray) -> Windows:
@@ -187,7 +206,7 @@ def fit_windows(sig: Signals, mask: np.ndarray) -> Windows:
     starts = np.arange(0, n - L - 1, stride)
     bad = np.concatenate([[0], np.cumsum(~mask)])
     ok = bad[starts + L + 1] - bad[starts] == 0
-    return Windows(starts[ok], L)
+    return Windows(starts[ok], L, hash((L, starts[ok].tobytes())))
 
 
 def integrated_rows(sig: Signals, F: np.ndarray, win: Windows):
@@ -201,17 +220,16 @@ def integrated_rows(sig: Signals, F: np.ndarray, win: Windows):
     return X, y
 
 
-_ROWS_CACHE: dict = {}
-
-
 def _term_rows(sig: Signals, term: Term, win: Windows):
-    """Integrated rows of one term, cached: grid scans reuse the nominal's columns."""
-    key = (id(sig), id(win), term)
-    if key not in _ROWS_CACHE:
-        if len(_ROWS_CACHE) > 32:
-            _ROWS_CACHE.clear()
-        _ROWS_CACHE[key] = integrated_rows(sig, measured_features(sig, [term]), win)
-    return _ROWS_CACHE[key]
+    """Integrated rows of one term, memoised on the trace: grid scans reuse the
+    nominal's columns.  Only the nominal's terms are kept (scanned terms are many)."""
+    key = ("rows", win.key, term)
+    rows = sig.cache.get(key)
+    if rows is None:
+        rows = integrated_rows(sig, measured_features(sig, [term]), win)
+        if isinstance(term, (CurrentTaps, HeldCurrent, Viscous, Spring, GivenNominal)):
+            sig.cache[key] = rows
+    return rows
 
 
 def solve(X: np.ndarray, y: np.ndarray, overlap: float = 4.0):
@@ -239,7 +257,22 @@ def fit_model(sig: Signals, terms, win: Windows, fixed: dict[int, float] | None 
     parts = [_term_rows(sig, t, win) for t in terms]
     X = np.hstack([p[0] for p in parts])
     y = parts[0][1]
-    fixed = fixed or {}
+    fixed = dict(fixed or {})
+    model, rss = _fit_linear(X, y, terms, fixed)
+    # a hold fraction outside [0, 1] extrapolates the current (see HeldCurrent): pin it
+    h = hold_fraction(model)
+    if np.isfinite(h) and not 0.0 <= h <= 1.0:
+        hc = float(np.clip(h, 0.0, 1.0))
+        t0 = terms[0]
+        if isinstance(t0, CurrentTaps):
+            terms = [HeldCurrent(hold=hc, delay=t0.delay, sat_a=t0.sat_a), *terms[1:]]
+            return fit_model(sig, terms, win, {j - 1: v for j, v in fixed.items() if j > 1})
+        if isinstance(t0, GivenNominal) and 1 not in fixed:
+            return fit_model(sig, terms, win, {**fixed, 1: hc})
+    return model, rss
+
+
+def _fit_linear(X, y, terms, fixed):
     free = [j for j in range(X.shape[1]) if j not in fixed]
     coef = np.zeros(X.shape[1])
     for j, v in fixed.items():
@@ -305,14 +338,29 @@ def load_model(path: str | Path) -> GivenModel:
         raise ProfileError(f"{p}: Kt, J, D must be numbers") from None
 
 
+def kt_over_j(model: Model) -> float:
+    """Kt/J of an identified model (free taps or a pinned hold)."""
+    p = model.params()
+    return p["a"] if "a" in p else p.get("a0", 0.0) + p.get("a1", 0.0)
+
+
+def hold_fraction(model: Model) -> float:
+    """Share of i[k+1] in the current driving sample k (0 = zero-order hold)."""
+    t0 = model.terms[0] if model.terms else None
+    p = model.params()
+    if isinstance(t0, HeldCurrent):
+        return t0.hold
+    if isinstance(t0, GivenNominal):
+        return p["hold"]
+    a = kt_over_j(model)
+    return p.get("a1", 0.0) / a if a else float("nan")
+
+
 def physical(model: Model) -> dict[str, float]:
     """Nominal parameters as the paper writes them (ratios to J) plus the hold fraction."""
     p = model.params()
-    a = p.get("a0", 0.0) + p.get("a1", 0.0)
-    out = {"kt_over_j": a, "d_over_j": p.get("d_over_j", 0.0),
-           "c_over_j": p.get("c_over_j", 0.0),
-           "hold_fraction": p.get("a1", 0.0) / a if a else float("nan")}
-    return out
+    return {"kt_over_j": kt_over_j(model), "d_over_j": p.get("d_over_j", 0.0),
+            "c_over_j": p.get("c_over_j", 0.0), "hold_fraction": hold_fraction(model)}
 
 
 @dataclass(frozen=True)
@@ -328,6 +376,6 @@ class GivenNominal(Term):
     sat_a: float = 0.0
 
     def simulate(self, sig, theta, omega, idx, state):
-        i0, i1 = CurrentTaps(delay=self.delay, sat_a=self.sat_a)._i(sig)
+        i0, i1 = held_current(sig, self.delay, self.sat_a)
         base = self.kt_over_j * i0[idx] - self.d_over_j * omega - self.c_over_j * theta
         return [base, self.kt_over_j * (i1[idx] - i0[idx])]
