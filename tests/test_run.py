@@ -170,3 +170,24 @@ def test_ctrl_c_aborts_with_exit_3_and_keeps_samples(tmp_path):
     assert res["status"] == "aborted" and res["exit_code"] == 3
     tr = load_step_trace(out / "trace-calibrate-in-disk_a.parquet")
     assert 0 < len(tr) < 3000
+
+
+def test_watchdog_current_limit_stops_the_run(tmp_path):
+    """The plant needs more current than the profile allows (a heavier rotor than the
+    datasheet says): the watchdog trips, drives stop, exit 3, samples kept."""
+    text = MOTORS_ONLY.read_text().replace(
+        "in:  {Kt: 0.0527, J: 1.5e-5, rated_current_a: 1.5, current_limit_a: 3.0}",
+        "in:  {Kt: 0.0527, J: 1.5e-4, rated_current_a: 1.5, current_limit_a: 8.0}")
+    assert "J: 1.5e-4" in text
+    prof = tmp_path / "heavy.yaml"
+    prof.write_text(text)
+    p = gearbench("run", prof, "--sim", "--yes", "--out", tmp_path / "run", "--serial", "T-104")
+    assert p.returncode == 3, p.stderr
+    res = json.loads((tmp_path / "run" / "result.json").read_text())
+    # whichever trips first: the drive's own current limit (0x6073, written from the
+    # profile at start-up) -> EMCY 0x2310, or gearbench's watchdog on the samples
+    assert res["status"] == "fault"
+    assert "limit: motor 'in' current" in res["reason"] or "EMCY 0x2310" in res["reason"]
+    tr = load_step_trace(tmp_path / "run" / "trace-calibrate-in-unloaded.parquet")
+    assert 0 < len(tr) < 3000
+    assert np.abs(tr["in.current_a"]).max() > 2.9    # it was the current, near the 3 A limit

@@ -22,34 +22,55 @@ from .nominal import VELOCITY_WINDOW, Model, Signals
 
 #: Simulation horizon (re-initialised from the measured state), seconds.
 HORIZON_S = 0.1
-#: Blocks alternate fit / held-out; each block is this long, seconds.
+#: Blocks alternate between the two folds; each block is this long, seconds.
 BLOCK_S = 0.5
+#: Held-out horizons start every HORIZON_S / OVERLAP (they overlap; the significance
+#: test in verdict.py widens its variance for that).
+OVERLAP = 4
+
+
+@dataclass(frozen=True)
+class Fold:
+    """One way of splitting: fit on ``fit_mask`` (horizons ``fit_starts``, disjoint),
+    score on horizons ``score_starts`` that lie wholly in the other blocks."""
+
+    fit_mask: np.ndarray
+    fit_starts: np.ndarray
+    score_starts: np.ndarray
 
 
 @dataclass(frozen=True)
 class Split:
-    """Which samples fit and which score; horizons that start in held-out blocks."""
+    """Two-fold cross-fitting over alternating blocks: every block is held out once,
+    so the whole trace is scored, always by a model fitted without it."""
 
-    fit_mask: np.ndarray
-    score_starts: np.ndarray
-    fit_starts: np.ndarray
+    folds: tuple[Fold, ...]
     horizon: int
+    stride: int
+
+    @property
+    def score_starts(self) -> np.ndarray:
+        return np.concatenate([f.score_starts for f in self.folds])
 
 
 def split(sig: Signals) -> Split:
-    """Alternate blocks: even blocks fit, odd blocks are held out for scoring."""
+    """Alternating blocks; fold 0 fits on even blocks, fold 1 on odd ones."""
     n = len(sig)
     H = max(5, int(round(HORIZON_S / sig.dt_s)))
-    per_block = max(H, int(round(BLOCK_S / sig.dt_s)) // H * H)
-    if n < 4 * per_block:  # short trace: shrink blocks to keep >= 4 of them
-        per_block = max(H, (n // 4) // H * H)
+    per_block = max(2 * H, int(round(BLOCK_S / sig.dt_s)))
+    if n < 8 * per_block:  # short trace: shrink blocks to keep >= 8 of them
+        per_block = max(2 * H, n // 8)
     block = np.arange(n) // per_block
-    fit_mask = block % 2 == 0
-    starts = np.arange(0, n - H - 1, H)
-    same = block[starts] == block[starts + H]
-    fit_starts = starts[same & fit_mask[starts]]
-    score_starts = starts[same & ~fit_mask[starts]]
-    return Split(fit_mask, score_starts, fit_starts, H)
+    stride = max(1, H // OVERLAP)
+    starts = np.arange(0, n - H - 1, stride)
+    inside = block[starts] == block[starts + H]
+    disjoint = inside & (starts % H == 0)
+    folds = []
+    for parity in (0, 1):
+        fit_mask = block % 2 == parity
+        folds.append(Fold(fit_mask, starts[disjoint & fit_mask[starts]],
+                          starts[inside & ~fit_mask[starts]]))
+    return Split(tuple(folds), H, stride)
 
 
 def simulate(sig: Signals, model: Model, starts: np.ndarray, horizon: int) -> np.ndarray:

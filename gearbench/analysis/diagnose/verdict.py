@@ -5,10 +5,12 @@ Per candidate, on the held-out horizons only:
     model over the RMS of the measured velocity;
   * ``shrink`` = 1 - gap_after/gap_before, where gap = sqrt(max(MSE - floor, 0)) is
     the error in excess of the data's noise floor (1 = the gap is closed);
-  * ``delta_bic`` = n ln(MSE_after/MSE_before) + dk ln n, n = held-out horizons
-    (Schwarz 1978; negative favours the candidate);
+  * ``delta_bic`` = n ln(MSE_after/MSE_before) + dk ln n, n = independent held-out
+    horizons (overlapping ones count 1/overlap each) (Schwarz 1978; negative favours
+    the candidate);
   * ``significant``: very strong evidence by BIC (dBIC < -BIC_STRONG, Kass & Raftery
-    1995), a consistent reduction (paired t over horizons > T_CRIT; an effect that
+    1995), a consistent reduction (paired t over horizons > T_CRIT, its variance by
+    Newey & West 1987 because overlapping horizons share samples; an effect that
     shows only in part of the trace, e.g. cogging at low speed, keeps t modest), and a
     reduction of at least MATERIAL of the noise-floor MSE.
 """
@@ -76,6 +78,7 @@ class Score:
     t_stat: float
     mse_h: np.ndarray = field(repr=False)
     nominal_shift: dict = field(default_factory=dict)
+    overlap: int = 1
 
     def as_dict(self) -> dict:
         return {"effect": self.effect, "params": self.params,
@@ -85,16 +88,27 @@ class Score:
                 "nominal_shift": self.nominal_shift}
 
 
-def paired_t(before_h: np.ndarray, after_h: np.ndarray) -> float:
-    """t statistic of the mean per-horizon reduction before - after."""
-    d = before_h - after_h
+def paired_t(before_h: np.ndarray, after_h: np.ndarray, overlap: int = 1) -> float:
+    """t statistic of the mean per-horizon reduction before - after.
+
+    Horizons are in time order; neighbours that overlap (and those in one stretch of
+    motion) are correlated, so the variance of the mean is Newey-West's (Bartlett
+    weights, lag 2*overlap) rather than the iid s^2/n.
+    """
+    d = np.asarray(before_h, float) - np.asarray(after_h, float)
     n = len(d)
     if n < 3:
         return 0.0
-    sd = float(np.std(d, ddof=1))
-    if sd == 0.0:
-        return 0.0 if float(np.mean(d)) == 0.0 else float(np.sign(np.mean(d)) * np.inf)
-    return float(np.mean(d) / (sd / np.sqrt(n)))
+    mean = float(np.mean(d))
+    dc = d - mean
+    lag = min(2 * overlap, n - 1) if overlap > 1 else 0
+    var = float(dc @ dc) / n
+    for k in range(1, lag + 1):
+        var += 2.0 * (1.0 - k / (lag + 1)) * float(dc[k:] @ dc[:-k]) / n
+    var *= n / max(n - 1, 1)
+    if var <= 0.0:
+        return 0.0 if mean == 0.0 else float(np.sign(mean) * np.inf)
+    return float(mean / np.sqrt(var / n))
 
 
 def excess(mse: float, floor_mse: float) -> float:
@@ -103,18 +117,19 @@ def excess(mse: float, floor_mse: float) -> float:
 
 def score(effect: str, params: dict, before_h: np.ndarray, after_h: np.ndarray,
           extra_params: int, floor_mse: float, velocity_rms: float,
-          nominal_shift: dict | None = None) -> Score:
-    """Score one candidate against the nominal on the same held-out horizons."""
-    n = len(before_h)
+          nominal_shift: dict | None = None, overlap: int = 1) -> Score:
+    """Score one candidate against the nominal on the same held-out horizons
+    (``overlap`` = how many held-out horizons cover each sample)."""
+    n = len(before_h) / max(overlap, 1)
     b, a = float(np.mean(before_h)), float(np.mean(after_h))
     gb, ga = excess(b, floor_mse), excess(a, floor_mse)
     shrink = 1.0 - ga / gb if gb > 0 else 0.0
     dbic = n * np.log(max(a, 1e-300) / max(b, 1e-300)) + extra_params * np.log(max(n, 2))
-    t = paired_t(before_h, after_h)
+    t = paired_t(before_h, after_h, overlap)
     sig = bool(t > T_CRIT and dbic < -BIC_STRONG and (b - a) > MATERIAL * floor_mse)
     return Score(effect, params, float(np.sqrt(b)) / velocity_rms,
                  float(np.sqrt(a)) / velocity_rms, float(shrink), float(dbic), sig, float(t),
-                 after_h, nominal_shift or {})
+                 after_h, nominal_shift or {}, overlap)
 
 
 @dataclass(frozen=True)
@@ -140,7 +155,7 @@ def verdict(ranked: list[Score]) -> Verdict:
         return Verdict(None, [], None)
     best = ranked[0]
     confused = [s.effect for s in ranked[1:]
-                if s.significant and (paired_t(s.mse_h, best.mse_h) < T_CONFUSED
+                if s.significant and (paired_t(s.mse_h, best.mse_h, best.overlap) < T_CONFUSED
                                       or s.shrink >= best.shrink - SHRINK_CONFUSED)]
     experiment = None
     if confused:
