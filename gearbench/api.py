@@ -97,6 +97,7 @@ class EfficiencyPointResult:
     eta_absolute_ci95: tuple[float, float]
     power_in_w: float
     power_out_w: float
+    out_command_a: float          # output motor current command of this level (the set torque)
 
     @classmethod
     def from_dict(cls, d: dict) -> "EfficiencyPointResult":
@@ -105,7 +106,8 @@ class EfficiencyPointResult:
                    float(d["torque_out_nm"]), float(d.get("torque_in_nm", "nan")),
                    float(d["eta_incremental"]), _pair(d.get("eta_incremental_ci95")),
                    float(d.get("eta_absolute", "nan")), _pair(d.get("eta_absolute_ci95")),
-                   float(d.get("power_in_w", "nan")), float(d.get("power_out_w", "nan")))
+                   float(d.get("power_in_w", "nan")), float(d.get("power_out_w", "nan")),
+                   float(d.get("out_command", "nan")))
 
 
 @dataclass(frozen=True)
@@ -267,6 +269,20 @@ class Bench:
         for s in steps:
             self.run_step(s)
         return [EfficiencyPointResult.from_dict(p) for p in self.sequencer.efficiency[n0:]]
+
+    @property
+    def motors(self) -> dict[str, MotorResult]:
+        """Motors calibrated so far."""
+        return {m: MotorResult.from_dict(m, d) for m, d in self.sequencer.motors_result.items()}
+
+    @property
+    def points(self) -> list[EfficiencyPointResult]:
+        """Efficiency points measured so far, in run order."""
+        return [EfficiencyPointResult.from_dict(p) for p in self.sequencer.efficiency]
+
+    def kt_used(self, motor: str) -> float:
+        """The Kt the next steps use for ``motor``: calibrated, else the datasheet's."""
+        return self.sequencer._kt(motor)
 
     @property
     def ratio(self) -> float | None:

@@ -51,19 +51,30 @@ sim = pytest.importorskip("gearbench.sim")
 from gearbench.analysis.diagnose import harness  # noqa: E402
 
 
-@pytest.mark.parametrize("effect,excitation", [
-    ("coulomb_friction", "reversing"),
-    ("cogging", "sweep_slow"),
-    ("kt_saturation", "multisine"),
-    ("shaft_compliance", "multisine"),
-    ("inertia_mismatch", "multisine"),
+@pytest.mark.parametrize("effect,excitation,min_shrink", [
+    ("coulomb_friction", "reversing", 0.8),
+    ("cogging", "sweep_slow", 0.5),     # cogging shows only at the sweep's slow start
+    ("kt_saturation", "reversing", 0.8),
+    ("time_delay", "multisine", 0.8),
+    ("inertia_mismatch", "multisine", 0.8),
 ])
-def test_injected_effect_isolated(effect, excitation):
+def test_injected_effect_isolated(effect, excitation, min_shrink):
     case = harness.Case(effect, "moderate", excitation, 0,
                         harness.INJECTIONS[effect][harness.LEVELS.index("moderate")])
     out = harness.run_case(case)
     assert out.called == effect
-    assert out.true_shrink > 0.8
+    assert out.true_shrink > min_shrink
+
+
+def test_diagnosis_is_a_pure_function_of_its_input():
+    """Same trace, same answer — also after diagnosing another trace in between
+    (memos once keyed on id() leaked between traces)."""
+    a, _ = harness.blind_trace(harness.Case("cogging", "moderate", "reversing", 0,
+                                            harness.INJECTIONS["cogging"][1]))
+    b, _ = harness.blind_trace(harness.Case(None, "-", "reversing", 1, {}))
+    first = json.dumps(diagnose(a).as_dict(), sort_keys=True, default=str)
+    diagnose(b)
+    assert json.dumps(diagnose(a).as_dict(), sort_keys=True, default=str) == first
 
 
 @pytest.mark.parametrize("excitation,seed", [("multisine", 1), ("reversing", 2), ("sweep_slow", 0)])

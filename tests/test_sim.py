@@ -89,9 +89,44 @@ def test_sensor_models_are_exact():
     counts = q["position_rad"] / (2 * math.pi / 1000)
     assert np.allclose(counts, np.round(counts), atol=1e-6)
     # noise: the measured-minus-true residual has the configured std
-    noisy = simulate_motor(MotorParams(current_resolution_a=0.0), cmd, include_truth=True)
+    noisy = simulate_motor(MotorParams(current_resolution_a=0.0, current_avg_s=0.0), cmd,
+                           include_truth=True)
     resid = noisy["current_a"] - noisy["true_current_a"]
     assert np.std(resid) == pytest.approx(0.004, rel=0.1)
+
+
+def test_reported_current_is_the_mean_over_the_last_current_avg_s():
+    """Torque step from rest, clean sensor: the first sample is the mean of the exact
+    first-order current response over the averaging span (or its value at the instant)."""
+    base = dict(current_noise_a=0.0, current_resolution_a=0.0, cog_amp=0.0, Tc=0.0,
+                current_lag_s=5e-4)
+    nsub, dt = 20, T / 20                      # 50 µs substeps at 1 kHz
+    decay = math.exp(-dt / 5e-4) ** np.arange(1, nsub + 1)   # (1 − β)^(m+1)
+    for avg_s, last in ((0.0, 1), (2.5e-4, 5), (1e-3, 20), (5e-3, 20)):
+        tr = simulate_motor(MotorParams(**base, current_avg_s=avg_s), np.full(3, 0.5),
+                            mode="torque")
+        expected = 0.5 * (1.0 - decay[nsub - last:].mean())
+        assert tr["current_a"][1] == pytest.approx(expected, rel=1e-9), avg_s
+
+
+def test_velocity_setpoints_are_interpolated_so_the_current_matches_the_torque():
+    """Steps of a 1 kHz setpoint into a 4 kHz velocity loop kick the current at every
+    sample; a cyclic-synchronous drive ramps between setpoints instead. Only then does
+    the instantaneous sampled current identify Kt/J (forward-only multisine, default
+    method; the period-mean current of the default drive hides the kicks as well)."""
+    from gearbench.analysis.identify import identify_default
+
+    cmd = wf.multisine(wf.time_base(3.0), amplitude=80, offset=150, freqs_hz=[1, 2, 3, 5, 8])
+    errors = {}
+    for interp in (0, 1):
+        m = MotorParams(setpoint_interpolation=interp, cog_amp=0.0, current_avg_s=0.0)
+        tr = simulate_motor(m, cmd, seed=4)
+        fit = identify_default(tr.time_s, tr["position_rad"], tr["current_a"])
+        errors[interp] = fit.b2 / (m.Kt / m.J) - 1
+    assert abs(errors[1]) < 0.002
+    assert errors[0] > 0.008
+    with pytest.raises(ProfileError, match="setpoint_interpolation"):
+        MotorParams(setpoint_interpolation=2)
 
 
 EFFECTS = [
@@ -193,6 +228,32 @@ def test_cvt_mean_efficiency_and_output_pulsation():
     # output speed pulsates: ω_out = ω_in/n (1 + a sin(kθ)) → relative std a/√2
     w_out = tr["out_true_velocity_rad_s"][2000:3000]
     assert np.std(w_out) / np.mean(w_out) == pytest.approx(0.05 / math.sqrt(2), rel=0.1)
+
+
+def test_cvt_eq18_in_steady_state_is_the_efficiency_truth():
+    """What eq. 18 measures on the pulsating CVT, averaged over the ripple (Hann-weighted
+    window means of period-mean currents, clean sensors), is efficiency_truth's η(ω_in)."""
+    cvt = CvtParams(eta_max=0.8, eta_slope_per_rad_s=4e-4, pulsation_amp=0.05, pulsation_order=4)
+    clean = dict(current_noise_a=0.0, current_resolution_a=0.0)
+    plant = PlantParams(motor_in=MotorParams(**clean), motor_out=MotorParams(Kt=0.0512, **clean),
+                        cvt=cvt, ratio=8.0, drag_torque_nm=0.015, drag_viscous=2e-5, seed=1)
+    speed, dwell = 100.0, 2500
+    levels = [0.0, -0.8, -1.6, 0.0]
+    cin = np.full(dwell * len(levels), speed)
+    cout = np.repeat(levels, dwell)
+    tr = simulate_bench(plant, cin, cout)
+    w = 1 - np.cos(2 * np.pi * (np.arange(dwell - 500) + 0.5) / (dwell - 500))
+
+    def level_mean(col, k):
+        return float(w @ tr[col][k * dwell + 500:(k + 1) * dwell] / w.sum())
+
+    truth = efficiency_truth(plant, speed, 0.05)["eta_incremental"]
+    assert truth == pytest.approx(0.76)
+    for k in (1, 2):
+        di_in = level_mean("in_current_a", k) - (level_mean("in_current_a", 0)
+                                                 + level_mean("in_current_a", 3)) / 2
+        eta = -plant.motor_out.Kt * levels[k] / (plant.ratio * plant.motor_in.Kt * di_in)
+        assert eta == pytest.approx(truth, abs=2e-4)
 
 
 def test_cvt_ratio_is_settable():

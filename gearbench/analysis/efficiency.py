@@ -3,7 +3,9 @@
 The bench: input motor in speed control, output motor in current control stepping
 through braking currents (``out_command`` < 0), zero-load levels (``out_command`` = 0)
 first and last. Steady windows come from the command columns; zero-load windows are
-the reference, every loaded window is one point, in trace order.
+the reference, every loaded window is one point, in trace order. Window means of the
+currents are Hann-weighted (``taper``) so periodic ripple (CVT pulsation, cogging of
+either motor) does not bias Δi whatever its period.
 
 Per point
     incremental (eq. 18)  η = K_out·Δi_out / (n·K_in·Δi_in), written with signs as
@@ -118,15 +120,32 @@ def steady_windows(time_s: np.ndarray, in_command: np.ndarray, out_command: np.n
     return out
 
 
+def taper(n: int) -> np.ndarray:
+    """Hann weights for a window mean of ``n`` samples.
+
+    A flat mean of a ripple leaves up to amplitude/(π·periods) when the window does not
+    hold whole periods; the CVT's pulsation, each motor's cogging (in its own shaft
+    angle) and the output shaft's revolution have unrelated periods, so no window
+    length fits them all. The Hann-weighted mean leaves a residual falling as
+    1/periods³ instead, without knowing any period; white noise costs 1.5x variance.
+    """
+    x = (np.arange(n) + 0.5) / n
+    return 1.0 - np.cos(2.0 * np.pi * x)
+
+
 def _mean_sem(x: np.ndarray, blocks: int = 10) -> tuple[float, float]:
-    """Mean and its standard error from block means (robust to coloured noise)."""
-    m = float(np.mean(x))
+    """Hann-weighted mean (see ``taper``) and its standard error: the block-means
+    standard error of the flat mean (robust to coloured noise) times the taper's
+    white-noise variance factor."""
+    w = taper(len(x))
+    m = float(w @ x / w.sum())
+    inflate = np.sqrt(len(x) * float(w @ w)) / float(w.sum())
     nb = min(blocks, len(x) // 10)
     if nb < 3:
-        return m, float(np.std(x) / np.sqrt(max(len(x) - 1, 1)))
+        return m, inflate * float(np.std(x) / np.sqrt(max(len(x) - 1, 1)))
     size = len(x) // nb
     bm = x[: nb * size].reshape(nb, size).mean(axis=1)
-    return m, float(np.std(bm, ddof=1) / np.sqrt(nb))
+    return m, inflate * float(np.std(bm, ddof=1) / np.sqrt(nb))
 
 
 def measure_windows(trace: Trace, *, settle_s: float = 0.5) -> list[SteadyWindow]:

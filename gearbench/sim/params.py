@@ -26,6 +26,13 @@ class MotorParams:
 
     with ``Kt_eff(i) = Kt / (1 + (i/kt_sat_a)²)`` when ``kt_sat_a > 0``.
     Effects are off when their amplitude is 0.
+
+    The drive behaves like a cyclic-synchronous servo drive sampled by a bus master:
+    in velocity mode each SYNC setpoint is ramped to linearly over the period
+    (``setpoint_interpolation``; steps would kick the current at every sample), and
+    the reported current is the mean of its current-loop samples over the last
+    ``current_avg_s`` (default: the whole 1 ms period; an instantaneous sample aliases
+    the 4 kHz velocity-loop ripple into ±1 mA errors of 0.25 s means).
     """
 
     Kt: float = 0.0527              # N m/A (Crouzet 82800502, the paper's motor)
@@ -54,8 +61,8 @@ class MotorParams:
     contact_stiffness: float = 100.0  # N m/rad in contact when backlash_rad > 0 and shaft_stiffness == 0
     setpoint_interpolation: int = 1  # velocity mode: 1 = ramp linearly between SYNC setpoints
     #                                  (cyclic-synchronous drives), 0 = apply each as a step
-    current_avg_s: float = 6.25e-5  # reported current = mean over this last span before the
-    #                                  sample (one 16 kHz current-loop cycle; 0 = the instant)
+    current_avg_s: float = 1e-3     # reported current = mean over this last span before the
+    #                                  sample, at most one period (0 = the instantaneous value)
     vel_kp: float = 0.04            # drive velocity PI: A per rad/s
     vel_ki: float = 1.4             # drive velocity PI: A per rad
     loop_period_s: float = 2.5e-4   # drive velocity-loop period

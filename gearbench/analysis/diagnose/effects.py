@@ -21,6 +21,9 @@ from .nominal import GivenModel, GivenNominal, Model, Signals, Term, nominal_ter
 from .nominal import kt_over_j as _kt_over_j
 
 Z95 = 1.96
+#: A feature must be material (mean magnitude) on at least this share of the trace
+#: for its effect to be testable at all.
+MIN_SUPPORT = 0.02
 
 
 # ------------------------------------------------------------------- the nominal
@@ -127,10 +130,12 @@ class StribeckFriction(Effect):
 
     def grid(self, sig, base):
         # Stribeck friction is a low-speed effect: ws up to a quarter of the top speed
-        # (beyond that it is Coulomb friction by another name)
-        top = max(1.0, 0.25 * float(np.max(np.abs(sig.velocity_rad_s))))
-        return [{"ws_rad_s": float(w)} for w in np.geomspace(min(0.5, top / 2), top, 7)]
-
+        # (beyond that it is Coulomb friction by another name), and only where the trace
+        # has low-speed motion to see it — else the regressor is ~0 and any fit is noise
+        w = np.abs(sig.velocity_rad_s)
+        top = max(1.0, 0.25 * float(np.max(w)))
+        grid = [{"ws_rad_s": float(ws)} for ws in np.geomspace(min(0.5, top / 2), top, 7)]
+        return [g for g in grid if np.mean(np.exp(-(w / g["ws_rad_s"]) ** 2)) > MIN_SUPPORT]
     def extra(self, hp):
         return [StribeckTerm(ws=hp["ws_rad_s"])]
 

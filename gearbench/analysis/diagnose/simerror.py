@@ -62,9 +62,11 @@ def split(sig: Signals) -> Split:
         per_block = max(2 * H, n // 8)
     block = np.arange(n) // per_block
     stride = max(1, H // OVERLAP)
-    starts = np.arange(0, n - H - 1, stride)
+    # the velocity estimate is one-sided within half its window of either end
+    edge = VELOCITY_WINDOW
+    starts = np.arange(edge, n - H - 1 - edge, stride)
     inside = block[starts] == block[starts + H]
-    disjoint = inside & (starts % H == 0)
+    disjoint = inside & ((starts - edge) % H == 0)
     folds = []
     for parity in (0, 1):
         fit_mask = block % 2 == parity
@@ -173,3 +175,45 @@ def noise_floor(sig: Signals, kt_over_j: float, horizon: int) -> NoiseFloor:
 def horizon_mse(err: np.ndarray) -> np.ndarray:
     """Mean squared error of each horizon."""
     return np.mean(err ** 2, axis=1)
+
+
+#: Most fit horizons used when refining coefficients on simulation error (speed).
+REFINE_HORIZONS = 120
+
+
+def refine(sig: Signals, model: Model, starts: np.ndarray, horizon: int,
+           fixed: tuple[int, ...] = ()) -> Model:
+    """Refine the coefficients of ``model`` on simulation error over the fit horizons
+    ``starts`` (scipy.optimize.least_squares, a few Gauss-Newton steps from the
+    equation-error fit; diagnosis notes: fit by equation error, refine on simulation
+    error).  Coefficients are scaled by their equation-error size, so steps are
+    comparable; ``fixed`` coefficient indices are left alone.  Deterministic."""
+    from scipy.optimize import least_squares
+
+    if len(starts) > REFINE_HORIZONS:  # evenly thinned, not random
+        starts = starts[np.linspace(0, len(starts) - 1, REFINE_HORIZONS).round().astype(int)]
+    if len(starts) < 3:
+        return model
+    c0 = np.asarray(model.coef, float)
+    free = [j for j in range(len(c0)) if j not in fixed]
+    if not free:
+        return model
+    scale = np.abs(c0[free]) + 1e-12
+    if model.cov is not None:
+        scale = np.maximum(scale * 1e-3, np.sqrt(np.abs(np.diag(model.cov)))[free] + 1e-12)
+
+    def coef(x):
+        c = c0.copy()
+        c[free] = c0[free] + x * scale
+        return c
+
+    def resid(x):
+        e = simulate(sig, Model(model.terms, coef(x), model.cov), starts, horizon)
+        return np.nan_to_num(e.ravel(), nan=1e6, posinf=1e6, neginf=-1e6)
+
+    r0 = resid(np.zeros(len(free)))
+    res = least_squares(resid, np.zeros(len(free)), method="trf", max_nfev=4,
+                        x_scale=1.0, diff_step=1e-3)
+    if not float(res.fun @ res.fun) < float(r0 @ r0):
+        return model
+    return Model(model.terms, coef(res.x), model.cov)

@@ -16,6 +16,7 @@ import numpy as np
 from scipy.signal import savgol_filter, welch
 
 from . import simerror
+from .effects import Base
 from .nominal import VELOCITY_WINDOW, Model, Signals, measured_features
 
 ABOVE = 1.5
@@ -88,7 +89,8 @@ def breakdown(sig: Signals, nom: Model, err_score, score_starts, floor: simerror
     r = acc_all - F @ nom.coef
     r = r[VELOCITY_WINDOW:-VELOCITY_WINDOW - 1]
     theta = sig.position_rad[VELOCITY_WINDOW:-VELOCITY_WINDOW - 1]
-    kt_j = float(abs(sum(nom.coef[:2]))) if nom.terms else 0.0
+    kt_j = abs(Base(given=None).kt_over_j(nom)) if "scale" not in nom.names else abs(
+        nom.terms[0].kt_over_j * nom.params()["scale"])
     h2 = savgol_filter(np.eye(VELOCITY_WINDOW)[VELOCITY_WINDOW // 2], VELOCITY_WINDOW, 2,
                        deriv=2) / dt ** 2
     s_th = floor.velocity_noise_rad_s / simerror.velocity_noise(1.0, dt)

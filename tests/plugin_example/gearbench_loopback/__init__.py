@@ -39,7 +39,14 @@ class LoopbackDrive(Drive):
         self.network.world.set_mode(self.name, "velocity")   # setpoint resets to 0: brake to rest
 
     def disable(self) -> None:
-        self.network.world.set_mode(self.name, "off")
+        # like a drive's disable-operation option "decelerate, then remove power": the
+        # motor must not coast into the next segment (there is no time between segments here)
+        world = self.network.world
+        world.set_mode(self.name, "velocity")
+        for _ in range(2000):
+            if abs(world.step()[self.name].velocity_rad_s) < 0.5:
+                break
+        world.set_mode(self.name, "off")
 
     def reset_fault(self) -> None:
         pass
@@ -58,21 +65,25 @@ class LoopbackNetwork(DriveNetwork):
         self.world = None
 
     def open(self) -> None:
-        from gearbench.sim import BenchWorld, PlantParams
-
-        self.world = BenchWorld(PlantParams.from_dict(self.plant_dict, "bus.options.plant"), seed=self.seed)
         type(self).opened_networks += 1
+
 
     def add_drive(self, config: AxisConfig) -> Drive:
         self.drives[config.name] = LoopbackDrive(self, config)
         return self.drives[config.name]
 
     def start(self, period_s: float) -> None:
+        from gearbench.sim import BenchWorld, PlantParams
+
         self.period_s = period_s
+        plant = PlantParams.from_dict({"period_s": period_s, **self.plant_dict}, "bus.options.plant")
+        self.world = BenchWorld(plant, seed=self.seed)
+        self._k = 0
 
     def _sample(self) -> dict[str, Sample]:
         meas = self.world.step()
-        k = self.world.sample_index
+        self._k += 1             # own counter: braking steps in disable() are not samples
+        k = self._k
         return {name: Sample(k, k * self.period_s, m.position_rad, m.velocity_rad_s, m.current_a)
                 for name, m in meas.items() if name in self.drives}
 
