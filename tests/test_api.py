@@ -17,7 +17,6 @@ from gearbench.api import (AutoOperator, EfficiencyPointResult, MotorResult, Run
                            run_profile)
 from gearbench.drives import registry
 from gearbench.errors import BenchFault, GearbenchError
-from gearbench.profile.parse import _known_families
 
 ROOT = Path(__file__).resolve().parents[1]
 PLUGIN_SRC = Path(__file__).resolve().parent / "plugin_example"
@@ -27,9 +26,7 @@ PLUGIN_SRC = Path(__file__).resolve().parent / "plugin_example"
 def loopback(monkeypatch):
     monkeypatch.syspath_prepend(str(PLUGIN_SRC))
     monkeypatch.setitem(registry.BACKENDS, "loopback", "gearbench_loopback:LoopbackNetwork")
-    _known_families.cache_clear()
     yield
-    _known_families.cache_clear()
 
 
 def cvt_profile(path: Path, *, kt_high: float = 1.15) -> Path:

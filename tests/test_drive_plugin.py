@@ -16,7 +16,6 @@ from gearbench.api import AutoOperator, RunResult, open_bench, run_profile
 from gearbench.drives import registry
 from gearbench.errors import ProfileError
 from gearbench.profile import load_profile
-from gearbench.profile.parse import _known_families
 
 ROOT = Path(__file__).resolve().parents[1]
 PLUGIN_SRC = Path(__file__).resolve().parent / "plugin_example"
@@ -47,13 +46,10 @@ def loopback_installed(tmp_path, monkeypatch):
     monkeypatch.syspath_prepend(str(site))
     monkeypatch.syspath_prepend(str(PLUGIN_SRC))
     # the profile parser caches the family list per process (gearbench.profile.parse)
-    _known_families.cache_clear()
     yield site
-    _known_families.cache_clear()
 
 
 def test_unknown_family_without_the_plugin(tmp_path):
-    _known_families.cache_clear()
     assert "loopback" not in registry.available()
     with pytest.raises(ProfileError, match="loopback"):
         load_profile(write_profile(tmp_path / "p.yaml"))

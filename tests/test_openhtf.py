@@ -147,12 +147,10 @@ def test_operator_abort_ends_the_test_and_the_run(tmp_path, monkeypatch):
     gearbench run still finished (drives disabled, result.json status aborted)."""
     from gearbench.drives import registry
     from gearbench.errors import BenchFault
-    from gearbench.profile.parse import _known_families
 
     # in-process drive family from tests/plugin_example: no child process needed
     monkeypatch.syspath_prepend(str(Path(__file__).resolve().parent / "plugin_example"))
     monkeypatch.setitem(registry.BACKENDS, "loopback", "gearbench_loopback:LoopbackNetwork")
-    _known_families.cache_clear()
     doc = yaml.safe_load((ROOT / "profiles" / "motors-only.yaml").read_text())
     doc["bench"]["bus"] = {"family": "loopback", "options": {"plant": doc.pop("simulation")}}
     for m in doc["motors"].values():
@@ -173,10 +171,7 @@ def test_operator_abort_ends_the_test_and_the_run(tmp_path, monkeypatch):
     test = build_test(profile, out_root=tmp_path / "runs", plug=RefusingBench)
     buf = io.BytesIO()
     test.add_output_callbacks(json_factory.OutputToJSON(buf, inline_attachments=False))
-    try:
-        assert test.execute(test_start=lambda: "SN-ABORT") is False
-    finally:
-        _known_families.cache_clear()
+    assert test.execute(test_start=lambda: "SN-ABORT") is False
     record = json.loads(buf.getvalue())
     assert record["outcome"] == "ERROR"
     assert [ph["name"] for ph in record["phases"]][1:] == ["calibrate-in"]

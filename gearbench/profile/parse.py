@@ -9,7 +9,6 @@ The first problem raises one ``ProfileError`` line:
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import re
 from pathlib import Path
@@ -210,8 +209,8 @@ def build_profile(doc: MarkedDoc, path: Path, sha256: str, base_dir: Path) -> Pr
                    simulation=simulation, raw=top)
 
 
-@functools.lru_cache(maxsize=1)
 def _known_families() -> list[str]:
+    # not cached: a plugin installed while a station runs must be found at the next load
     try:
         from ..drives.registry import available
         return sorted(available())
