@@ -27,7 +27,9 @@ from .trace import Trace
 
 BATCH_SAMPLES = 200          # samples per SampleBatch (and per flush of the recorder)
 OVERCURRENT_SAMPLES = 5      # consecutive samples over the limit before the watchdog trips
-RAMP_RAD_S2 = 2000.0         # speed-command slew between efficiency speeds
+RAMP_RAD_S2 = 2000.0         # speed-command slew: run-up and the stop ramp ending every segment
+WATCHDOG_MARGIN = 1.1        # the drive clamps at the profile's current limit (0x6073); the
+                             # watchdog catches a drive that does not, so it sits above the clamp
 
 
 class Operator(Protocol):
@@ -133,6 +135,8 @@ class Sequencer:
             n = int(round(step.duration_s / self.period_s))
             cmd = np.asarray(wave.render(np.arange(n) * self.period_s), dtype=float)
             mode = Mode.TORQUE if step.mode in ("current", "torque") else Mode.VELOCITY
+            if mode is Mode.VELOCITY:
+                cmd = np.concatenate([cmd, self._stop_ramp(cmd[-1])])
             actions.append(("prompt", f"Motor '{m}': shafts free, no disk, no reducer",
                             dict(coupling="none", disk_kgm2={})))
             actions.append(Segment(f"calibrate-{m}-unloaded", "calibrate",
@@ -168,12 +172,20 @@ class Sequencer:
                  [-abs(t) / kt_out for t in step.torques_out_nm] + \
                  ([0.0] if step.include_zero_load else [])
         ramp = np.linspace(0.0, speed, n_ramp)
-        speed_cmd = np.concatenate([ramp, np.full(n_level * len(levels), speed)])
-        cur_cmd = np.concatenate([np.zeros(n_ramp)] + [np.full(n_level, c) for c in levels])
+        stop = self._stop_ramp(speed)
+        speed_cmd = np.concatenate([ramp, np.full(n_level * len(levels), speed), stop])
+        cur_cmd = np.concatenate([np.zeros(n_ramp)] + [np.full(n_level, c) for c in levels]
+                                 + [np.zeros(len(stop))])
         return Segment(f"efficiency-{k}", "efficiency",
                        {"in": (Mode.VELOCITY, speed_cmd), "out": (Mode.TORQUE, cur_cmd)},
                        f"input {speed:g} rad/s, {len(step.torques_out_nm)} braking torques",
                        meta=dict(speed=speed, settle_s=step.settle_s, n_ramp=n_ramp))
+
+    def _stop_ramp(self, speed: float) -> np.ndarray:
+        """Speed command from ``speed`` down to rest: every segment ends with the motor
+        stopped, so the next one (or a mounting prompt) never starts on a spinning shaft."""
+        n = int(round(max(abs(speed) / RAMP_RAD_S2, 0.05) / self.period_s))
+        return np.linspace(speed, 0.0, n + 1)[1:]
 
     def _kt(self, motor: str) -> float:
         if motor in self.motors_result:
@@ -268,8 +280,8 @@ class Sequencer:
         buf_t = np.zeros(n)
         cols = {f"{m}.{q}": np.zeros(n) for m in names
                 for q in ("position_rad", "velocity_rad_s", "current_a", "command")}
-        limits = {m: (self.profile.motors[m].current_limit_a, self.profile.motors[m].speed_limit_rad_s)
-                  for m in names}
+        limits = {m: (WATCHDOG_MARGIN * self.profile.motors[m].current_limit_a,
+                      WATCHDOG_MARGIN * self.profile.motors[m].speed_limit_rad_s) for m in names}
         over = dict.fromkeys(names, 0)
         last_sp = dict.fromkeys(motors, None)
         flushed = done = 0
