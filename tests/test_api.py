@@ -133,7 +133,9 @@ def test_run_profile_on_the_simulated_bench(tmp_path):
     r = RunResult.from_dict(result)
     assert r.status == "passed", r.reason
     assert r.motors["out"].kt_nm_per_a == pytest.approx(0.0512, rel=0.03)
-    n_per_run = sum(round(s["duration_s"] / doc["bench"]["period_s"]) for s in doc["steps"])
-    assert math.isfinite(r.motors["in"].inertia_kgm2) and r.samples == 2 * n_per_run
+    # every calibration run: the waveform, then a stop ramp to rest
+    n_waveform = sum(round(s["duration_s"] / doc["bench"]["period_s"]) for s in doc["steps"])
+    assert math.isfinite(r.motors["in"].inertia_kgm2)
+    assert r.samples == sum(r_ for r_ in result["steps"].values()) and r.samples > 2 * n_waveform
     assert result == json.loads((tmp_path / "run" / "result.json").read_text())
     assert seen[0] == "run_start" and seen[-1] == "run_stop" and seen.count("calibration") == 2

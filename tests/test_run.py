@@ -25,6 +25,15 @@ def gearbench(*args, timeout=120, **kw):
                           capture_output=True, text=True, timeout=timeout, **kw)
 
 
+def planned_samples(profile_path=MOTORS_ONLY) -> dict:
+    """Samples per segment as the sequencer plans them (waveform + stop ramp)."""
+    from gearbench.profile import load_profile
+    from gearbench.sequencer import Segment, Sequencer
+
+    seq = Sequencer(load_profile(profile_path), None, emit=lambda r: None, operator=None)
+    return {a.name: len(next(iter(a.commands.values()))[1]) for a in seq.plan() if isinstance(a, Segment)}
+
+
 @pytest.fixture(scope="module")
 def passed_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("station") / "run1"
@@ -46,7 +55,9 @@ def test_run_writes_a_complete_results_folder(passed_run):
         assert set(got) >= {"Kt", "Kt_ci95", "J", "D", "Tc"}
         assert got["Kt_ci95"][0] < got["Kt"] < got["Kt_ci95"][1]
         assert abs(got["Kt"] / true["Kt"] - 1) < 0.005      # the tight check is test_run_accuracy
-    assert res["bench_time_s"] == pytest.approx(12.0, abs=0.05)
+    plan = planned_samples()
+    assert res["bench_time_s"] == pytest.approx(sum(plan.values()) * 1e-3, abs=1e-6)
+    assert res["steps"] == plan
     suite = ET.parse(out / "junit.xml").getroot()
     assert [c.get("name") for c in suite.iter("testcase")] == [lim["name"] for lim in res["limits"]]
     assert suite.get("failures") == "0"
@@ -58,9 +69,11 @@ def test_traces_hold_every_sample_with_the_documented_columns(passed_run):
     assert [f.name for f in files] == ["trace-calibrate-in-disk_a.parquet", "trace-calibrate-in-unloaded.parquet",
                                        "trace-calibrate-out-disk_a.parquet", "trace-calibrate-out-unloaded.parquet"]
     res = json.loads((out / "result.json").read_text())
+    plan = planned_samples()
     for f in files:
         tr = load_step_trace(f)
-        assert len(tr) + 0 == 3000 - 0 or res["lost_samples"] > 0
+        lost = int((np.diff(tr["sample"]) - 1).sum())   # gaps in the drive counter, if any
+        assert len(tr) + lost == plan[f.stem[len("trace-"):]]
         for m in ("in", "out"):
             for q in ("position_rad", "velocity_rad_s", "current_a", "command"):
                 assert f"{m}.{q}" in tr
@@ -145,7 +158,8 @@ def test_bench_fault_stops_drives_and_keeps_samples(tmp_path):
         assert "OPERATION ENABLED" not in json.dumps(snap), (name, snap)
     tr = load_step_trace(tmp_path / "trace-calibrate-in-disk_a.parquet")
     assert 400 <= len(tr) <= 600
-    assert len(load_step_trace(tmp_path / "trace-calibrate-in-unloaded.parquet")) == 3000
+    assert len(load_step_trace(tmp_path / "trace-calibrate-in-unloaded.parquet")) == \
+        planned_samples()["calibrate-in-unloaded"]
     assert json.loads((tmp_path / "result.json").read_text())["status"] == "fault"
 
 
