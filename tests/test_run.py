@@ -205,3 +205,24 @@ def test_watchdog_current_limit_stops_the_run(tmp_path):
     tr = load_step_trace(tmp_path / "run" / "trace-calibrate-in-unloaded.parquet")
     assert 0 < len(tr) < 3000
     assert np.abs(tr["in.current_a"]).max() > 2.9    # it was the current, near the 3 A limit
+
+
+def test_run_with_rrd_records_every_acquired_sample(tmp_path):
+    """`gearbench run --rrd`: the recording holds every sample of every motor that the
+    Parquet traces hold, and the result entities (read back with rerun's own reader)."""
+    from test_live import read_rrd, series
+
+    out, rrd = tmp_path / "run", tmp_path / "run.rrd"
+    p = gearbench("run", MOTORS_ONLY, "--sim", "--yes", "--out", out, "--serial", "T-105", "--rrd", rrd)
+    assert p.returncode == 0, p.stderr
+    entities, blueprints = read_rrd(str(rrd))
+    traces = [load_step_trace(f) for f in sorted(out.glob("trace-*.parquet"), key=lambda f: f.stat().st_mtime)]
+    samples = np.sort(np.concatenate([t["sample"] for t in traces]))
+    for m in ("in", "out"):
+        for q in ("current_a", "position_rad", "velocity_rad_s", "command"):
+            got_s, _, got_v = series(entities[f"/bench/{m}/{q}"])
+            np.testing.assert_array_equal(got_s, samples)
+            want = np.concatenate([t[f"{m}.{q}"] for t in traces])[np.argsort(np.concatenate([t["sample"] for t in traces]), kind="stable")]
+            np.testing.assert_array_equal(got_v, want)
+    assert "/results/motors/in" in entities and "/results/motors/out" in entities
+    assert any(e.startswith("/results/limits/") for e in entities)
