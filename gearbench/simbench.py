@@ -52,7 +52,7 @@ class SimBench:
             group = bus.channel if bus.interface == "udp_multicast" and bus.channel else "239.74.163.2"
             port = random.randint(20000, 60000)
             cmd += ["--can", f"udp_multicast:{group}:{port}"]
-            self.bus_options = dict(interface="udp_multicast", channel=group, port=port)
+            self.bus_options = dict(interface="udp_multicast", channel=group, port=port, lockstep=True)
         if self.seed is not None:
             cmd += ["--seed", str(self.seed)]
         env = dict(os.environ, PYTHONUNBUFFERED="1")

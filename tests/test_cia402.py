@@ -1,6 +1,7 @@
 """gearbench's CiA 402 master against the emulated bench, in one process on the
 ``virtual`` bus (fast; the cross-process buses are in test_emulate_canopen.py)."""
 import math
+import time
 import uuid
 
 import pytest
@@ -26,7 +27,8 @@ def rig(request):
     print(f"bus: {channel}")
     bench = EmulatedBench(plant, seed=1)
     server = start_canopen_server(bench, "virtual", parse_bus(channel).channel)
-    net = CiA402Network(bus=channel, heartbeat_ms=100, timeout_s=0.4, sdo_timeout_s=0.1, state_timeout_s=0.2)
+    net = CiA402Network(bus=channel, heartbeat_ms=100, timeout_s=0.4, sdo_timeout_s=0.1, state_timeout_s=0.2,
+                         lockstep=True)
     net.open()
     yield bench, net
     net.close()
@@ -38,6 +40,28 @@ def start(net, in_limit_a=3.0):
     dout = net.add_drive(AxisConfig("out", 2, ""))
     net.start(PERIOD_S)
     return din, dout
+
+
+def test_paced_sync_keeps_the_wall_clock_period():
+    """Against real drives SYNC must come every period (they latch on it): 300 samples
+    take 300 periods of wall time, and any slot the host misses counts as lost."""
+    channel = f"virtual:{uuid.uuid4().hex}"
+    bench = EmulatedBench(PlantParams(), seed=1)
+    server = start_canopen_server(bench, "virtual", parse_bus(channel).channel)
+    try:
+        with CiA402Network(bus=channel, heartbeat_ms=100, lockstep=False) as net:
+            start(net)
+            net.sample()
+            t0 = time.perf_counter()
+            samples = [net.sample() for _ in range(300)]
+            wall = time.perf_counter() - t0
+            idx = [s["in"].index for s in samples]
+            assert wall >= 0.98 * (idx[-1] - idx[0] + 1) * PERIOD_S
+            assert all(b > a for a, b in zip(idx, idx[1:]))
+            assert wall <= (idx[-1] - idx[0] + 1) * PERIOD_S + 0.1   # paced, not slower either
+            assert net.lost_samples >= net.late_syncs   # every skipped slot is a lost sample
+    finally:
+        server.stop()
 
 
 def test_registry_finds_the_family():

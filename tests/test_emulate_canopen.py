@@ -107,7 +107,7 @@ def test_independent_basenode402_client_turns_the_motor(emulator):
 
 def test_gearbench_master_streams_both_drives(emulator):
     bus, proc = emulator
-    net = CiA402Network(bus=str(bus), heartbeat_ms=100)
+    net = CiA402Network(bus=str(bus), heartbeat_ms=100, lockstep=True)
     with net:
         din = net.add_drive(AxisConfig("in", 1, EDS))
         dout = net.add_drive(AxisConfig("out", 2, EDS))
@@ -129,7 +129,7 @@ def test_gearbench_master_streams_both_drives(emulator):
 
 def test_emulator_fault_option_reaches_master_as_benchfault(emulator):
     bus, proc = emulator
-    net = CiA402Network(bus=str(bus), heartbeat_ms=100)
+    net = CiA402Network(bus=str(bus), heartbeat_ms=100, lockstep=True)
     from gearbench.errors import BenchFault
     with net:
         din = net.add_drive(AxisConfig("in", 1, EDS))

@@ -284,9 +284,15 @@ class CiA402Network(DriveNetwork):
 
     def __init__(self, bus: str = "udp_multicast:239.74.163.2", *, heartbeat_ms: int = 100,
                  timeout_s: float = 0.5, state_timeout_s: float = 0.5, frame_grace_s: float = 0.02,
-                 sdo_timeout_s: float = 0.3, cyclic: bool = False,
+                 sdo_timeout_s: float = 0.3, cyclic: bool = False, lockstep: bool = False,
                  bus_kwargs: dict | None = None, **options):
         super().__init__(bus=bus, cyclic=cyclic, **options)
+        # Real drives latch on SYNC, so SYNC must come every period on the wall clock for
+        # time_s = count x period to hold. An emulated bench (lockstep) advances its physics
+        # one period per SYNC and may be driven as fast as it answers.
+        self.lockstep = bool(lockstep)
+        self.late_syncs = 0
+        self._t0: float | None = None
         self.bus_spec = parse_bus(bus)
         self.bus_kwargs = bus_kwargs or {}
         self.heartbeat_ms = heartbeat_ms
@@ -408,6 +414,8 @@ class CiA402Network(DriveNetwork):
             raise DriveError("CiA402Network.sample before start(period_s)")
         while True:
             self._check_health()
+            if not self.lockstep:
+                self._pace()
             self.sync_count += 1
             counter = (self.sync_count - 1) % SYNC_OVERFLOW + 1
             with self._cv:
@@ -429,6 +437,25 @@ class CiA402Network(DriveNetwork):
                 self.stop_all()
                 raise BenchFault(f"{', '.join(missing)}: no TPDO answer to SYNC for {self.timeout_s:g} s; "
                                  f"drives stopped")
+
+    def _pace(self) -> None:
+        """Wait for this SYNC's slot on the wall clock. A host that fell more than half
+        a period behind skips the missed slots: they count as lost samples, so the
+        time base stays SYNC count x period instead of silently stretching."""
+        now = time.perf_counter()
+        if self._t0 is None:
+            self._t0 = now - self.sync_count * self.period_s
+        target = self._t0 + self.sync_count * self.period_s
+        late = now - target
+        if late > self.period_s / 2:
+            missed = int(late / self.period_s + 0.5)
+            self.sync_count += missed
+            self.late_syncs += missed
+            return
+        if target - now > 2e-3:
+            time.sleep(target - now - 1e-3)   # coarse sleep, then spin for the last millisecond
+        while time.perf_counter() < target:
+            pass
 
     def _build(self, got: dict[int, tuple]) -> dict[str, Sample]:
         index = self.sync_count
