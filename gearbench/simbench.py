@@ -45,7 +45,8 @@ class SimBench:
         cmd = [sys.executable, "-m", "gearbench", "emulate", str(self.profile.path), "--lockstep"]
         if bus.family == "modbus":
             port = free_tcp_port()
-            cmd += ["--modbus", f"127.0.0.1:{port}"]
+            maps = {str(m.drive) for m in self.profile.motors.values()}
+            cmd += ["--modbus", f"127.0.0.1:{port}", "--modbus-map", sorted(maps)[0]]
             self.bus_options = dict(host="127.0.0.1", port=port, lockstep=True)
         else:
             # a private multicast port per run: parallel runs on one host never cross-talk

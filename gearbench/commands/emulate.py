@@ -28,6 +28,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--can", metavar="INTERFACE:CHANNEL",
                         help="CAN bus for nodes 1 and 2, e.g. udp_multicast:239.74.163.2:43113, socketcan:vcan0")
     parser.add_argument("--modbus", metavar="HOST:PORT", help="Modbus TCP endpoint, e.g. 127.0.0.1:5020")
+    parser.add_argument("--modbus-map", metavar="YAML", default=None,
+                        help="register map the Modbus drives serve (default drivers/generic-modbus-servo.yaml)")
     parser.add_argument("--lockstep", action="store_true",
                         help="Modbus: advance the world on each write of the 'sync' register (CANopen always "
                              "advances one period per SYNC)")
@@ -94,7 +96,10 @@ def run(args) -> int:
         if args.modbus:
             from ..emulate.modbus_server import start_modbus_server
             host, port = _host_port(args.modbus)
-            handles.append(start_modbus_server(bench, host, port, lockstep=args.lockstep))
+            # with CANopen on the same world, SYNC already advances time: Modbus must not too
+            lockstep = args.lockstep or bool(can_spec)
+            kw = {"register_map": args.modbus_map} if args.modbus_map else {}
+            handles.append(start_modbus_server(bench, host, port, lockstep=lockstep, **kw))
         print("ready", flush=True)
         bench.run_control_loop(sys.stdin, sys.stdout)
         while not stop.wait(0.2):
