@@ -42,7 +42,7 @@ class ProgressDisplay(Subscriber):
         if self.quiet or not self.tty:
             return
         eta = f" ETA {r.eta_s:5.0f} s" if r.eta_s is not None else ""
-        self.out.write(f"\r\033[K  [{_bar(r.fraction_step)}] {r.step}  run {r.fraction_run:4.0%}{eta}")
+        self.out.write(f"\r\033[K  [{_bar(r.fraction_step)}] {r.step}: {r.point}  run {r.fraction_run:4.0%}{eta}")
         self.out.flush()
         self._live = True
 

@@ -176,10 +176,14 @@ class Sequencer:
         speed_cmd = np.concatenate([ramp, np.full(n_level * len(levels), speed), stop])
         cur_cmd = np.concatenate([np.zeros(n_ramp)] + [np.full(n_level, c) for c in levels]
                                  + [np.zeros(len(stop))])
+        torques = ([0.0] if step.include_zero_load else []) + list(step.torques_out_nm) + \
+                  ([0.0] if step.include_zero_load else [])
+        points = [(n_ramp + j * n_level, f"{speed:g} rad/s, {t:g} N m" + (" (reference)" if t == 0 else ""))
+                  for j, t in enumerate(torques)]
         return Segment(f"efficiency-{k}", "efficiency",
                        {"in": (Mode.VELOCITY, speed_cmd), "out": (Mode.TORQUE, cur_cmd)},
                        f"input {speed:g} rad/s, {len(step.torques_out_nm)} braking torques",
-                       meta=dict(speed=speed, settle_s=step.settle_s, n_ramp=n_ramp))
+                       meta=dict(speed=speed, settle_s=step.settle_s, n_ramp=n_ramp, points=points))
 
     def _stop_ramp(self, speed: float) -> np.ndarray:
         """Speed command from ``speed`` down to rest: every segment ends with the motor
@@ -358,7 +362,11 @@ class Sequencer:
         frac = done / self._samples_total
         elapsed = time.monotonic() - self._wall0
         eta = elapsed * (1 - frac) / frac if frac > 0 else None
-        self.emit(Progress(seg.name, seg.description, k / n, frac, eta))
+        point = seg.description
+        for start, label in seg.meta.get("points", ()):
+            if k >= start:
+                point = label
+        self.emit(Progress(seg.name, point, k / n, frac, eta))
 
     # -------------------------------------------------------------- analysis
     def _analyse(self, what: str, args: dict) -> None:

@@ -1,0 +1,293 @@
+"""Robustness benchmark: identification and efficiency over randomly drawn plants.
+
+    python -m gearbench.bench robustness [--cases N] [--quick] [--seed S] [--worst K]
+
+The accuracy benchmark checks one plant; held-out data comes from *other* motors,
+drives and benches of the same kind. Each case here draws, from realistic ranges
+around the dev data's kind, two motors with their drives (Kt, J, D, Coulomb
+friction and its smoothing, cogging amplitude/order, current noise, encoder counts,
+current-loop lag, speed-loop bandwidth, setpoint interpolation, current averaging),
+an inertia disk (0.5-3x J), a calibration excitation (forward multisine like the dev
+data; about one case in four a reversing multisine) and a reducer bench (ratio
+3-60, mesh efficiency 0.6-0.97, Coulomb and viscous drag, input speed, braking
+levels). Each motor is calibrated with ``calibrate_motor`` (excitation check on, as
+``gearbench calibrate`` runs it) by every method; the calibrations feed
+``efficiency`` on the simulated bench run. Errors against the simulator's truth:
+|Kt err| per motor, incremental and absolute efficiency per point at loads >= 50 %
+of rated, exceptions, and the fraction of cases meeting every target. Deterministic
+for ``--seed``.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..analysis.calibration import calibrate_motor
+from ..analysis.efficiency import efficiency
+
+METHODS = ("paper-15ms", "paper", "default")
+TARGETS = {"kt_pct": 0.2, "inc_pp": 0.2, "abs_pp": 0.3}
+PERIOD_S = 1e-3
+
+
+@dataclass(frozen=True)
+class Case:
+    """One drawn plant with its excitations (everything a run needs)."""
+
+    index: int
+    plant: object                      # gearbench.sim.PlantParams
+    commands: dict                     # side -> speed command of the calibration runs
+    disks_kgm2: dict                   # side -> disk inertia of the loaded run
+    reversing: bool
+    bench_speed_rad_s: float
+    levels_a: tuple                    # braking current magnitudes, trace order
+    dwell_s: float
+    seed: int
+
+    def describe(self) -> str:
+        p = self.plant
+        parts = []
+        for side, m in (("in", p.motor_in), ("out", p.motor_out)):
+            bw = m.vel_kp * m.Kt / m.J / (2 * np.pi)
+            parts.append(f"{side}: Kt={m.Kt:.3g} J={m.J:.2g} D={m.D:.2g} Tc={m.Tc:.3g} "
+                         f"eps={m.friction_eps_rad_s:.2g} cog={m.cog_amp * 1e3:.2g}mNm/{m.cog_order} "
+                         f"noise={m.current_noise_a * 1e3:.2g}mA cpr={m.counts_per_rev} "
+                         f"lag={m.current_lag_s * 1e3:.2g}ms bw={bw:.3g}Hz "
+                         f"interp={m.setpoint_interpolation} avg={m.current_avg_s:g} "
+                         f"disk={self.disks_kgm2[side]:.2g} cmd=[{self.commands[side].min():.0f},"
+                         f"{self.commands[side].max():.0f}]")
+        return (f"case {self.index}{' reversing' if self.reversing else ''}; "
+                + "; ".join(parts) + f"; bench n={p.ratio:.3g} eta={p.eta_mesh:.3g} "
+                f"drag={p.drag_torque_nm:.3g} speed={self.bench_speed_rad_s:.0f} "
+                f"levels={max(self.levels_a):.2g}A")
+
+
+@dataclass
+class Outcome:
+    """One method on one case."""
+
+    kt_err_pct: list = field(default_factory=list)
+    inc_err_pp: list = field(default_factory=list)
+    abs_err_pp: list = field(default_factory=list)
+    error: str = ""
+
+    def meets_targets(self) -> bool:
+        if self.error or not self.kt_err_pct or not self.inc_err_pp:
+            return False
+        return (max(map(abs, self.kt_err_pct)) <= TARGETS["kt_pct"]
+                and max(map(abs, self.inc_err_pp)) <= TARGETS["inc_pp"]
+                and max(map(abs, self.abs_err_pp)) <= TARGETS["abs_pp"])
+
+
+# ----------------------------------------------------------------------- drawing
+def _loguniform(rng, lo, hi) -> float:
+    return float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+
+
+def _draw_motor(rng):
+    from ..sim import MotorParams
+
+    kt = _loguniform(rng, 0.02, 0.15)
+    j = _loguniform(rng, 5e-6, 8e-5)
+    bw_hz = _loguniform(rng, 3.0, 30.0)
+    kp = 2 * np.pi * bw_hz * j / kt               # crossover ≈ kp·Kt/J
+    ki = kp * 2 * np.pi * bw_hz / rng.uniform(3.0, 6.0)
+    return MotorParams(
+        Kt=kt, J=j, D=_loguniform(rng, 3e-7, 1e-5), Tc=float(rng.uniform(0.0, 0.02)),
+        friction_eps_rad_s=_loguniform(rng, 0.005, 0.2),
+        cog_amp=float(rng.uniform(0.0, 0.003)), cog_order=int(rng.integers(4, 25)),
+        current_noise_a=float(rng.uniform(0.002, 0.008)), current_resolution_a=0.001,
+        counts_per_rev=int(round(_loguniform(rng, 2000, 20000))),
+        current_lag_s=float(rng.uniform(0.2e-3, 1e-3)),
+        setpoint_interpolation=int(rng.integers(0, 2)),
+        current_avg_s=float(rng.choice([0.0, 1e-3])),
+        vel_kp=kp, vel_ki=ki, current_limit_a=3.0, rated_current_a=1.0)
+
+
+def _draw_command(rng, motor, disk_kgm2: float, reversing: bool, duration_s: float) -> np.ndarray:
+    """Multisine speed command on harmonics of 1/duration (as the dev data), scaled so
+    the current it needs stays within 60 % of the drive's limit."""
+    from ..sim import waveforms as wf
+
+    t = wf.time_base(duration_s, PERIOD_S)
+    f0 = 1.0 / duration_s
+    harmonics = np.arange(1, int(10.0 / f0) + 1)
+    k = np.sort(rng.choice(harmonics, size=int(rng.integers(5, 10)), replace=False))
+    if reversing:
+        amp = rng.uniform(60.0, 200.0)
+        offset = rng.uniform(-0.2, 0.2) * amp
+    else:
+        offset = rng.uniform(80.0, 250.0)
+        amp = min(rng.uniform(0.4, 0.9) * offset, 400.0 - offset)
+    cmd = wf.multisine(t, amplitude=1.0, freqs_hz=k * f0, offset=0.0,
+                       phases="random", seed=int(rng.integers(1 << 30)))
+    acc_peak = np.abs(np.gradient(cmd, PERIOD_S)).max()
+    i_peak = ((motor.J + disk_kgm2) * amp * acc_peak + motor.Tc
+              + motor.D * (abs(offset) + amp)) / motor.Kt
+    amp *= min(1.0, 0.6 * motor.current_limit_a / i_peak)
+    return offset + amp * cmd
+
+
+def draw_case(index: int, seed: int = 0, *, duration_s: float = 3.0, dwell_s: float = 4.0) -> Case:
+    """Case ``index`` of the benchmark drawn with ``seed`` (deterministic)."""
+    from ..sim import PlantParams
+
+    rng = np.random.default_rng([seed, index])
+    reversing = bool(rng.uniform() < 0.25)
+    motors = {"in": _draw_motor(rng), "out": _draw_motor(rng)}
+    disks = {s: float(rng.uniform(0.5, 3.0) * m.J) for s, m in motors.items()}
+    commands = {s: _draw_command(rng, m, disks[s], reversing, duration_s) for s, m in motors.items()}
+    ratio = _loguniform(rng, 3.0, 60.0)
+    eta = float(rng.uniform(0.6, 0.97))
+    drag = float(rng.uniform(0.0, 0.02))
+    drag_visc = float(rng.uniform(0.0, 1e-5))
+    speed = float(rng.uniform(80.0, 300.0))
+    mi, mo = motors["in"], motors["out"]
+    # Full load: input current within 60 % of its limit, output within 60 % of its own.
+    spare_in = 0.6 * mi.current_limit_a * mi.Kt - mi.Tc - mi.D * speed - drag - drag_visc * speed
+    full = min(rng.uniform(0.5, 2.0), 0.6 * mo.current_limit_a,
+               max(spare_in, 0.0) * ratio * eta / mo.Kt)
+    full = max(full, 0.05)
+    from dataclasses import replace
+    mo = replace(mo, rated_current_a=full)
+    plant = PlantParams(motor_in=mi, motor_out=mo, ratio=ratio, eta_mesh=eta,
+                        drag_torque_nm=drag, drag_viscous=drag_visc, period_s=PERIOD_S,
+                        seed=int(rng.integers(1 << 30)))
+    levels = tuple(full * x for x in (0.0, 0.25, 0.5, 0.75, 1.0, 0.0))
+    return Case(index, plant, commands, disks, reversing, speed, levels, dwell_s,
+                int(rng.integers(1 << 30)))
+
+
+# ----------------------------------------------------------------------- running
+def simulate_case(case: Case) -> dict:
+    """Calibration runs per side (unloaded, loaded) and the bench trace."""
+    from ..sim import simulate_bench, simulate_motor
+    from ..sim import waveforms as wf
+
+    runs = {}
+    for k, (side, motor) in enumerate((("in", case.plant.motor_in), ("out", case.plant.motor_out))):
+        s = case.seed + 10 * k
+        cmd = case.commands[side]
+        runs[side] = (simulate_motor(motor, cmd, seed=s, period_s=PERIOD_S),
+                      simulate_motor(motor, cmd, disk_kgm2=case.disks_kgm2[side], seed=s + 1,
+                                     period_s=PERIOD_S))
+    t = wf.time_base(case.dwell_s * len(case.levels_a), PERIOD_S)
+    cin = wf.ramp(t, slope=360.0, final=case.bench_speed_rad_s)
+    cout = -wf.staircase(t, levels=list(case.levels_a), dwell_s=case.dwell_s)
+    bench = simulate_bench(case.plant, cin, cout, seed=case.plant.seed)
+    return {"runs": runs, "bench": bench}
+
+
+def run_case(case: Case, methods=METHODS, data: dict | None = None) -> dict[str, Outcome]:
+    """Every method on one case → {method: Outcome}. Exceptions are recorded, not raised."""
+    from ..sim import bench_operating_point
+
+    data = data or simulate_case(case)
+    plant = case.plant
+    out = {}
+    for method in methods:
+        oc = Outcome()
+        out[method] = oc
+        try:
+            cals = {}
+            for side, motor in (("in", plant.motor_in), ("out", plant.motor_out)):
+                u, lo = data["runs"][side]
+                cals[side] = calibrate_motor(u, lo, case.disks_kgm2[side], method=method)
+                oc.kt_err_pct.append(100 * (cals[side].Kt / motor.Kt - 1))
+            res = efficiency(data["bench"], cals["in"], cals["out"])
+            for p in res.points:
+                if abs(p.window.out_command) < 0.5 * plant.motor_out.rated_current_a - 1e-12:
+                    continue
+                truth = bench_operating_point(plant, p.speed_in_rad_s, p.window.out_command)
+                oc.inc_err_pp.append(100 * (p.eta_incremental - truth["eta_incremental"]))
+                oc.abs_err_pp.append(100 * (p.eta_absolute - truth["eta_absolute"]))
+        except Exception as exc:            # a failure is a result here, not a crash
+            oc.error = f"{type(exc).__name__}: {str(exc)[:160]}"
+    return out
+
+
+def run(cases: int, seed: int = 0, *, quick: bool = False, methods=METHODS):
+    """Draw and run ``cases`` cases → (list of Case, list of {method: Outcome})."""
+    kw = {"duration_s": 3.0, "dwell_s": 2.5 if quick else 4.0}
+    drawn = [draw_case(k, seed, **kw) for k in range(cases)]
+    return drawn, [run_case(c, methods) for c in drawn]
+
+
+# ----------------------------------------------------------------------- report
+def _stats(values) -> str:
+    if not values:
+        return f"{'-':>23}"
+    a = np.abs(values)
+    return f"{a.mean():7.3f} {np.percentile(a, 95):7.3f} {a.max():7.3f}"
+
+
+def summarise(outcomes: list[dict[str, Outcome]], methods=METHODS) -> dict[str, dict]:
+    """Per method: pooled errors, failures and the fraction of cases meeting targets."""
+    out = {}
+    for m in methods:
+        ocs = [o[m] for o in outcomes]
+        out[m] = {"kt": [e for o in ocs for e in o.kt_err_pct],
+                  "inc": [e for o in ocs for e in o.inc_err_pp],
+                  "abs": [e for o in ocs for e in o.abs_err_pp],
+                  "fail": sum(bool(o.error) for o in ocs),
+                  "ok": sum(o.meets_targets() for o in ocs) / max(len(ocs), 1)}
+    return out
+
+
+def print_table(cases: list[Case], outcomes: list[dict[str, Outcome]], methods=METHODS) -> None:
+    groups = [("all", range(len(cases))),
+              ("forward", [k for k, c in enumerate(cases) if not c.reversing]),
+              ("reversing", [k for k, c in enumerate(cases) if c.reversing])]
+    print(f"{'cases':<14}{'method':<12}{'|Kt err| %':>23}   {'|incr err| pp':>23}   "
+          f"{'|abs err| pp':>23}  fail  meet")
+    print(f"{'':<26}{'mean   95pct     max':>23}   {'mean   95pct     max':>23}   "
+          f"{'mean   95pct     max':>23}")
+    for name, idx in groups:
+        if not idx:
+            continue
+        s = summarise([outcomes[k] for k in idx], methods)
+        for m in methods:
+            r = s[m]
+            print(f"{f'{name} ({len(idx)})':<14}{m:<12}{_stats(r['kt'])}   {_stats(r['inc'])}   "
+                  f"{_stats(r['abs'])}  {r['fail']:4d}  {100 * r['ok']:3.0f}%")
+
+
+def print_worst(cases, outcomes, k: int, method: str = "default") -> None:
+    def score(o: Outcome) -> float:
+        if o.error:
+            return np.inf
+        return max([abs(e) / TARGETS["kt_pct"] for e in o.kt_err_pct]
+                   + [abs(e) / TARGETS["inc_pp"] for e in o.inc_err_pp]
+                   + [abs(e) / TARGETS["abs_pp"] for e in o.abs_err_pp] + [0.0])
+    order = sorted(range(len(cases)), key=lambda j: -score(outcomes[j][method]))
+    print(f"\nworst {k} cases for {method} (score = worst error / target):")
+    for j in order[:k]:
+        o = outcomes[j][method]
+        print(f"  score {score(o):6.2f}  Kt% {np.round(o.kt_err_pct, 3).tolist()} "
+              f"inc {np.round(o.inc_err_pp, 3).tolist()} abs {np.round(o.abs_err_pp, 3).tolist()} "
+              f"{o.error}")
+        print(f"    {cases[j].describe()}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m gearbench.bench robustness", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--cases", type=int, default=40, help="random plants (default 40)")
+    ap.add_argument("--quick", action="store_true", help="12 cases, shorter bench levels")
+    ap.add_argument("--seed", type=int, default=0, help="draw seed (default 0)")
+    ap.add_argument("--worst", type=int, default=0, help="list the K worst cases of the default")
+    args = ap.parse_args(argv)
+    n = 12 if args.quick else max(args.cases, 1)
+    t0 = time.perf_counter()
+    cases, outcomes = run(n, args.seed, quick=args.quick)
+    print(f"robustness: {n} random plants (seed {args.seed}), 2 motors each; efficiency at loads "
+          f">= 50 % rated; targets: Kt <= {TARGETS['kt_pct']} %, incremental <= "
+          f"{TARGETS['inc_pp']} pp, absolute <= {TARGETS['abs_pp']} pp; 'meet' = cases meeting all")
+    print_table(cases, outcomes)
+    if args.worst:
+        print_worst(cases, outcomes, args.worst)
+    print(f"benchmark time {time.perf_counter() - t0:.1f} s")
+    return 0
