@@ -59,6 +59,13 @@ def torque_constant(unloaded: IdentificationResult, loaded: IdentificationResult
         raise ExcitationError(f"{unloaded_name if bu <= 0 else loaded_name}: identified Kt/J = "
                               f"{min(bu, bl):.4g} is not positive; check the current sign and "
                               f"the excitation")
+    diff_std = float(np.hypot(unloaded.b2_std, loaded.b2_std))
+    if abs(bu - bl) < 3.0 * diff_std:
+        # equal Kt/J within noise: the disk did not show, and Kt = j b2~ b2^/(b2~ - b2^) would be noise
+        raise ExcitationError(
+            f"{loaded_name} and {unloaded_name} give the same Kt/J ({bl:.5g} vs {bu:.5g}, difference "
+            f"below 3 standard deviations {3 * diff_std:.2g}): the disk's inertia does not show; check "
+            f"that the disk was mounted on this motor for the loaded run, or use a heavier disk")
     if bl >= bu:
         raise GearbenchError(
             f"{loaded_name} accelerates more per ampere (Kt/J = {bl:.5g}) than {unloaded_name} "
