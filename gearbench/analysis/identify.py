@@ -9,8 +9,10 @@ Two methods, same result type:
             sample, as a 15 ms A/D would see it).
 ``default`` Removes the paper's biases: one zero-phase FIR on every signal and central
             differences (see ``derivatives.consistent_derivatives``) so velocity,
-            acceleration and current stay aligned; a smoothed Coulomb term tanh(θ'/w)
-            instead of subtracting a no-load current; C fixed at 0 unless asked; a
+            acceleration and current stay aligned; a Coulomb term sign(θ') instead
+            of subtracting a no-load current, integrated at each reversal's
+            sub-sample instant as the angle's second difference sees it, with the
+            torque regressors zeroed while the rotor sticks at a reversal; C fixed at 0 unless asked; a
             current-noise (errors-in-variables) correction; a parameter covariance
             from block sums of the residual scores (valid for coloured residuals)
             with Student-t degrees of freedom = blocks − 1.
@@ -34,6 +36,8 @@ KT_J, D_J, TC_J, C_J, BIAS, LAG = "Kt/J", "D/J", "Tc/J", "C/J", "bias", "lag"
 
 MAX_CONDITION = 1e4          # of the column-normalised regressor matrix
 MIN_ACCEL_SNR = 20.0         # rms filtered acceleration / rms encoder-noise acceleration
+STANDSTILL_SPEED_RAD_S = 0.1  # slower than this for >= 3 samples: the rotor sticks
+REVERSAL_SPEED_RAD_S = 5.0   # a run "reverses" if >5 % of it is beyond ±this speed
 MAX_B2_REL_STD = 0.05        # refuse a fit whose b2 is known worse than 5 % (1 sigma)
 
 
@@ -155,7 +159,7 @@ def _check_paper_excitation(w, a, i, dt, source):
 # ------------------------------------------------------------------------- default
 def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np.ndarray, *,
                      cutoff_hz: float | None = None, spring: bool = False,
-                     friction_width_rad_s: float = 1.0, bias: bool | None = None,
+                     friction_width_rad_s: float = 0.0, bias: bool | None = None,
                      lag: bool = True, eiv_correction: bool = True, check: bool = True,
                      source: str = "<array>") -> IdentificationResult:
     """Bias-reduced equation-error fit of ``θ'' = b2 i − (D/J)θ' − (Tc/J)s(θ') [− (C/J)θ] [+ c]``.
@@ -166,7 +170,9 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
         The filter never biases the fit (it is applied to both sides of a linear
         relation); it only trades noise against the excitation band it keeps.
     spring : also fit the paper's C/J (spring to ground); off for a real motor.
-    friction_width_rad_s : width w of the smoothed sign s(θ') = tanh(θ'/w).
+    friction_width_rad_s : 0 (default): s(θ') is the sign of the speed with each
+        reversal placed at its sub-sample instant (``derivatives.coulomb_regressor``);
+        > 0: the older sampled tanh(θ'/w), kept for comparison.
     bias : add a constant (current-offset) column. Default: only when the speed
         reverses, since with one rotation direction a constant and the Coulomb term
         are the same column (PAPER-NOTES: "reversals separate them").
@@ -192,17 +198,30 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
         raise TraceError(f"{source}: only {len(t)} samples, need at least {len(taps) + 50} "
                          f"at {rate:.4g} Hz for the {cutoff_hz:.3g} Hz filter; record a longer run")
     th = th - th[0]
-    # Friction regressor from the raw central-difference speed, *then* filtered like
-    # everything else, so the filtered equation stays exact.
-    w_raw = np.empty_like(th)
-    w_raw[1:-1] = (th[2:] - th[:-2]) / (2 * dt)
-    w_raw[0], w_raw[-1] = w_raw[1], w_raw[-2]
-    sgn = np.tanh(w_raw / friction_width_rad_s)
-    fs = dv.consistent_derivatives(th, {"current": i, "sign": sgn}, dt, taps)
+    # Speed between samples for the friction regressor and the reversal test.
+    w_smooth = dv.smooth_velocity(th, dt)
+    if friction_width_rad_s:
+        # Legacy: smoothed sign of the raw speed, sampled, then 3-tap matched.
+        w_raw = np.empty_like(th)
+        w_raw[1:-1] = (th[2:] - th[:-2]) / (2 * dt)
+        w_raw[0], w_raw[-1] = w_raw[1], w_raw[-2]
+        fs = dv.consistent_derivatives(
+            th, {"current": i, "sign": np.tanh(w_raw / friction_width_rad_s)}, dt, taps)
+    else:
+        # Coulomb step integrated at its sub-sample reversal instant, exactly as the
+        # second difference of the angle sees it (``derivatives.coulomb_regressor``).
+        # While the rotor sticks at a reversal (a PI speed loop needs time to swing its
+        # torque by 2·Tc) friction balances whatever the drive gives: the motor equation
+        # there is J θ'' = 0, so every torque regressor is zeroed on those samples and
+        # the filtered equation stays exact without dropping data.
+        moving = 1.0 - dv.standstill(w_smooth, STANDSTILL_SPEED_RAD_S)
+        fs = dv.consistent_derivatives(
+            th, {"current": i * moving}, dt, taps,
+            matched={"sign": dv.coulomb_regressor(th, dt, velocity=w_smooth) * moving})
     n = len(fs["acceleration"])
 
-    reverses = bool(np.mean(w_raw > 5 * friction_width_rad_s) > 0.05
-                    and np.mean(w_raw < -5 * friction_width_rad_s) > 0.05)
+    reverses = bool(np.mean(w_smooth > REVERSAL_SPEED_RAD_S) > 0.05
+                    and np.mean(w_smooth < -REVERSAL_SPEED_RAD_S) > 0.05)
     use_bias = reverses if bias is None else bias
     if use_bias and not reverses:
         raise ExcitationError(f"{source}: a current offset and Coulomb friction cannot be told "
@@ -231,7 +250,7 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
         G = Xt @ Xt.T
         Gc = G.copy()
         if eiv_correction:
-            Gc[0, 0] -= n * noise_var
+            Gc[0, 0] -= len(y) * noise_var
         try:
             beta = np.linalg.solve(Gc, Xt @ y)
         except np.linalg.LinAlgError:
@@ -248,7 +267,7 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
         cols[-1] = (LAG, np.gradient(current, dt), 1.0)
     e = y - beta @ Xt
     cond = _condition_gram(G)
-    cov, dof, n_eff = _block_covariance(Xt, e, Gc, block=max(4 * len(taps), n // 64))
+    cov, dof, n_eff = _block_covariance(Xt, e, Gc, block=max(4 * len(taps), len(y) // 64))
     values = beta * sign
     cov = cov * np.outer(sign, sign)
     b2 = float(values[0])

@@ -209,9 +209,51 @@ def fit_windows(sig: Signals, mask: np.ndarray) -> Windows:
     return Windows(starts[ok], L, hash((L, starts[ok].tobytes())))
 
 
+def sg_derivative_kernel(dt_s: float) -> np.ndarray:
+    """Dot-product weights of the SG velocity estimate on theta[k-W//2 .. k+W//2]."""
+    from scipy.signal import savgol_coeffs
+
+    return savgol_coeffs(VELOCITY_WINDOW, 2, deriv=1, delta=dt_s, use="dot")
+
+
+def sg_interval_kernel() -> np.ndarray:
+    """Weights c_m (m = -W//2 .. W//2-1) with w_sg[k] = sum c_m * mean velocity over
+    [t_{k+m}, t_{k+m+1}]: the SG derivative as a smoother of interval velocities.
+
+    The SG estimate attenuates fast motion (~10 % at 40 Hz); an equation error that
+    compares it with unsmoothed model accelerations reads that loss as a model error
+    (it hid shaft resonances).  Smoothing the features with c_m makes both sides alike.
+    """
+    h = sg_derivative_kernel(1.0)
+    half = VELOCITY_WINDOW // 2
+    # theta[k+j] - theta[k] = sum of the intervals between: c_m = sum_{j>m} h_j (m >= 0),
+    # -sum_{j<=m} h_j (m < 0); the c_m sum to 1
+    js = np.arange(-half, half + 1)
+    return np.array([h[js > m].sum() if m >= 0 else -h[js <= m].sum()
+                     for m in range(-half, half)])
+
+
+def smooth_like_velocity(F: np.ndarray) -> np.ndarray:
+    """Features (rows = samples) smoothed like the SG velocity (edges held).
+
+    F[q] models w[q+1] - w[q]; a change of interval-mean velocity spans two such steps
+    (half each), so the kernel is c_m convolved with [1/2, 1/2]: centred, W taps."""
+    c = sg_interval_kernel()
+    kern = 0.5 * (np.append(c, 0.0) + np.insert(c, 0, 0.0))    # m = -W//2 .. W//2
+    half = VELOCITY_WINDOW // 2
+    n = F.shape[0]
+    P = np.concatenate([np.repeat(F[:1], half, 0), F, np.repeat(F[-1:], half, 0)])
+    out = np.zeros_like(F, dtype=float)
+    for k, km in enumerate(kern):      # m = k - half; out[i] += k_m F[i + m]
+        out += km * P[k:k + n]
+    return out
+
+
 def integrated_rows(sig: Signals, F: np.ndarray, win: Windows):
-    """Rows of the integrated equation error: dw = dt * sum(F) over each window."""
+    """Rows of the integrated equation error: dw = dt * sum(F) over each window, with
+    F smoothed like the SG velocity estimate (so w_sg's own lag/attenuation cancels)."""
     L, s = win.length, win.start
+    F = smooth_like_velocity(np.asarray(F, float).reshape(len(sig), -1))
     X = np.empty((len(s), F.shape[1]))
     for j in range(F.shape[1]):
         cum = np.concatenate([[0.0], np.cumsum(F[:, j])])

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import savgol_filter
 
-from .nominal import VELOCITY_WINDOW, Model, Signals
+from .nominal import VELOCITY_WINDOW, Model, Signals, sg_derivative_kernel
 
 #: Simulation horizon (re-initialised from the measured state), seconds.
 HORIZON_S = 0.1
@@ -76,18 +76,25 @@ def split(sig: Signals) -> Split:
 
 
 def simulate(sig: Signals, model: Model, starts: np.ndarray, horizon: int) -> np.ndarray:
-    """Velocity error (simulated - measured), shape (len(starts), horizon).
+    """Velocity error, shape (len(starts), horizon): the SG derivative of the angle error
+    theta_sim - theta_meas (0 before the start), i.e. the simulated angle seen through the
+    same velocity estimator as the measurement — so the estimator's attenuation of fast
+    motion (a shaft resonance) is not counted as model error.
 
     Euler for the velocity, trapezoid for the angle; all horizons advance together.
     """
     dt = sig.dt_s
+    n = len(sig)
+    half = VELOCITY_WINDOW // 2
+    h = sg_derivative_kernel(dt)
     theta = sig.position_rad[starts].astype(float)
     omega = sig.velocity_rad_s[starts].astype(float)
     states = [t.init_state(sig, starts) for t in model.terms]
-    err = np.empty((len(starts), horizon))
+    steps = horizon + half
+    eth = np.zeros((len(starts), half + 1 + steps))   # angle error from start - half
     coef = model.coef
-    for m in range(horizon):
-        idx = starts + m
+    for m in range(steps):
+        idx = np.minimum(starts + m, n - 2)
         alpha = np.zeros_like(omega)
         j = 0
         for t, st in zip(model.terms, states):
@@ -98,7 +105,11 @@ def simulate(sig: Signals, model: Model, starts: np.ndarray, horizon: int) -> np
         states = [t.step_state(st, theta, omega, dt) for t, st in zip(model.terms, states)]
         theta = theta + 0.5 * dt * (omega + new)
         omega = new
-        err[:, m] = omega - sig.velocity_rad_s[idx + 1]
+        eth[:, half + 1 + m] = theta - sig.position_rad[idx + 1]
+    # err[:, k-1] = sum_j h_j eth(k + j), k = 1..horizon
+    err = np.zeros((len(starts), horizon))
+    for jj, hj in enumerate(h):
+        err += hj * eth[:, 1 + jj:1 + jj + horizon]
     return err
 
 
@@ -159,9 +170,43 @@ def velocity_noise(angle_noise_rad: float, dt_s: float) -> float:
     return float(angle_noise_rad * gain / dt_s)
 
 
+#: Lags (samples) of the encoder-step features the drive's current reacts to.
+DRIVE_LAGS = range(-1, 9)
+
+
+def current_noise(sig: Signals, window: int = 7, order: int = 2) -> float:
+    """Std of the current *measurement* noise, robust to real high-frequency current.
+
+    A drive's speed loop turns each encoder count edge into a current kick: real
+    current (it drives the motor, the model sees it) that a residual-about-a-polynomial
+    estimate would count as noise (it tripled the floor on coarse encoders).  The
+    high-frequency current is regressed on lagged high-frequency angle increments
+    (fit on one half of the trace, residual on the other, both ways round); what the
+    encoder's motion does not explain is the measurement noise."""
+    i = sig.current_a
+    h0 = savgol_filter(np.eye(window)[window // 2], window, order)[window // 2]
+    i_hf = i - savgol_filter(i, window, order)
+    d = np.diff(sig.position_rad, prepend=sig.position_rad[0])
+    d_hf = d - savgol_filter(d, window, order)
+    n = len(i)
+    lo, hi = -min(DRIVE_LAGS), max(DRIVE_LAGS)
+    rows = np.arange(hi, n - lo)
+    X = np.column_stack([d_hf[rows - lag] for lag in DRIVE_LAGS] + [np.ones(len(rows))])
+    y = i_hf[rows]
+    half = len(rows) // 2
+    res = []
+    for fit, test in ((slice(0, half), slice(half, None)), (slice(half, None), slice(0, half))):
+        c, *_ = np.linalg.lstsq(X[fit], y[fit], rcond=None)
+        res.append(y[test] - X[test] @ c)
+    r = np.concatenate(res)
+    mad = 1.4826 * np.median(np.abs(r - np.median(r)))
+    sd = min(mad, float(np.std(r)))
+    return float(min(sd / np.sqrt(max(1.0 - h0, 1e-6)), _hf_noise(i, window, order)))
+
+
 def noise_floor(sig: Signals, kt_over_j: float, horizon: int) -> NoiseFloor:
     """Floor of the simulation error from the current and angle noise in the data."""
-    s_i = _hf_noise(sig.current_a, 7, 2)
+    s_i = current_noise(sig)
     s_th = _hf_noise(sig.position_rad, 9, 3)
     q = lattice_step(sig.position_rad)
     if q:  # a quantised angle: uniform noise of one step (the residual misses it at low speed)
