@@ -57,6 +57,7 @@ from gearbench.analysis.diagnose import harness  # noqa: E402
     ("kt_saturation", "reversing", 0.8),
     ("time_delay", "multisine", 0.8),
     ("inertia_mismatch", "multisine", 0.8),
+    ("encoder_quantization", "reversing", 0.3),   # 1000 counts/rev on the drive's encoder
 ])
 def test_injected_effect_isolated(effect, excitation, min_shrink):
     case = harness.Case(effect, "moderate", excitation, 0,
@@ -64,6 +65,29 @@ def test_injected_effect_isolated(effect, excitation, min_shrink):
     out = harness.run_case(case)
     assert out.called == effect
     assert out.true_shrink > min_shrink
+
+
+def test_equation_error_smoothing_matches_the_velocity_estimate():
+    """The features are smoothed exactly as the SG velocity smooths the motion: for a
+    cubic angle (its SG derivative is biased), dw_sg equals the smoothed, integrated
+    acceleration."""
+    from gearbench.analysis.diagnose.nominal import (Signals, Windows, integrated_rows,
+                                                     prepare, sg_interval_kernel)
+    c = sg_interval_kernel()
+    assert abs(c.sum() - 1.0) < 1e-12 and np.allclose(c, c[::-1])
+    dt, n = 1e-3, 400
+    t = np.arange(n) * dt
+    omega_fn = lambda x: 50 * np.sin(2 * np.pi * 40 * x)        # fast: SG attenuates it
+    theta = -50 / (2 * np.pi * 40) * np.cos(2 * np.pi * 40 * t)
+    sig = prepare(Trace(t, {"position_rad": theta, "current_a": np.sin(t)}))
+    # per-sample velocity change, exact: F[q] = w(t_{q+1}) - w(t_q) over dt
+    F = ((omega_fn(t + dt) - omega_fn(t)) / dt)[:, None]
+    win = Windows(np.arange(20, n - 60, 7), 20)
+    X, y = integrated_rows(sig, F, win)
+    # the SG derivative of a sampled sine vs its point value: within 1 % after smoothing
+    assert np.max(np.abs(X[:, 0] - y)) < 0.01 * np.max(np.abs(y))
+    raw = np.array([dt * F[s:s + 20, 0].sum() for s in win.start])
+    assert np.max(np.abs(raw - y)) > 0.05 * np.max(np.abs(y))   # unsmoothed: biased
 
 
 def test_diagnosis_is_a_pure_function_of_its_input():

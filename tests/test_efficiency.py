@@ -129,7 +129,7 @@ def test_simulated_bench_with_true_motor_models():
 
 def test_window_means_are_robust_to_ripple_of_unknown_period():
     """A ripple with a non-integer number of periods per window (CVT pulsation, cogging)
-    leaks up to amplitude/(π·periods) into a flat mean; the Hann-weighted mean of
+    leaks up to amplitude/(π·periods) into a flat mean; the Tukey-weighted mean of
     ``measure_windows`` leaves under 1e-3 of the amplitude."""
     from gearbench.analysis.efficiency import measure_windows
 

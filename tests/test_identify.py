@@ -17,7 +17,8 @@ DEV = Path("/work/shared/datasets/dev")
 
 
 def synth_motor(*, kt=0.05, j=2e-5, d=2e-6, tc=0.008, seconds=3.0, rate=1000.0,
-                noise_a=0.004, counts=10000, delay_s=0.0, speed=150.0, amp=60.0, seed=0):
+                noise_a=0.004, counts=10000, delay_s=0.0, speed=150.0, amp=60.0, seed=0,
+                cog_nm=0.0, cog_order=12):
     """Independent little plant with an exact solution: the speed is a multisine
     ω(t) = speed + Σ a sin(2πft + φ), and the current is what the motor equation
     J ω' + D ω + Tc tanh(ω/0.01) = Kt i requires. Sampled like a drive: floor-quantised
@@ -28,14 +29,18 @@ def synth_motor(*, kt=0.05, j=2e-5, d=2e-6, tc=0.008, seconds=3.0, rate=1000.0,
     a = amp / f.size
     t = np.arange(int(seconds * rate)) / rate
 
+    def angle(tt):
+        arg = 2 * np.pi * f[None, :] * tt[:, None] + ph
+        return speed * tt - (a / (2 * np.pi * f) * (np.cos(arg) - np.cos(ph))).sum(1)
+
     def current(tt):
         arg = 2 * np.pi * f[None, :] * tt[:, None] + ph
         w = speed + (a * np.sin(arg)).sum(1)
         acc = (a * 2 * np.pi * f * np.cos(arg)).sum(1)
-        return (j * acc + d * w + tc * np.tanh(w / 0.01)) / kt
+        cog = cog_nm * np.sin(cog_order * angle(tt) + 0.4)
+        return (j * acc + d * w + tc * np.tanh(w / 0.01) + cog) / kt
 
-    arg = 2 * np.pi * f[None, :] * t[:, None] + ph
-    th = speed * t - (a / (2 * np.pi * f) * (np.cos(arg) - np.cos(ph))).sum(1)
+    th = angle(t)
     q = 2 * np.pi / counts
     pos = np.floor(th / q) * q
     i_meas = current(t - delay_s) + rng.normal(0, noise_a, t.size)
@@ -153,3 +158,63 @@ def test_identification_of_a_million_samples_is_fast():
         best = min(best, time.perf_counter() - t0)
     # target 0.3 s (see the accuracy benchmark); leave headroom for a shared CI machine
     assert best < 0.6
+
+
+# ------------------------------------------------------------------------ cogging
+def test_cogging_order_is_found_from_the_data_and_removes_the_bias_on_reversing_runs():
+    """3 mN m of order-22 cogging on a reversing run: near each reversal it sits inside
+    the filter's band. The scan on the rotor angle finds order 22 (and no other), the
+    fit recovers its amplitude, and b2 is unbiased again."""
+    kw = dict(speed=0.0, amp=150.0, tc=0.005, j=1e-5, cog_nm=0.003, cog_order=22, seconds=3.0)
+    t, th, i, tr = synth_motor(**kw)
+    b2 = tr["Kt"] / tr["J"]
+    fit = identify_default(t, th, i)
+    assert list(fit.extras["cogging"]) == [22]
+    assert fit.extras["cogging"][22] * tr["J"] == pytest.approx(0.003, rel=0.05)
+    blind = identify_default(t, th, i, cogging=False)
+    assert abs(fit.b2 / b2 - 1) < 0.002
+    assert abs(blind.b2 / b2 - 1) > 3 * abs(fit.b2 / b2 - 1)
+    given = identify_default(t, th, i, cogging=(22,))
+    assert given.b2 == pytest.approx(fit.b2, rel=1e-9)
+
+
+def test_no_cogging_terms_are_kept_without_cogging():
+    for kw in (dict(), dict(speed=0.0, amp=150.0, tc=0.005, j=1e-5)):
+        for seed in range(3):
+            t, th, i, _ = synth_motor(seed=seed, **kw)
+            assert identify_default(t, th, i).extras["cogging"] == {}, (kw, seed)
+
+
+def test_cogging_scan_scores_the_true_order_and_hides_orders_the_filter_removes():
+    from gearbench.analysis.identify import cogging_order_scores
+
+    rng = np.random.default_rng(1)
+    n = 20000
+    w = 2.0 + 8.0 * np.sin(np.linspace(0, 40 * np.pi, n))     # slow, reversing, 6 revs
+    th = np.cumsum(w) * 1e-3
+    e = 0.3 * np.sin(7 * th) + rng.normal(0, 1, n)
+    z = cogging_order_scores(th, w, e, cutoff_hz=40.0)
+    assert np.nanargmax(z) == 6 and z[6] > 20 * np.nanmedian(z)
+    fast = cogging_order_scores(th, w + 100.0, e, cutoff_hz=40.0)
+    assert np.isnan(fast[3:]).all()                           # 100 rad/s: only orders <= 2
+
+
+def test_reversal_instant_is_taken_from_the_angle_not_the_smoothed_speed():
+    """Angle of a reversal with a friction kink (deceleration 1000 before, 400 rad/s² after)
+    at t_c = 50.3 samples: the refined speed crosses zero there to 0.02 sample; the
+    smoothed speed alone misses by more."""
+    from gearbench.analysis import derivatives as dv
+
+    dt = 1e-3
+    k = np.arange(120, dtype=float)
+    s = (k - 50.3) * dt
+    th = np.where(s < 0, -0.5 * 1000 * s ** 2, -0.5 * 400 * s ** 2)
+    w = dv.smooth_velocity(th, dt)
+    r = dv.refine_reversals(th, w)
+
+    def crossing(v):
+        j = int(np.flatnonzero((v[:-1] > 0) & (v[1:] <= 0))[0])
+        return j + v[j] / (v[j] - v[j + 1])
+
+    assert crossing(r) == pytest.approx(50.3, abs=0.02)
+    assert abs(crossing(w) - 50.3) > 0.05

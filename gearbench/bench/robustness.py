@@ -14,8 +14,12 @@ levels). Each motor is calibrated with ``calibrate_motor`` (excitation check on,
 ``gearbench calibrate`` runs it) by every method; the calibrations feed
 ``efficiency`` on the simulated bench run. Errors against the simulator's truth:
 |Kt err| per motor, incremental and absolute efficiency per point at loads >= 50 %
-of rated, exceptions, and the fraction of cases meeting every target. Deterministic
-for ``--seed``.
+of rated, exceptions, and the fraction of cases meeting every target. Each error
+also has the standard uncertainty the method itself reports (Kt_ci95, the points'
+intervals): *coverage* is the fraction of intervals holding the truth (an honest
+95 % interval covers ~95 %), and a case that misses a target is *biased* when a
+missed error exceeds twice its own standard uncertainty, else *noise-limited* (the
+data could not do better, and the interval says so). Deterministic for ``--seed``.
 """
 from __future__ import annotations
 
@@ -31,6 +35,8 @@ from ..analysis.efficiency import efficiency
 METHODS = ("paper-15ms", "paper", "default")
 TARGETS = {"kt_pct": 0.2, "inc_pp": 0.2, "abs_pp": 0.3}
 PERIOD_S = 1e-3
+BIASED_SIGMAS = 2.0          # |error| > 2 x its own standard uncertainty: biased, not noise
+Z95 = 1.96
 
 
 @dataclass(frozen=True)
@@ -67,19 +73,43 @@ class Case:
 
 @dataclass
 class Outcome:
-    """One method on one case."""
+    """One method on one case: errors, their reported standard uncertainties (same
+    units, from the 95 % intervals) and whether each interval holds the truth."""
 
     kt_err_pct: list = field(default_factory=list)
     inc_err_pp: list = field(default_factory=list)
     abs_err_pp: list = field(default_factory=list)
+    kt_std_pct: list = field(default_factory=list)
+    inc_std_pp: list = field(default_factory=list)
+    abs_std_pp: list = field(default_factory=list)
+    kt_cover: list = field(default_factory=list)
+    inc_cover: list = field(default_factory=list)
+    abs_cover: list = field(default_factory=list)
     error: str = ""
+
+    def _quantities(self):
+        return (("kt_pct", self.kt_err_pct, self.kt_std_pct),
+                ("inc_pp", self.inc_err_pp, self.inc_std_pp),
+                ("abs_pp", self.abs_err_pp, self.abs_std_pp))
 
     def meets_targets(self) -> bool:
         if self.error or not self.kt_err_pct or not self.inc_err_pp:
             return False
-        return (max(map(abs, self.kt_err_pct)) <= TARGETS["kt_pct"]
-                and max(map(abs, self.inc_err_pp)) <= TARGETS["inc_pp"]
-                and max(map(abs, self.abs_err_pp)) <= TARGETS["abs_pp"])
+        return all(max(map(abs, errs), default=0.0) <= TARGETS[key]
+                   for key, errs, _ in self._quantities())
+
+    def verdict(self) -> str:
+        """``meet``, ``error``, ``biased`` (a missed error > 2 sigma of its own
+        uncertainty) or ``noise`` (every missed error within 2 sigma)."""
+        if self.error or not self.kt_err_pct or not self.inc_err_pp:
+            return "error"
+        if self.meets_targets():
+            return "meet"
+        for key, errs, stds in self._quantities():
+            for e, s in zip(errs, stds):
+                if abs(e) > TARGETS[key] and abs(e) > BIASED_SIGMAS * s:
+                    return "biased"
+        return "noise"
 
 
 # ----------------------------------------------------------------------- drawing
@@ -211,15 +241,21 @@ def run_case(case: Case, methods=METHODS, data: dict | None = None) -> dict[str,
             cals = {}
             for side, motor in (("in", plant.motor_in), ("out", plant.motor_out)):
                 u, lo = data["runs"][side]
-                cals[side] = calibrate_motor(u, lo, case.disks_kgm2[side], method=method)
-                oc.kt_err_pct.append(100 * (cals[side].Kt / motor.Kt - 1))
+                cal = cals[side] = calibrate_motor(u, lo, case.disks_kgm2[side], method=method)
+                oc.kt_err_pct.append(100 * (cal.Kt / motor.Kt - 1))
+                oc.kt_std_pct.append(100 * cal.Kt_std / motor.Kt)
+                oc.kt_cover.append(cal.Kt_ci95[0] <= motor.Kt <= cal.Kt_ci95[1])
             res = efficiency(data["bench"], cals["in"], cals["out"])
             for p in res.points:
                 if abs(p.window.out_command) < 0.5 * plant.motor_out.rated_current_a - 1e-12:
                     continue
                 truth = bench_operating_point(plant, p.speed_in_rad_s, p.window.out_command)
-                oc.inc_err_pp.append(100 * (p.eta_incremental - truth["eta_incremental"]))
-                oc.abs_err_pp.append(100 * (p.eta_absolute - truth["eta_absolute"]))
+                for kind, errs, stds, cover in (("incremental", oc.inc_err_pp, oc.inc_std_pp, oc.inc_cover),
+                                                ("absolute", oc.abs_err_pp, oc.abs_std_pp, oc.abs_cover)):
+                    value, (lo_, hi_) = getattr(p, f"eta_{kind}"), getattr(p, f"eta_{kind}_ci95")
+                    errs.append(100 * (value - truth[f"eta_{kind}"]))
+                    stds.append(100 * (hi_ - lo_) / (2 * Z95))
+                    cover.append(lo_ <= truth[f"eta_{kind}"] <= hi_)
         except Exception as exc:            # a failure is a result here, not a crash
             oc.error = f"{type(exc).__name__}: {str(exc)[:160]}"
     return out
@@ -241,16 +277,27 @@ def _stats(values) -> str:
 
 
 def summarise(outcomes: list[dict[str, Outcome]], methods=METHODS) -> dict[str, dict]:
-    """Per method: pooled errors, failures and the fraction of cases meeting targets."""
+    """Per method: pooled errors, interval coverage, exceptions, the fraction of cases
+    meeting targets and the misses split into noise-limited and biased."""
     out = {}
     for m in methods:
         ocs = [o[m] for o in outcomes]
+        verdicts = [o.verdict() for o in ocs]
+        n = max(len(ocs), 1)
         out[m] = {"kt": [e for o in ocs for e in o.kt_err_pct],
                   "inc": [e for o in ocs for e in o.inc_err_pp],
                   "abs": [e for o in ocs for e in o.abs_err_pp],
+                  "cover": {q: _fraction([c for o in ocs for c in getattr(o, f"{q}_cover")])
+                            for q in ("kt", "inc", "abs")},
                   "fail": sum(bool(o.error) for o in ocs),
-                  "ok": sum(o.meets_targets() for o in ocs) / max(len(ocs), 1)}
+                  "ok": verdicts.count("meet") / n,
+                  "noise": verdicts.count("noise") / n,
+                  "biased": verdicts.count("biased") / n}
     return out
+
+
+def _fraction(flags) -> float:
+    return float(np.mean(flags)) if flags else float("nan")
 
 
 def print_table(cases: list[Case], outcomes: list[dict[str, Outcome]], methods=METHODS) -> None:
@@ -258,17 +305,19 @@ def print_table(cases: list[Case], outcomes: list[dict[str, Outcome]], methods=M
               ("forward", [k for k, c in enumerate(cases) if not c.reversing]),
               ("reversing", [k for k, c in enumerate(cases) if c.reversing])]
     print(f"{'cases':<14}{'method':<12}{'|Kt err| %':>23}   {'|incr err| pp':>23}   "
-          f"{'|abs err| pp':>23}  fail  meet")
+          f"{'|abs err| pp':>23}  {'95% coverage':>14}  fail  meet noise biased")
     print(f"{'':<26}{'mean   95pct     max':>23}   {'mean   95pct     max':>23}   "
-          f"{'mean   95pct     max':>23}")
+          f"{'mean   95pct     max':>23}  {'Kt  incr   abs':>14}")
     for name, idx in groups:
         if not idx:
             continue
         s = summarise([outcomes[k] for k in idx], methods)
         for m in methods:
             r = s[m]
+            cov = " ".join(f"{100 * r['cover'][q]:4.0f}" for q in ("kt", "inc", "abs"))
             print(f"{f'{name} ({len(idx)})':<14}{m:<12}{_stats(r['kt'])}   {_stats(r['inc'])}   "
-                  f"{_stats(r['abs'])}  {r['fail']:4d}  {100 * r['ok']:3.0f}%")
+                  f"{_stats(r['abs'])}  {cov:>14}  {r['fail']:4d}  {100 * r['ok']:3.0f}%  "
+                  f"{100 * r['noise']:3.0f}%   {100 * r['biased']:3.0f}%")
 
 
 def print_worst(cases, outcomes, k: int, method: str = "default") -> None:
@@ -282,10 +331,14 @@ def print_worst(cases, outcomes, k: int, method: str = "default") -> None:
     print(f"\nworst {k} cases for {method} (score = worst error / target):")
     for j in order[:k]:
         o = outcomes[j][method]
-        print(f"  score {score(o):6.2f}  Kt% {np.round(o.kt_err_pct, 3).tolist()} "
-              f"inc {np.round(o.inc_err_pp, 3).tolist()} abs {np.round(o.abs_err_pp, 3).tolist()} "
+        print(f"  score {score(o):6.2f} {o.verdict():>6}  Kt% {_pm(o.kt_err_pct, o.kt_std_pct)} "
+              f"inc {_pm(o.inc_err_pp, o.inc_std_pp)} abs {_pm(o.abs_err_pp, o.abs_std_pp)} "
               f"{o.error}")
         print(f"    {cases[j].describe()}")
+
+
+def _pm(errs, stds) -> str:
+    return "[" + ", ".join(f"{e:.3f}±{s:.3f}" for e, s in zip(errs, stds)) + "]"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -301,7 +354,9 @@ def main(argv: list[str] | None = None) -> int:
     cases, outcomes = run(n, args.seed, quick=args.quick)
     print(f"robustness: {n} random plants (seed {args.seed}), 2 motors each; efficiency at loads "
           f">= 50 % rated; targets: Kt <= {TARGETS['kt_pct']} %, incremental <= "
-          f"{TARGETS['inc_pp']} pp, absolute <= {TARGETS['abs_pp']} pp; 'meet' = cases meeting all")
+          f"{TARGETS['inc_pp']} pp, absolute <= {TARGETS['abs_pp']} pp; 'meet' = cases meeting all;\n"
+          f"misses: 'biased' = a missed error > {BIASED_SIGMAS:g} x its own reported std, else 'noise'; "
+          f"coverage = truth inside the reported 95 % interval")
     print_table(cases, outcomes)
     if args.worst:
         print_worst(cases, outcomes, args.worst)

@@ -233,31 +233,30 @@ def sg_interval_kernel() -> np.ndarray:
                      for m in range(-half, half)])
 
 
-def smooth_like_velocity(F: np.ndarray) -> np.ndarray:
-    """Features (rows = samples) smoothed like the SG velocity (edges held).
-
-    F[q] models w[q+1] - w[q]; a change of interval-mean velocity spans two such steps
-    (half each), so the kernel is c_m convolved with [1/2, 1/2]: centred, W taps."""
+def velocity_smoothing_kernel() -> np.ndarray:
+    """Centred weights (m = -W//2 .. W//2) that smooth per-sample velocity changes
+    F[q] = (w[q+1] - w[q]) / dt like the SG estimate: c_m convolved with [1/2, 1/2]
+    (a change of interval-mean velocity spans two such steps, half each)."""
     c = sg_interval_kernel()
-    kern = 0.5 * (np.append(c, 0.0) + np.insert(c, 0, 0.0))    # m = -W//2 .. W//2
-    half = VELOCITY_WINDOW // 2
-    n = F.shape[0]
-    P = np.concatenate([np.repeat(F[:1], half, 0), F, np.repeat(F[-1:], half, 0)])
-    out = np.zeros_like(F, dtype=float)
-    for k, km in enumerate(kern):      # m = k - half; out[i] += k_m F[i + m]
-        out += km * P[k:k + n]
-    return out
+    return 0.5 * (np.append(c, 0.0) + np.insert(c, 0, 0.0))
 
 
 def integrated_rows(sig: Signals, F: np.ndarray, win: Windows):
     """Rows of the integrated equation error: dw = dt * sum(F) over each window, with
-    F smoothed like the SG velocity estimate (so w_sg's own lag/attenuation cancels)."""
+    F smoothed like the SG velocity estimate (so w_sg's own attenuation cancels).
+    Smoothing commutes with the window sums, so it is applied to the sums at the
+    shifted starts (cheap: only the window starts are touched)."""
     L, s = win.length, win.start
-    F = smooth_like_velocity(np.asarray(F, float).reshape(len(sig), -1))
-    X = np.empty((len(s), F.shape[1]))
-    for j in range(F.shape[1]):
-        cum = np.concatenate([[0.0], np.cumsum(F[:, j])])
-        X[:, j] = sig.dt_s * (cum[s + L] - cum[s])
+    F = np.asarray(F, float).reshape(len(sig), -1)
+    n = F.shape[0]
+    kern = velocity_smoothing_kernel()
+    half = VELOCITY_WINDOW // 2
+    X = np.zeros((len(s), F.shape[1]))
+    cum = np.concatenate([np.zeros((1, F.shape[1])), np.cumsum(F, axis=0)])
+    for k, km in enumerate(kern):
+        a = np.clip(s + k - half, 0, n - L)
+        X += km * (cum[a + L] - cum[a])
+    X *= sig.dt_s
     y = sig.velocity_rad_s[s + L] - sig.velocity_rad_s[s]
     return X, y
 

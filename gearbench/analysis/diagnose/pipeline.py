@@ -132,7 +132,7 @@ def diagnose(trace: Trace, model: GivenModel | None = None) -> Diagnosis:
     scores, refits = [], {}
     for effect in LIBRARY:
         if isinstance(effect, EncoderQuantization):
-            scores.append(_score_quantization(sig, floor, mse_nom, v_rms, ov))
+            scores.append(_score_quantization(sig, floor, mse_nom, v_rms, ov, err_nom))
             continue
         if not effect.grid(sig, base):  # nothing on this trace can show the effect
             scores.append(vd.score(effect.name, {"note": "not testable on this trace "
@@ -188,24 +188,33 @@ def _sigmas(nom: Model, model) -> dict:
             "d_over_j_pm": 1.96 * sd.get("d_over_j", 0.0)}
 
 
-def _score_quantization(sig: Signals, floor: simerror.NoiseFloor, mse_nom, v_rms, ov) -> vd.Score:
+def _score_quantization(sig: Signals, floor: simerror.NoiseFloor, mse_nom, v_rms, ov,
+                        err_nom: np.ndarray) -> vd.Score:
     """The share of the error that the encoder's quantisation noise explains.
 
-    It counts (``significant``) only when quantisation noise in the velocity estimate
-    exceeds the current-noise part of the floor and the nominal error lies
-    significantly above the floor a continuous sensor would give.
-    """
+    The nominal's error variance per horizon step m is fitted as a + b m (a = velocity
+    noise at both ends, b = what accumulates: current noise and model error).  The
+    encoder is the cause when it sits on a lattice of step q, its quantisation noise
+    2 (q/sqrt(12) g)^2 (g = SG noise gain) explains the measured intercept a (at least
+    half of it) and outweighs what accumulates over the horizon (b * mean m) — then
+    removing it brings the error to the floor of a continuous sensor, whose current
+    part is the smaller of b and the current-noise estimate (real high-frequency current
+    from the drive reacting to coarse counts inflates the latter)."""
     q = simerror.lattice_step(sig.position_rad)
     params = {"step_rad": q, "counts_per_rev": (2 * np.pi / q) if q else None}
     if not q:
         return vd.score("encoder_quantization", params, mse_nom, mse_nom, 1, floor.mse, v_rms,
                         overlap=ov)
+    H = err_nom.shape[1]
+    m = np.arange(1, H + 1)
+    a, b = np.polynomial.polynomial.polyfit(m, np.mean(err_nom ** 2, axis=0), 1)
     quant_var = 2 * simerror.velocity_noise(q / np.sqrt(12), sig.dt_s) ** 2
     current_part = float(np.mean(floor.floor_var - 2 * floor.velocity_noise_rad_s ** 2))
-    floor_cont = floor.mse - quant_var
+    growth = max(min(b * m.mean(), current_part), 0.0)
+    floor_cont = max(growth, 1e-300)
     after = np.maximum(mse_nom - quant_var, 0.0)
-    s = vd.score("encoder_quantization", params, mse_nom, after, 1, max(floor_cont, 1e-300), v_rms,
-                 overlap=ov)
-    dominant = quant_var > current_part
-    above = vd.paired_t(mse_nom, np.full_like(mse_nom, max(floor_cont, 0.0)), ov) > 5.0
-    return vd.Score(**{**s.__dict__, "significant": bool(s.significant and dominant and above)})
+    s = vd.score("encoder_quantization", {**params, "intercept_rad_s": float(np.sqrt(max(a, 0))),
+                                          "quantisation_rad_s": float(np.sqrt(quant_var))},
+                 mse_nom, after, 1, floor_cont, v_rms, overlap=ov)
+    explains = quant_var > 0.5 * a and quant_var > max(b, 0.0) * m.mean()
+    return vd.Score(**{**s.__dict__, "significant": bool(s.significant and explains)})

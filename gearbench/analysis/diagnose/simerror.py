@@ -170,43 +170,9 @@ def velocity_noise(angle_noise_rad: float, dt_s: float) -> float:
     return float(angle_noise_rad * gain / dt_s)
 
 
-#: Lags (samples) of the encoder-step features the drive's current reacts to.
-DRIVE_LAGS = range(-1, 9)
-
-
-def current_noise(sig: Signals, window: int = 7, order: int = 2) -> float:
-    """Std of the current *measurement* noise, robust to real high-frequency current.
-
-    A drive's speed loop turns each encoder count edge into a current kick: real
-    current (it drives the motor, the model sees it) that a residual-about-a-polynomial
-    estimate would count as noise (it tripled the floor on coarse encoders).  The
-    high-frequency current is regressed on lagged high-frequency angle increments
-    (fit on one half of the trace, residual on the other, both ways round); what the
-    encoder's motion does not explain is the measurement noise."""
-    i = sig.current_a
-    h0 = savgol_filter(np.eye(window)[window // 2], window, order)[window // 2]
-    i_hf = i - savgol_filter(i, window, order)
-    d = np.diff(sig.position_rad, prepend=sig.position_rad[0])
-    d_hf = d - savgol_filter(d, window, order)
-    n = len(i)
-    lo, hi = -min(DRIVE_LAGS), max(DRIVE_LAGS)
-    rows = np.arange(hi, n - lo)
-    X = np.column_stack([d_hf[rows - lag] for lag in DRIVE_LAGS] + [np.ones(len(rows))])
-    y = i_hf[rows]
-    half = len(rows) // 2
-    res = []
-    for fit, test in ((slice(0, half), slice(half, None)), (slice(half, None), slice(0, half))):
-        c, *_ = np.linalg.lstsq(X[fit], y[fit], rcond=None)
-        res.append(y[test] - X[test] @ c)
-    r = np.concatenate(res)
-    mad = 1.4826 * np.median(np.abs(r - np.median(r)))
-    sd = min(mad, float(np.std(r)))
-    return float(min(sd / np.sqrt(max(1.0 - h0, 1e-6)), _hf_noise(i, window, order)))
-
-
 def noise_floor(sig: Signals, kt_over_j: float, horizon: int) -> NoiseFloor:
     """Floor of the simulation error from the current and angle noise in the data."""
-    s_i = current_noise(sig)
+    s_i = _hf_noise(sig.current_a, 7, 2)
     s_th = _hf_noise(sig.position_rad, 9, 3)
     q = lattice_step(sig.position_rad)
     if q:  # a quantised angle: uniform noise of one step (the residual misses it at low speed)

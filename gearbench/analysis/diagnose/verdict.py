@@ -180,9 +180,19 @@ def verdict(ranked: list[Score]) -> Verdict:
     if not ranked or not ranked[0].significant:
         return Verdict(None, [], None)
     best = ranked[0]
-    confused = [s.effect for s in ranked[1:]
-                if s.significant and (paired_t(s.mse_h, best.mse_h, best.overlap) < T_CONFUSED
-                                      or s.shrink >= best.shrink - SHRINK_CONFUSED)]
+    alike = [s for s in ranked[1:]
+             if s.significant and (paired_t(s.mse_h, best.mse_h, best.overlap) < T_CONFUSED
+                                   or s.shrink >= best.shrink - SHRINK_CONFUSED)]
+    # among effects the data cannot tell apart, name the one with fewest parameters
+    # (a disk on a stiff shaft with no gap *is* an inertia change; Occam decides)
+    # — only when both tests call them alike (held-out errors and gap closed)
+    twins = [s for s in alike if paired_t(s.mse_h, best.mse_h, best.overlap) < T_CONFUSED
+             and s.shrink >= best.shrink - SHRINK_CONFUSED]
+    simplest = min([best, *twins], key=lambda s: s.extra_params)
+    if simplest is not best:
+        alike = [best, *[s for s in alike if s is not simplest]]
+        best = simplest
+    confused = [s.effect for s in alike]
     experiment = None
     if confused:
         texts = [EXPERIMENTS.get(frozenset({best.effect, c}), DEFAULT_EXPERIMENT)
