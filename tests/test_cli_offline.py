@@ -39,6 +39,8 @@ def test_calibrate_json_and_text(capsys, tmp_path):
     assert d["Kt_ci95"][0] < d["Kt"] < d["Kt_ci95"][1]
     assert abs(d["Kt"] / 0.0612 - 1) < 0.002
     assert {"r2", "rmse", "n_samples", "condition", "b2_unloaded", "b2_loaded"} <= set(d["fit"])
+    lo, hi = d["fit"]["speed_range_rad_s"]
+    assert 0 < lo < hi
     code, out, _ = run(capsys, "calibrate", "--unloaded", UA, "--loaded", LA, "--inertia", DISK,
                        "--method", "paper")
     assert code == 0 and "method       paper" in out and "Kt" in out
@@ -67,6 +69,7 @@ def test_efficiency_from_calibration_files_and_from_kt(capsys, tmp_path):
         assert {"eta_incremental", "eta_incremental_ci95", "eta_absolute", "eta_absolute_ci95",
                 "speed_in_rad_s", "torque_out_nm"} <= set(p)
         assert p["eta_incremental"] == pytest.approx(0.88, abs=0.002)
+        assert p["loss_extrapolated"] is False and len(p["loss_speed_range_out_rad_s"]) == 2
     torques = [p["torque_out_nm"] for p in d["points"]]
     assert torques == sorted(torques)                            # trace order: rising load
     code, out, _ = run(capsys, "efficiency", BENCH, "--kt-in", "0.0612", "--kt-out", "0.0455", "--ratio", "7")

@@ -122,6 +122,12 @@ def test_default_calibration_on_dev_data_meets_kt_target():
                               Trace.read(DEV / f"calib_{name}_loaded.csv"), tr["disk_inertia"])
         assert abs(cal.Kt / tr["Kt"] - 1) <= 0.002, name
         assert cal.Kt_ci95[0] < cal.Kt < cal.Kt_ci95[1]
+        # honest (model error included) but still useful: half-width <= 0.3 % (was 0.13-0.17 %
+        # from noise alone, now 0.19-0.25 %)
+        assert (cal.Kt_ci95[1] - cal.Kt_ci95[0]) / 2 <= 0.003 * cal.Kt, name
+        assert cal.fit["Kt_std_model"] > 0 and cal.fit["Kt_std_statistical"] > 0
+        lo, hi = cal.fit["speed_range_rad_s"]            # forward multisine, ~15-275 rad/s
+        assert 0 < lo < 50 and 200 < hi < 400, name
         assert cal.J == pytest.approx(tr["J"], rel=0.01)
         # losses at the calibration speeds (~150 rad/s) are what efficiency needs
         assert cal.loss_torque_nm(150.0) == pytest.approx(tr["D"] * 150 + tr["Tc"], rel=0.01)

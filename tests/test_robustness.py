@@ -91,3 +91,39 @@ def test_reversing_case_with_cogging_meets_kt_and_its_interval_covers():
     assert not out.error, out.error
     assert abs(out.kt_err_pct[0]) <= R.TARGETS["kt_pct"] and out.kt_cover[0]
     assert max(map(abs, out.abs_err_pp)) < 1.0 and all(out.abs_cover)
+
+
+# ------------------------------------------------------------------ honest intervals
+@pytest.fixture(scope="module")
+def seed1_runs():
+    """All 40 plants of robustness seed 1 (the model-error constants were chosen on seed 0)."""
+    cases = [R.draw_case(k, 1) for k in range(40)]
+    return cases, [R.simulate_case(c) for c in cases]
+
+
+def _summary(runs):
+    cases, sims = runs
+    outs = [R.run_case(c, ("default",), d) for c, d in zip(cases, sims)]
+    return outs, R.summarise(outs, ("default",))["default"]
+
+
+def test_intervals_cover_the_truth_on_a_held_out_seed_and_stay_useful(seed1_runs):
+    outs, s = _summary(seed1_runs)
+    assert s["fail"] == 0
+    assert s["cover"]["kt"] >= 0.9 and s["cover"]["inc"] >= 0.9 and s["cover"]["abs"] >= 0.9, s["cover"]
+    # most absolute points extrapolate a motor's loss (the output motor turns n times slower
+    # than its calibration runs); those must cover too
+    assert s["n_abs_extrapolated"] > len(s["abs"]) / 2 and s["cover_abs_extrapolated"] >= 0.9
+    median = lambda key: float(np.median([v for o in outs for v in getattr(o["default"], key)]))
+    assert median("kt_std_pct") * 1.96 < 0.25            # % (0.13 % from noise alone)
+    assert median("abs_std_pp") * 1.96 < 0.4             # pp
+
+
+def test_without_the_model_error_terms_the_same_intervals_under_cover(seed1_runs, monkeypatch):
+    """The check above can fail: noise-only intervals (the block covariance) miss."""
+    import gearbench.analysis.calibration as cal
+    import gearbench.analysis.torque_constant as tq
+    monkeypatch.setattr(tq, "MODEL_B2_REL", 0.0)
+    monkeypatch.setattr(cal, "LOSS_RUN_SPREAD", 0.0)
+    _, s = _summary(seed1_runs)
+    assert s["cover"]["kt"] < 0.9 and s["cover"]["abs"] < 0.9, s["cover"]

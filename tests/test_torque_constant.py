@@ -27,7 +27,8 @@ def test_corrected_eq17_recovers_kt_and_printed_one_is_negative():
 
 def test_rotor_inertia_and_interval_from_propagation_match_monte_carlo():
     su, sl = 3.0, 1.0
-    res = torque_constant(fake_fit(KT / J, su), fake_fit(KT / (J + DISK), sl), DISK)
+    res = torque_constant(fake_fit(KT / J, su), fake_fit(KT / (J + DISK), sl), DISK,
+                          model_b2_rel=0.0)
     assert res.torque_constant_nm_a == pytest.approx(KT, rel=1e-12)
     assert res.rotor_inertia_kgm2 == pytest.approx(J, rel=1e-12)
     rng = np.random.default_rng(0)
@@ -38,6 +39,27 @@ def test_rotor_inertia_and_interval_from_propagation_match_monte_carlo():
     assert res.rotor_inertia_std == pytest.approx(np.std(kts / bu), rel=0.05)
     lo, hi = res.torque_constant_ci95
     assert lo < KT < hi and (hi - lo) / 2 == pytest.approx(2.042 * np.std(kts), rel=0.05)
+
+
+def test_model_error_adds_in_quadrature_and_counts_as_known_in_the_dof():
+    """The model-error part: a relative error MODEL_B2_REL on b2 that the runs do not
+    share (here: on the loaded run alone), propagated through eq. 17; Welch–Satterthwaite
+    degrees of freedom > the runs' own."""
+    from gearbench.analysis.torque_constant import MODEL_B2_REL
+    bu, bl = KT / J, KT / (J + DISK)
+    fu, fl = fake_fit(bu, 0.5, dof=4), fake_fit(bl, 0.2, dof=4)
+    stat = torque_constant(fu, fl, DISK, model_b2_rel=0.0)
+    res = torque_constant(fu, fl, DISK)
+    rng = np.random.default_rng(1)
+    kts = torque_constant_from_b2(bu, bl * (1 + rng.normal(0, MODEL_B2_REL, 200_000)), DISK)
+    assert res.model_std == pytest.approx(np.std(kts), rel=0.03)
+    assert res.statistical_std == pytest.approx(stat.torque_constant_std, rel=1e-12)
+    assert res.torque_constant_std == pytest.approx(np.hypot(res.statistical_std, res.model_std))
+    assert res.dof > stat.dof == 4
+    w_stat = stat.torque_constant_ci95[1] - stat.torque_constant_ci95[0]
+    w = res.torque_constant_ci95[1] - res.torque_constant_ci95[0]
+    # wider than the noise-only interval, narrower than t(4) on the total
+    assert w_stat < w < 2 * 2.776 * res.torque_constant_std
 
 
 def test_swapped_runs_say_swap():

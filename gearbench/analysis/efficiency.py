@@ -17,8 +17,13 @@ Per point
                           P_out = (−Kt_out·i_out + D_out·ω_out + Tc_out·s(ω_out))·ω_out
                           (the output motor's own friction is also driven by the shaft).
 Uncertainty: first-order propagation of the window means' standard errors (block
-means, so ripple and coloured noise count), the Kt intervals, the (D, Tc)
-covariances and the ratio.
+means, so ripple and coloured noise count), the Kt intervals (with their model-error
+part), the (D, Tc) covariances (with the calibration runs' disagreement as model
+error, see ``calibration.calibrate_from_fits``) and the ratio. The loss D ω + Tc is
+linear in (D, Tc), so its propagated variance grows with the distance of the operating
+speed from the calibration runs' speeds: extrapolation widens the absolute interval by
+itself. Each point records whether either motor's loss was extrapolated beyond the
+speed range its calibration runs covered (``loss_extrapolated``).
 """
 from __future__ import annotations
 
@@ -68,6 +73,10 @@ class EfficiencyPoint:
     eta_absolute_ci95: tuple[float, float]
     power_in_w: float
     power_out_w: float
+    # Loss D ω + Tc of a motor evaluated outside the speeds its calibration covered.
+    loss_extrapolated: bool = False
+    loss_speed_range_in_rad_s: tuple[float, float] | None = None
+    loss_speed_range_out_rad_s: tuple[float, float] | None = None
 
     def to_dict(self) -> dict:
         w = self.window
@@ -79,7 +88,31 @@ class EfficiencyPoint:
                 "power_out_w": self.power_out_w, "out_command": w.out_command,
                 "in_command": w.in_command, "delta_current_in_a": self.delta_current_in_a,
                 "delta_current_out_a": self.delta_current_out_a,
-                "t_mid_s": w.t_mid_s}
+                "t_mid_s": w.t_mid_s, "speed_out_rad_s": w.speed_out_rad_s,
+                "loss_extrapolated": self.loss_extrapolated,
+                "loss_speed_range_in_rad_s": _as_list(self.loss_speed_range_in_rad_s),
+                "loss_speed_range_out_rad_s": _as_list(self.loss_speed_range_out_rad_s)}
+
+
+def _as_list(r):
+    return None if r is None else [float(r[0]), float(r[1])]
+
+
+def loss_speed_range(motor: MotorCalibration) -> tuple[float, float] | None:
+    """Speeds the motor's calibration runs covered (``fit.speed_range_rad_s``), or None
+    when unknown (``--kt-in`` only, or an older calibrate --json)."""
+    r = motor.fit.get("speed_range_rad_s") if motor.fit else None
+    try:
+        lo, hi = float(r[0]), float(r[1])
+    except (TypeError, ValueError, IndexError, KeyError):
+        return None
+    return (lo, hi) if np.isfinite(lo) and np.isfinite(hi) and lo <= hi else None
+
+
+def is_extrapolated(speed_rad_s: float, speed_range: tuple[float, float] | None) -> bool:
+    """True when the motor has a loss model (a known calibrated range) and
+    ``speed_rad_s`` lies outside that range."""
+    return speed_range is not None and not (speed_range[0] <= speed_rad_s <= speed_range[1])
 
 
 @dataclass(frozen=True)
@@ -298,9 +331,12 @@ def _point(w, ref_in, ref_in_sem, ref_out, ref_out_sem, m_in, m_out, n_signed, n
     std = np.sqrt(np.maximum(np.diag(jac @ cov @ jac.T), 0.0))
     t_in, t_out, p_in, p_out = shaft_powers(w.current_in_a, w.current_out_a, w.speed_in_rad_s,
                                             w.speed_out_rad_s, m_in, m_out)
+    r_in, r_out = loss_speed_range(m_in), loss_speed_range(m_out)
+    extrapolated = (is_extrapolated(w.speed_in_rad_s, r_in)
+                    or is_extrapolated(w.speed_out_rad_s, r_out))
     return EfficiencyPoint(
         w, w.speed_in_rad_s, t_in * np.sign(w.speed_in_rad_s), t_out * np.sign(w.speed_out_rad_s),
         di_in, di_out,
         float(eta[0]), (float(eta[0] - Z95 * std[0]), float(eta[0] + Z95 * std[0])),
         float(eta[1]), (float(eta[1] - Z95 * std[1]), float(eta[1] + Z95 * std[1])),
-        p_in, p_out)
+        p_in, p_out, bool(extrapolated), r_in, r_out)

@@ -156,7 +156,7 @@ def identify_paper(time_s: np.ndarray, position_rad: np.ndarray, current_a: np.n
         names=(KT_J, D_J, C_J), values=values, covariance=cov, dof=n - 3, dt_s=dt,
         n_samples=n, n_effective=float(n), r2=_r2(a, e), rmse=float(np.sqrt(np.mean(e * e))),
         condition=_condition(X), A=A, B=B,
-        extras={"no_load_current_a": no_load_current_a})
+        extras={"no_load_current_a": no_load_current_a, "speed_range_rad_s": speed_range(w)})
 
 
 def _check_paper_excitation(w, a, i, dt, source):
@@ -333,6 +333,7 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
                 "eiv_relative_correction": float(n * noise_var / G[0, 0]) if eiv_correction else 0.0,
                 "cogging": cog_amps,
                 "friction_width_rad_s": friction_width_rad_s,
+                "speed_range_rad_s": speed_range(w_smooth),
                 "current_delay_s": shift_s + ((float(values[names.index(LAG)]) / b2) if lag and b2 else 0.0)})
 
 
@@ -509,6 +510,13 @@ def _encoder_accel_noise(th: np.ndarray, dt: float, taps: np.ndarray) -> float:
     q = encoder_resolution(th)
     h = np.convolve([1.0, -2.0, 1.0], taps) / dt ** 2
     return q / np.sqrt(12.0) * float(np.sqrt(h @ h))
+
+
+def speed_range(velocity_rad_s: np.ndarray) -> list[float]:
+    """[low, high] speed a run covered (0.5th/99.5th percentiles, so a glitch does not
+    stretch it): where its friction losses D ω + Tc s(ω) were actually identified."""
+    lo, hi = np.percentile(velocity_rad_s, [0.5, 99.5])
+    return [float(lo), float(hi)]
 
 
 def encoder_resolution(position_rad: np.ndarray) -> float:

@@ -86,6 +86,7 @@ class Outcome:
     inc_cover: list = field(default_factory=list)
     abs_cover: list = field(default_factory=list)
     error: str = ""
+    abs_extrapolated: list = field(default_factory=list)   # per abs point: loss extrapolated
 
     def _quantities(self):
         return (("kt_pct", self.kt_err_pct, self.kt_std_pct),
@@ -256,6 +257,7 @@ def run_case(case: Case, methods=METHODS, data: dict | None = None) -> dict[str,
                     errs.append(100 * (value - truth[f"eta_{kind}"]))
                     stds.append(100 * (hi_ - lo_) / (2 * Z95))
                     cover.append(lo_ <= truth[f"eta_{kind}"] <= hi_)
+                oc.abs_extrapolated.append(p.loss_extrapolated)
         except Exception as exc:            # a failure is a result here, not a crash
             oc.error = f"{type(exc).__name__}: {str(exc)[:160]}"
     return out
@@ -289,6 +291,9 @@ def summarise(outcomes: list[dict[str, Outcome]], methods=METHODS) -> dict[str, 
                   "abs": [e for o in ocs for e in o.abs_err_pp],
                   "cover": {q: _fraction([c for o in ocs for c in getattr(o, f"{q}_cover")])
                             for q in ("kt", "inc", "abs")},
+                  "cover_abs_extrapolated": _fraction(
+                      [c for o in ocs for c, x in zip(o.abs_cover, o.abs_extrapolated) if x]),
+                  "n_abs_extrapolated": sum(x for o in ocs for x in o.abs_extrapolated),
                   "fail": sum(bool(o.error) for o in ocs),
                   "ok": verdicts.count("meet") / n,
                   "noise": verdicts.count("noise") / n,
@@ -358,6 +363,10 @@ def main(argv: list[str] | None = None) -> int:
           f"misses: 'biased' = a missed error > {BIASED_SIGMAS:g} x its own reported std, else 'noise'; "
           f"coverage = truth inside the reported 95 % interval")
     print_table(cases, outcomes)
+    s = summarise(outcomes)["default"]
+    print(f"default: {s['n_abs_extrapolated']} of {len(s['abs'])} absolute-efficiency points use a "
+          f"motor loss extrapolated beyond its calibrated speed range; their coverage "
+          f"{100 * s['cover_abs_extrapolated']:.0f} %")
     if args.worst:
         print_worst(cases, outcomes, args.worst)
     print(f"benchmark time {time.perf_counter() - t0:.1f} s")

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -209,11 +210,18 @@ def fit_windows(sig: Signals, mask: np.ndarray) -> Windows:
     return Windows(starts[ok], L, hash((L, starts[ok].tobytes())))
 
 
-def sg_derivative_kernel(dt_s: float) -> np.ndarray:
-    """Dot-product weights of the SG velocity estimate on theta[k-W//2 .. k+W//2]."""
+@lru_cache(maxsize=8)
+def _sg_derivative_kernel(dt_s: float) -> np.ndarray:
     from scipy.signal import savgol_coeffs
 
-    return savgol_coeffs(VELOCITY_WINDOW, 2, deriv=1, delta=dt_s, use="dot")
+    h = savgol_coeffs(VELOCITY_WINDOW, 2, deriv=1, delta=dt_s, use="dot")
+    h.setflags(write=False)
+    return h
+
+
+def sg_derivative_kernel(dt_s: float) -> np.ndarray:
+    """Dot-product weights of the SG velocity estimate on theta[k-W//2 .. k+W//2]."""
+    return _sg_derivative_kernel(float(dt_s)).copy()
 
 
 def sg_interval_kernel() -> np.ndarray:
@@ -233,30 +241,64 @@ def sg_interval_kernel() -> np.ndarray:
                      for m in range(-half, half)])
 
 
+@lru_cache(maxsize=1)
+def _velocity_smoothing_kernel() -> np.ndarray:
+    c = sg_interval_kernel()
+    k = 0.5 * (np.append(c, 0.0) + np.insert(c, 0, 0.0))
+    k.setflags(write=False)
+    return k
+
+
 def velocity_smoothing_kernel() -> np.ndarray:
     """Centred weights (m = -W//2 .. W//2) that smooth per-sample velocity changes
     F[q] = (w[q+1] - w[q]) / dt like the SG estimate: c_m convolved with [1/2, 1/2]
     (a change of interval-mean velocity spans two such steps, half each)."""
-    c = sg_interval_kernel()
-    return 0.5 * (np.append(c, 0.0) + np.insert(c, 0, 0.0))
+    return _velocity_smoothing_kernel().copy()
+
+
+def _window_operator(n: int, win: Windows, dt_s: float):
+    """Sparse (windows x samples) matrix A with A @ F = the smoothed window sums of
+    ``integrated_rows``: each row is the box of length L convolved with the smoothing
+    kernel (starts clipped to the trace at its ends, as a sum of shifted boxes)."""
+    from scipy.sparse import csr_matrix
+
+    L, s = win.length, win.start
+    kern = _velocity_smoothing_kernel()
+    half = VELOCITY_WINDOW // 2
+    shifts = np.arange(len(kern)) - half
+    inner = (s - half >= 0) & (s + shifts[-1] <= n - L)
+    # interior rows: one combined kernel of length L + W - 1 starting at s - half
+    w = np.convolve(kern, np.ones(L))
+    ri = np.flatnonzero(inner)
+    rows = [np.repeat(ri, len(w))]
+    cols = [(s[ri, None] - half + np.arange(len(w))).ravel()]
+    data = [np.tile(w, len(ri))]
+    for r in np.flatnonzero(~inner):      # the few rows at the trace's ends
+        for k, km in enumerate(kern):
+            a = int(np.clip(s[r] + shifts[k], 0, n - L))
+            rows.append(np.full(L, r))
+            cols.append(np.arange(a, a + L))
+            data.append(np.full(L, km))
+    A = csr_matrix((np.concatenate(data) * dt_s, (np.concatenate(rows), np.concatenate(cols))),
+                   shape=(len(s), n))
+    A.sum_duplicates()
+    return A
 
 
 def integrated_rows(sig: Signals, F: np.ndarray, win: Windows):
     """Rows of the integrated equation error: dw = dt * sum(F) over each window, with
     F smoothed like the SG velocity estimate (so w_sg's own attenuation cancels).
-    Smoothing commutes with the window sums, so it is applied to the sums at the
-    shifted starts (cheap: only the window starts are touched)."""
+    Smoothing commutes with the window sums, so rows are one sparse product with the
+    window operator (memoised per window set on the trace)."""
     L, s = win.length, win.start
     F = np.asarray(F, float).reshape(len(sig), -1)
-    n = F.shape[0]
-    kern = velocity_smoothing_kernel()
-    half = VELOCITY_WINDOW // 2
-    X = np.zeros((len(s), F.shape[1]))
-    cum = np.concatenate([np.zeros((1, F.shape[1])), np.cumsum(F, axis=0)])
-    for k, km in enumerate(kern):
-        a = np.clip(s + k - half, 0, n - L)
-        X += km * (cum[a + L] - cum[a])
-    X *= sig.dt_s
+    key = ("window_op", win.key, L)
+    A = sig.cache.get(key) if win.key else None
+    if A is None:
+        A = _window_operator(F.shape[0], win, sig.dt_s)
+        if win.key:
+            sig.cache[key] = A
+    X = np.asarray(A @ F)
     y = sig.velocity_rad_s[s + L] - sig.velocity_rad_s[s]
     return X, y
 
@@ -420,3 +462,72 @@ class GivenNominal(Term):
         i0, i1 = held_current(sig, self.delay, self.sat_a)
         base = self.kt_over_j * i0[idx] - self.d_over_j * omega - self.c_over_j * theta
         return [base, self.kt_over_j * (i1[idx] - i0[idx])]
+
+
+# ------------------------------------------------------------- batched grid scans
+def _batched_rss(Xb: np.ndarray, y: np.ndarray, fixed: dict[int, float], E: np.ndarray,
+                 k: int) -> tuple[np.ndarray, np.ndarray]:
+    """RSS and base coefficients of G least-squares fits [Xb | E_g] at once.
+
+    ``E`` holds the G candidates' k columns side by side (m, G*k).  The free base
+    columns are projected out once (QR), so each candidate is a k-column fit to the
+    projected target — the same RSS as ``fit_model`` on the stacked matrix (Frisch-
+    Waugh-Lovell), for a grid in one pass instead of G rebuilt fits.
+    """
+    y0 = y - sum((Xb[:, j] * v for j, v in fixed.items()), np.zeros_like(y))
+    free = [j for j in range(Xb.shape[1]) if j not in fixed]
+    G = E.shape[1] // k
+    esc = np.sqrt((E ** 2).sum(0))
+    esc[esc == 0] = 1.0
+    Es = E / esc
+    if free:
+        bsc = np.sqrt((Xb[:, free] ** 2).sum(0))
+        bsc[bsc == 0] = 1.0
+        Q, R = np.linalg.qr(Xb[:, free] / bsc)
+        qy, qE = Q.T @ y0, Q.T @ Es
+        yr, Er = y0 - Q @ qy, Es - Q @ qE
+    else:
+        yr, Er = y0, Es
+    Eg = Er.reshape(len(y), G, k).transpose(1, 0, 2)            # (G, m, k)
+    beta = np.einsum("gkm,m->gk", np.linalg.pinv(Eg), yr)        # (G, k)
+    resid = yr[None, :] - np.einsum("gmk,gk->gm", Eg, beta)
+    rss = np.einsum("gm,gm->g", resid, resid)
+    coef = np.zeros((G, Xb.shape[1]))
+    for j, v in fixed.items():
+        coef[:, j] = v
+    if free:
+        rhs = qy[None, :] - np.einsum("pgk,gk->gp", qE.reshape(len(free), G, k), beta)
+        coef[:, free] = np.linalg.solve(R, rhs.T).T / bsc
+    return rss, coef
+
+
+def scan_rss(sig: Signals, base_terms, win: Windows, fixed: dict[int, float] | None,
+             E: np.ndarray, k: int) -> np.ndarray:
+    """Equation-error RSS of ``base_terms`` + each of G candidates' k extra columns
+    (``E``: integrated rows, (m, G*k)), exactly as ``fit_model`` would score each —
+    including its pinning of a hold fraction outside [0, 1] to the nearer bound."""
+    parts = [_term_rows(sig, t, win) for t in base_terms]
+    Xb, y = np.hstack([p[0] for p in parts]), parts[0][1]
+    fixed = dict(fixed or {})
+    rss, coef = _batched_rss(Xb, y, fixed, E, k)
+    t0 = base_terms[0]
+    if isinstance(t0, CurrentTaps):
+        a = coef[:, 0] + coef[:, 1]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            h = np.where(a != 0, coef[:, 1] / a, np.nan)
+    elif isinstance(t0, GivenNominal) and 1 not in fixed:
+        h = coef[:, 1]
+    else:
+        return rss
+    for hc, bad in ((0.0, h < 0.0), (1.0, h > 1.0)):
+        g = np.flatnonzero(bad)
+        if not g.size:
+            continue
+        cols = (g[:, None] * k + np.arange(k)).ravel()
+        if isinstance(t0, CurrentTaps):   # HeldCurrent(hold=hc): one column
+            Xp = np.column_stack([(1.0 - hc) * Xb[:, 0] + hc * Xb[:, 1], Xb[:, 2:]])
+            fp = {j - 1: v for j, v in fixed.items() if j > 1}
+        else:
+            Xp, fp = Xb, {**fixed, 1: hc}
+        rss[g] = _batched_rss(Xp, y, fp, E[:, cols], k)[0]
+    return rss

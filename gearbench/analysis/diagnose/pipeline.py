@@ -11,7 +11,7 @@ from ...trace import Trace
 from . import simerror, verdict as vd, where as wh
 from .effects import LIBRARY, Base, Effect, EncoderQuantization, InertiaMismatch
 from .nominal import (GivenModel, Model, Signals, fit_model, fit_windows, hold_fraction,
-                      physical, prepare)
+                      integrated_rows, measured_features, physical, prepare, scan_rss)
 
 
 @dataclass(frozen=True)
@@ -30,16 +30,48 @@ class Diagnosis:
                 "verdict": self.verdict.as_dict()}
 
 
-def _fit_effect(sig, base, effect: Effect, win):
-    """Scan the effect's grid by equation-error RSS, then refine its continuous
-    settings (Nelder-Mead in log space) — resonances are sharp, grids are coarse."""
+#: Most trace samples x grid columns featurised at once in a batched scan (memory).
+SCAN_CHUNK = 4_000_000
+
+
+def _scan(sig, base, effect: Effect, wins) -> list[dict]:
+    """Best grid setting per fit window set, by equation-error RSS.
+
+    Effects that only add columns to the nominal (``extra``) are scanned in batches:
+    each grid point's features are computed once for all folds, and every fold's
+    grid is solved in one projection (nominal.scan_rss); effects that change the
+    nominal's own columns (delay, saturation) are refitted per grid point."""
+    grid = effect.grid(sig, base)
+    k = sum(len(t.names) for t in effect.extra(grid[0]))
+    if type(effect).build is not Effect.build or k == 0:
+        def rss_at(hp, w):
+            terms, fixed = effect.build(sig, base, hp)
+            return fit_model(sig, terms, w, fixed)[1]
+        return [min(grid, key=lambda hp: rss_at(hp, w)) for w in wins]
+    terms, fixed = base.terms(), base.fixed()
+    rss = np.empty((len(wins), len(grid)))
+    per = max(1, SCAN_CHUNK // (len(sig) * k))
+    for a in range(0, len(grid), per):
+        F = measured_features(sig, [t for hp in grid[a:a + per] for t in effect.extra(hp)])
+        for i, w in enumerate(wins):
+            E = integrated_rows(sig, F, w)[0]
+            rss[i, a:a + per] = scan_rss(sig, terms, w, fixed, E, k)
+    return [grid[int(np.argmin(r))] for r in rss]
+
+
+def _fit_effect(sig, base, effect: Effect, win, hp0: dict | None = None):
+    """Fit the effect at grid setting ``hp0`` (the scan's best; scanned here if not
+    given), then refine its continuous settings (Nelder-Mead in log space) —
+    resonances are sharp, grids are coarse."""
     def fit(hp):
         terms, fixed = effect.build(sig, base, hp)
         model, rss = fit_model(sig, terms, win, fixed)
         return hp, model, rss
 
     grid = effect.grid(sig, base)
-    best = min((fit(hp) for hp in grid), key=lambda r: r[2])
+    if hp0 is None:
+        hp0 = _scan(sig, base, effect, [win])[0]
+    best = fit(hp0)
     if effect.continuous:
         keys = effect.continuous
         x0 = np.log([best[0][k] for k in keys])
@@ -139,7 +171,8 @@ def diagnose(trace: Trace, model: GivenModel | None = None) -> Diagnosis:
                                                  "(no motion where the effect acts)"},
                                    mse_nom, mse_nom, 1, floor.mse, v_rms, overlap=ov))
             continue
-        fits = [_fit_effect(sig, base, effect, w) for w in wins]
+        fits = [_fit_effect(sig, base, effect, w, hp)
+                for w, hp in zip(wins, _scan(sig, base, effect, wins))]
         after = _held_out(sig, sp, [m for _, m, _ in fits], order)
         refits[effect.name] = (effect, fits)
         # parameters reported from all the data, at the first fold's settings

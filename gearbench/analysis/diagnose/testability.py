@@ -1,0 +1,222 @@
+"""Identifiability: can this trace reveal each candidate effect at all?
+
+Computed from the trace alone (never from what was injected).  An effect is
+*testable* when the excitation puts its signature where the diagnoser can see it,
+above the data's own noise and not collinear with the nominal model:
+
+* friction / offset: a constant or sign-like torque must not be a linear mix of the
+  nominal's regressors Kt/J i and D/J w (a constant-acceleration ramp makes the
+  current affine in speed, so a constant torque is absorbed) — the *unique share*
+  of the effect's integrated regressor after projecting out the nominal's
+  (Frisch-Waugh-Lovell), on a current smoothed of its white noise;
+  Coulomb vs offset additionally needs velocity reversals;
+* Stribeck friction: time at low but non-zero speed (|w| <= W_STRIBECK_MAX);
+* cogging / ripple: rotor angle covered where the order-6 (lowest order of a
+  three-phase motor's cogging and commutation ripple) pattern is slow enough for the
+  velocity estimate to pass it (<= fs/20); ripple also needs current there;
+* time delay: current change per sample above the current noise left after a horizon;
+* kt saturation: current well above its noise, with a cubic term not collinear;
+* shaft compliance: excitation bandwidth (current PSD above the noise) reaching half
+  the lowest plausible shaft resonance, F_SHAFT_MIN ((f/f_r)^2 >= 25 % at the top);
+* backlash: torque (acceleration) reversals to cross the gap;
+* encoder quantisation: angles on a lattice, the step's noise material vs the floor;
+* inertia mismatch: only against a given model (an identified one absorbs J).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.signal import savgol_filter, welch
+
+from .nominal import Signals, Windows, integrated_rows
+from .simerror import BLOCK_S, NoiseFloor, lattice_step, velocity_noise
+
+#: Smallest unique share (after projecting out the nominal's regressors) that counts.
+U_MIN = 0.05
+#: Smallest participation ratio of that unique part over the trace's windows.
+MIN_SPREAD = 0.25
+#: Share of the trace needed at low speed for Stribeck friction.
+MIN_LOW_SHARE = 0.02
+#: Highest plausible Stribeck speed of a servo motor, rad/s (typical 0.1-10 rad/s).
+W_STRIBECK_MAX = 10.0
+#: Lowest order of cogging / commutation ripple in a three-phase motor.
+ORDER_MIN = 6
+#: Rotor revolutions needed at a slow enough speed for an angle pattern.
+MIN_REVS = 1.0
+#: Current over the covered angle must be this many times the current noise (ripple).
+RIPPLE_CURRENT_SNR = 10.0
+#: Current must exceed its noise this many times (99th percentile) for saturation.
+SAT_CURRENT_SNR = 20.0
+#: Lowest plausible resonance of a shaft-mounted disk or coupling, Hz.
+F_SHAFT_MIN = 20.0
+#: PSD of the current above this multiple of the white-noise PSD counts as excitation.
+PSD_SNR = 10.0
+#: Acceleration reversals needed to cross a backlash gap repeatedly.
+MIN_TORQUE_REVERSALS = 4
+
+EXPERIMENTS = {
+    "coulomb_friction": "add velocity reversals or speed steps at different speeds "
+                        "(Coulomb friction is a constant torque in one direction)",
+    "current_offset": "vary the current level, e.g. acceleration steps or a multisine "
+                      "speed command (a constant torque is absorbed by Kt/J on a ramp)",
+    "stribeck_friction": "add slow motion: speed steps of 0.5-10 rad/s or slow reversals",
+    "cogging": "add a slow sweep (below ~fs/20 / 6 rev/s, several revolutions)",
+    "torque_ripple": "add slow revolutions under load (e.g. slow reversals with "
+                     "acceleration), so the current is well above its noise",
+    "time_delay": "excite faster current changes: speed steps or a multisine up to 10+ Hz",
+    "kt_saturation": "repeat with larger accelerations so the current spans most of "
+                     "the drive's range",
+    "shaft_compliance": "add a broadband speed excitation (chirp or PRBS up to "
+                        f"{2 * F_SHAFT_MIN:g}+ Hz) to excite the shaft resonance",
+    "backlash": "add torque reversals (an oscillating multisine or reversing speed "
+                "command) so the coupling crosses its gap",
+    "encoder_quantization": "record the raw encoder counts (positions here are not on "
+                            "a lattice) or a trace at lower speed",
+    "inertia_mismatch": "give the nominal model (--model MODEL.json) from an earlier "
+                        "calibration: an identified model absorbs any inertia",
+}
+
+
+@dataclass(frozen=True)
+class Testability:
+    """Whether the trace can reveal an effect, why, and what would test it if not."""
+
+    testable: bool
+    why: str
+    experiment: str | None = None
+
+    def as_dict(self) -> dict:
+        return {"testable": self.testable, "why": self.why}
+
+
+def _unique_share(sig: Signals, win: Windows, basis: np.ndarray,
+                  col: np.ndarray) -> tuple[float, float]:
+    """How far the integrated regressor ``col`` is from the span of ``basis``.
+
+    Returns (share, spread): share = |P_perp e| / |e|; spread = the participation
+    ratio (sum E_b)^2 / (B sum E_b^2) of the energy E_b of r = P_perp e in each of the
+    B held-out blocks — near 1 when the unique part runs through the trace, ~k/B when
+    it sits in k blocks (a start-up transient), which held-out scoring cannot confirm."""
+    X = integrated_rows(sig, np.column_stack([basis, col]), win)[0]
+    B, e = X[:, :-1], X[:, -1]
+    ne = float(np.linalg.norm(e))
+    if ne == 0:
+        return 0.0, 0.0
+    Q, _ = np.linalg.qr(B / np.maximum(np.linalg.norm(B, axis=0), 1e-300))
+    r = e - Q @ (Q.T @ e)
+    blocks = (win.start * sig.dt_s // BLOCK_S).astype(int)
+    eb = np.bincount(blocks - blocks.min(), weights=r ** 2)
+    eb = eb[np.bincount(blocks - blocks.min()) > 0]
+    spread = float(eb.sum() ** 2 / (len(eb) * float((eb ** 2).sum()))) if eb.any() else 0.0
+    return float(np.linalg.norm(r) / ne), spread
+
+
+def _reversals(x: np.ndarray, band: float) -> int:
+    """Sign changes of ``x`` between excursions beyond +-band (hysteresis)."""
+    s = np.sign(x) * (np.abs(x) > band)
+    s = s[s != 0]
+    return int(np.sum(s[1:] != s[:-1]))
+
+
+def _bandwidth_hz(sig: Signals, noise_a: float) -> float:
+    """Highest frequency where the current PSD exceeds PSD_SNR x its white noise."""
+    f, p = welch(sig.current_a, fs=1.0 / sig.dt_s, nperseg=min(len(sig), 2048))
+    above = f[(p > PSD_SNR * 2 * sig.dt_s * noise_a ** 2) & (f > 0)]
+    return float(above.max()) if above.size else 0.0
+
+
+def assess(sig: Signals, floor: NoiseFloor, win: Windows, horizon: int,
+           given_model: bool) -> dict[str, Testability]:
+    """Testability of every effect in the library on this trace (see module doc)."""
+    n, dt = len(sig), sig.dt_s
+    w, th = sig.velocity_rad_s, sig.position_rad
+    s_i, s_w = floor.current_noise_a, floor.velocity_noise_rad_s
+    # current noise and the loop's reaction to it smoothed away over a horizon (the
+    # scoring averages over horizons): collinearity is a property of the excitation
+    i_s = savgol_filter(sig.current_a, min(2 * horizon + 1, n - (1 - n % 2)), 2)
+    w_top = float(np.percentile(np.abs(w), 99.5))
+    w_mov = max(5 * s_w, 0.02 * w_top)
+    out: dict[str, Testability] = {}
+
+    def put(name, ok, why):
+        out[name] = Testability(bool(ok), why, None if ok else EXPERIMENTS[name])
+
+    basis = np.column_stack([i_s, w])
+    n_rev = _reversals(w, w_mov)
+    u_const, p_const = _unique_share(sig, win, basis, np.ones(n))
+    u_coul, p_coul = _unique_share(sig, win, basis, np.tanh(w / 0.3))
+
+    def seen(u, p):
+        return u >= U_MIN and p >= MIN_SPREAD
+
+    def unique(u, p):
+        text = f"{u:.0%} unique against the nominal's regressors, spread {p:.2f}"
+        if u < U_MIN:
+            return text + " — absorbed by Kt/J and D/J (current affine in speed)"
+        return text + (f" — only in a few windows (needs {MIN_SPREAD:g})" if p < MIN_SPREAD else "")
+
+    put("current_offset", seen(u_const, p_const), "a constant torque is " + unique(u_const, p_const)
+        + ("" if n_rev else "; without reversals it looks like Coulomb friction"))
+    put("coulomb_friction", seen(u_coul, p_coul),
+        f"{n_rev} velocity reversals; friction torque " + unique(u_coul, p_coul)
+        + ("" if n_rev else "; one direction only: the same regressor as a current offset"))
+
+    moving = np.abs(w) > 3 * s_w
+    low = float(np.mean(moving & (np.abs(w) <= W_STRIBECK_MAX)))
+    put("stribeck_friction", low >= MIN_LOW_SHARE,
+        f"{low:.1%} of the trace at 0 < |w| <= {W_STRIBECK_MAX:g} rad/s "
+        f"(needs {MIN_LOW_SHARE:.0%})")
+
+    # angle covered where the order-6 pattern is at most fs/20 (>= 20 samples/period)
+    dth = np.abs(np.diff(th))
+    slow = ORDER_MIN * np.abs(w[1:]) / (2 * np.pi) <= 0.05 / dt
+    revs = float(np.sum(dth[slow]) / (2 * np.pi))
+    strong = np.abs(i_s[1:]) >= RIPPLE_CURRENT_SNR * s_i
+    revs_i = float(np.sum(dth[slow & strong]) / (2 * np.pi))
+    w_slow = 0.05 / dt * 2 * np.pi / ORDER_MIN
+    top_order = int(0.05 / dt * 2 * np.pi / max(float(np.percentile(np.abs(w), 5)), 1e-9))
+    put("cogging", revs >= MIN_REVS,
+        f"{revs:.1f} revolutions at |w| <= {w_slow:.0f} rad/s, where order-{ORDER_MIN} "
+        f"patterns stay below fs/20 (orders up to ~{min(top_order, 999)} at the slowest 5 %)")
+    put("torque_ripple", revs_i >= MIN_REVS,
+        f"{revs_i:.1f} revolutions at |w| <= {w_slow:.0f} rad/s with |i| >= "
+        f"{RIPPLE_CURRENT_SNR:g}x the current noise ({RIPPLE_CURRENT_SNR * s_i * 1e3:.0f} mA)")
+
+    di = float(np.sqrt(np.mean(np.diff(i_s) ** 2)))
+    need = 2 * s_i / np.sqrt(horizon)
+    put("time_delay", di >= need,
+        f"current changes {di * 1e3:.2g} mA per sample (rms) vs {need * 1e3:.2g} mA of "
+        f"current noise left over a horizon")
+
+    i99 = float(np.percentile(np.abs(i_s), 99))
+    u_cub, p_cub = _unique_share(sig, win, basis, i_s ** 3)
+    put("kt_saturation", i99 >= SAT_CURRENT_SNR * s_i and seen(u_cub, p_cub),
+        f"current up to {i99:.3g} A ({i99 / max(s_i, 1e-12):.0f}x its noise, needs "
+        f"{SAT_CURRENT_SNR:g}x); a cubic term is " + unique(u_cub, p_cub))
+
+    fbw = _bandwidth_hz(sig, s_i)
+    put("shaft_compliance", fbw >= 0.5 * F_SHAFT_MIN,
+        f"excitation reaches {fbw:.1f} Hz: resonances up to ~{2 * fbw:.0f} Hz testable "
+        f"(plausible shaft resonances from {F_SHAFT_MIN:g} Hz)")
+
+    acc = savgol_filter(w, min(51, n - (1 - n % 2)), 2, deriv=1, delta=dt)
+    a_band = 5 * s_w / (25 * dt)
+    n_trev = _reversals(acc, a_band)
+    put("backlash", n_trev >= MIN_TORQUE_REVERSALS,
+        f"{n_trev} torque (acceleration) reversals (needs {MIN_TORQUE_REVERSALS})")
+
+    q = lattice_step(th)
+    if q:
+        qn = velocity_noise(q / np.sqrt(12), dt)
+        put("encoder_quantization", 2 * qn ** 2 >= 0.1 * floor.mse,
+            f"angles on a lattice of {q:.3g} rad ({2 * np.pi / q:.0f} counts/rev): "
+            f"quantisation noise {qn:.3g} rad/s vs floor {np.sqrt(floor.mse):.3g} rad/s")
+    else:
+        put("encoder_quantization", False, "angles are not on a lattice (interpolated or "
+            "filtered positions): the encoder step cannot be checked")
+
+    put("inertia_mismatch", given_model,
+        "against the given model" if given_model else
+        "no model given: the nominal identified on this trace absorbs any inertia")
+    return out
