@@ -56,5 +56,8 @@ def run(args) -> int:
         c, d = p.eta_absolute_ci95
         print(f"{k:>2} {p.window.out_command:>9.4g} {p.speed_in_rad_s:>9.4g} {p.torque_out_nm:>9.4g} "
               f"{p.eta_incremental:>9.4f} {a:>8.4f}..{b:<8.4f} {p.eta_absolute:>9.4f} "
-              f"{c:>8.4f}..{d:<8.4f}")
+              f"{c:>8.4f}..{d:<8.4f}{'  *' if p.loss_extrapolated else ''}")
+    if any(p.loss_extrapolated for p in res.points):
+        print("* motor losses extrapolated beyond the calibrated speed range (interval widened); "
+              "calibrate over the bench's speeds for a tighter absolute efficiency")
     return 0
