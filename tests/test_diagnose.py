@@ -128,7 +128,8 @@ def test_cli_json_keys_report_and_rrd(tmp_path, capsys):
     for c in out["candidates"]:
         assert set(c) >= {"effect", "params", "nrmse_before", "nrmse_after", "shrink",
                           "delta_bic", "significant"}
-    assert set(out["verdict"]) == {"effect", "confused_with", "experiment"}
+    assert set(out["verdict"]) >= {"effect", "confused_with", "experiment"}
+    assert all(isinstance(c["testable"], bool) and c["why"] for c in out["candidates"])
     dims = {c["dimension"] for c in out["where"]}
     assert dims >= {"time", "speed", "angle_order", "frequency", "current", "acceleration"}
     pngs = sorted((tmp_path / "rep").glob("*.png"))
@@ -179,3 +180,62 @@ def test_bad_model_file(tmp_path, capsys):
     assert main(["diagnose", str(DEV / "diag_clean.csv"), "--model", str(bad)]) == 2
     err = capsys.readouterr().err
     assert "'J'" in err and "m.json" in err
+
+
+# ------------------------------------------------------------------ speed and testability
+def test_batched_scan_matches_per_point_fits():
+    """The one-pass grid scan scores every grid point exactly as fit_model would
+    (including the hold-fraction pin), for an identified and a given nominal."""
+    from gearbench.analysis.diagnose import pipeline, simerror
+    from gearbench.analysis.diagnose.effects import Base, Cogging, ShaftCompliance
+    from gearbench.analysis.diagnose.nominal import (fit_model, fit_windows, integrated_rows,
+                                                     measured_features, prepare, scan_rss)
+    tr, given = harness.blind_trace(harness.Case("inertia_mismatch", "moderate", "reversing", 0,
+                                                 harness.INJECTIONS["inertia_mismatch"][1]))
+    sig = prepare(tr)
+    win = fit_windows(sig, simerror.split(sig).folds[0].fit_mask)
+    for base in (Base(), Base(given=given)):
+        for eff in (Cogging(), ShaftCompliance()):
+            grid = eff.grid(sig, base)[::7]
+            F = measured_features(sig, [t for hp in grid for t in eff.extra(hp)])
+            rss = scan_rss(sig, base.terms(), win, base.fixed(), integrated_rows(sig, F, win)[0], 2)
+            ref = []
+            for hp in grid:
+                terms, fixed = eff.build(sig, base, hp)
+                ref.append(fit_model(sig, terms, win, fixed)[1])
+            assert np.allclose(rss, ref, rtol=1e-9)
+            assert pipeline._scan(sig, base, eff, [win])[0] in eff.grid(sig, base)
+
+
+def _testable(excitation, seed=0, given=False):
+    from gearbench.analysis.diagnose import simerror, testability
+    from gearbench.analysis.diagnose.nominal import (fit_model, fit_windows, kt_over_j,
+                                                     nominal_terms, prepare)
+    sig = prepare(harness.blind_trace(harness.Case(None, "-", excitation, seed, {}))[0])
+    win = fit_windows(sig, np.ones(len(sig), bool))
+    floor = simerror.noise_floor(sig, kt_over_j(fit_model(sig, nominal_terms(), win)[0]), 100)
+    return {k: v.testable for k, v in testability.assess(sig, floor, win, 100, given).items()}
+
+
+def test_testability_follows_the_excitation():
+    """Judged from the trace alone: a constant-acceleration ramp cannot show a constant
+    torque or saturation, one-way motion no Stribeck friction, slow excitations no
+    shaft resonance; reversals show friction, slow angles cogging."""
+    ramp, rev, ms = _testable("sweep_slow"), _testable("reversing"), _testable("multisine")
+    assert not ramp["current_offset"] and not ramp["coulomb_friction"]
+    assert not ramp["kt_saturation"] and not ramp["time_delay"] and ramp["cogging"]
+    assert rev["coulomb_friction"] and rev["stribeck_friction"] and rev["cogging"]
+    assert not ms["stribeck_friction"] and not ms["cogging"] and ms["kt_saturation"]
+    assert not any(t["shaft_compliance"] for t in (ramp, rev, ms))
+    assert _testable("chirp")["shaft_compliance"]
+    assert not rev["inertia_mismatch"] and _testable("reversing", given=True)["inertia_mismatch"]
+
+
+def test_unexplained_gap_names_experiments_for_untestable_effects():
+    from gearbench.analysis.diagnose import verdict as vd
+    h = np.ones(40)
+    s = vd.score("cogging", {}, h, h, 1, 0.5, 1.0)
+    v = vd.verdict([s], gap_open=True, experiments={"shaft_compliance": "add a chirp"})
+    assert v.effect is None and v.untestable == ["shaft_compliance"]
+    assert "shaft_compliance" in v.experiment and "chirp" in v.experiment
+    assert vd.verdict([s], gap_open=False, experiments={"x": "y"}).experiment is None

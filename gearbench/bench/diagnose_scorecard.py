@@ -1,10 +1,11 @@
 """Scorecard of the sim-to-real diagnoser on injected effects (issue 6).
 
-    python -m gearbench.bench diagnose_scorecard [--quick] [--seeds N] [--json FILE]
+    python -m gearbench.bench diagnose_scorecard [--quick] [--seeds N] [--broadband] [--json FILE]
     python -m gearbench.bench.diagnose_scorecard ...
 
 Prints the confusion matrix (true effect x verdict), the detection rate against
-amplitude, the false-alarm rate on clean controls and the shrink of the true effect.
+amplitude, the false-alarm rate on clean controls, the shrink of the true effect, and
+detection over the cases the diagnoser judged testable (from the trace alone) vs all.
 """
 from __future__ import annotations
 
@@ -32,6 +33,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="moderate amplitude, one excitation")
     ap.add_argument("--seeds", type=int, default=1, help="seeds per injected case")
     ap.add_argument("--json", help="write per-case results to this file")
+    ap.add_argument("--broadband", action="store_true",
+                    help="add the broadband (chirp to 80 Hz) excitation to the case set")
     args = ap.parse_args(argv)
 
     seeds = tuple(range(args.seeds))
@@ -39,7 +42,9 @@ def main(argv: list[str] | None = None) -> int:
         cs = harness.cases(levels=("moderate",), excitations=("multisine", "reversing"),
                            seeds=seeds, clean_seeds=(0, 1))
     else:
-        cs = harness.cases(seeds=seeds, clean_seeds=tuple(range(max(3, 3 * args.seeds))))
+        ex = harness.EXCITATIONS + ((harness.BROADBAND,) if args.broadband else ())
+        cs = harness.cases(excitations=ex, seeds=seeds,
+                           clean_seeds=tuple(range(max(3, 3 * args.seeds))))
     t0 = time.perf_counter()
     outs = []
     for k, c in enumerate(cs):
@@ -85,6 +90,28 @@ def main(argv: list[str] | None = None) -> int:
         sh = f"{np.median(mod):.2f}" if mod else "-"
         print(f"{eff:22s}" + "".join(cells) + f"{sh:>14s}")
 
+    print("\nTestable on the trace (judged from the trace alone) — detection over testable "
+          "cases vs over all cases (detected = isolated or listed as confusable)")
+    print(f"{'effect':22s}{'testable':>10s}{'iso|test':>10s}{'det|test':>10s}{'det|all':>10s}"
+          f"{'det|untest':>12s}")
+    tot = Counter()
+    for eff in NAMES:
+        os_ = [o for o in outs if o.case.effect == eff]
+        if not os_:
+            continue
+        te = [o for o in os_ if o.testable]
+        un = [o for o in os_ if not o.testable]
+        row = (len(te), sum(o.isolated for o in te), sum(o.detected for o in te),
+               sum(o.detected for o in os_), sum(o.detected for o in un))
+        tot.update(dict(zip(("te", "iso", "det", "all", "un"), row)))
+        tot["n"] += len(os_)
+        print(f"{eff:22s}{row[0]:>6d}/{len(os_):<3d}{row[1]:>7d}/{row[0]:<2d}{row[2]:>7d}/{row[0]:<2d}"
+              f"{row[3]:>7d}/{len(os_):<2d}{row[4]:>9d}/{len(un):<2d}")
+    if tot["n"]:
+        print(f"{'all':22s}{tot['te']:>6d}/{tot['n']:<3d}  detection {tot['det'] / max(tot['te'], 1):.0%} "
+              f"of testable cases vs {tot['all'] / tot['n']:.0%} of all; isolation "
+              f"{tot['iso'] / max(tot['te'], 1):.0%} of testable")
+
     clean = [o for o in outs if o.case.effect is None]
     fa = [o for o in clean if o.called is not None]
     print(f"\nFalse alarms on clean controls: {len(fa)}/{len(clean)}"
@@ -104,7 +131,8 @@ def main(argv: list[str] | None = None) -> int:
             json.dump([{"effect": o.case.effect, "level": o.case.level,
                         "excitation": o.case.excitation, "seed": o.case.seed,
                         "called": o.called, "confused_with": o.diagnosis.verdict.confused_with,
-                        "true_shrink": o.true_shrink} for o in outs], fh, indent=1)
+                        "true_shrink": o.true_shrink, "testable": o.testable} for o in outs],
+                      fh, indent=1)
     return 0
 
 

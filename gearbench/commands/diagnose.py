@@ -71,12 +71,12 @@ def summary(d: dict, name: str) -> str:
                                            for c in hot[:6]))
     else:
         lines.append("where: no cell above 1.5x its noise floor")
-    lines.append(f"{'effect':22s}{'nrmse before':>14s}{'after':>10s}{'shrink':>8s}{'dBIC':>9s}  sig")
+    lines.append(f"{'effect':22s}{'nrmse before':>14s}{'after':>10s}{'shrink':>8s}{'dBIC':>9s}  sig  testable")
     for c in d["candidates"]:
         lines.append(f"{c['effect']:22s}{c['nrmse_before']:14.4g}{c['nrmse_after']:10.4g}"
                      f"{(c['shrink'] if c['shrink'] is not None else float('nan')):8.2f}"
                      f"{(c['delta_bic'] if c['delta_bic'] is not None else float('nan')):9.1f}"
-                     f"  {'yes' if c['significant'] else 'no'}")
+                     f"  {'yes' if c['significant'] else 'no ':3s}  {'yes' if c.get('testable') else 'no'}")
     if v["effect"]:
         best = d["candidates"][0]
         lines.append(f"verdict: {v['effect']} (shrink {best['shrink']:.0%}); params "
@@ -85,8 +85,13 @@ def summary(d: dict, name: str) -> str:
         if v["confused_with"]:
             lines.append(f"  cannot be told apart here from: {', '.join(v['confused_with'])}")
             lines.append(f"  experiment: {v['experiment']}")
+    elif v.get("experiment"):
+        lines.append("verdict: none — a gap remains that no testable effect explains")
+        lines.append(f"  {v['experiment']}")
     else:
         lines.append("verdict: none — the gap is at the noise floor")
+    if v.get("untestable"):
+        lines.append(f"not testable on this trace: {', '.join(v['untestable'])}")
     return "\n".join(lines)
 
 

@@ -2,13 +2,13 @@
 adding it closes the gap — all scored on held-out data against the data's noise floor."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import minimize
 
 from ...trace import Trace
-from . import simerror, verdict as vd, where as wh
+from . import simerror, testability, verdict as vd, where as wh
 from .effects import LIBRARY, Base, Effect, EncoderQuantization, InertiaMismatch
 from .nominal import (GivenModel, Model, Signals, fit_model, fit_windows, hold_fraction,
                       integrated_rows, measured_features, physical, prepare, scan_rss)
@@ -196,8 +196,12 @@ def diagnose(trace: Trace, model: GivenModel | None = None) -> Diagnosis:
         fixed = tuple(effect.build(sig, base, fits[0][0])[1])
         after = _held_out(sig, sp, refined([m for _, m, _ in fits], fixed), order)
         ranked[i] = vd.rescore(sc, mse_nom, after, floor.mse, v_rms)
-    ranked = vd.rank(ranked)
-    verdict = vd.verdict(ranked)
+    tests = testability.assess(sig, floor, win_all, H, model is not None)
+    ranked = [replace(sc, testable=tests[sc.effect].testable, why=tests[sc.effect].why)
+              if sc.effect in tests else sc for sc in vd.rank(ranked)]
+    gap_open = float(np.mean(mse_nom)) > (1.0 + vd.MATERIAL) * floor.mse
+    verdict = vd.verdict(ranked, gap_open, {k: t.experiment for k, t in tests.items()
+                                            if not t.testable})
 
     where_cells, maps = wh.breakdown(sig, nom, err_nom, starts, floor)
     fit = {"sim_rms_rad_s": float(np.sqrt(np.mean(mse_nom))),

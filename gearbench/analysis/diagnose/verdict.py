@@ -80,13 +80,16 @@ class Score:
     nominal_shift: dict = field(default_factory=dict)
     overlap: int = 1
     extra_params: int = 1
+    testable: bool | None = None     # can this trace reveal the effect (testability.py)
+    why: str = ""
 
     def as_dict(self) -> dict:
         return {"effect": self.effect, "params": self.params,
                 "nrmse_before": self.nrmse_before, "nrmse_after": self.nrmse_after,
                 "shrink": self.shrink, "delta_bic": self.delta_bic,
                 "significant": self.significant, "t_stat": self.t_stat,
-                "nominal_shift": self.nominal_shift}
+                "nominal_shift": self.nominal_shift,
+                "testable": self.testable, "why": self.why}
 
 
 def paired_t(before_h: np.ndarray, after_h: np.ndarray, overlap: int = 1) -> float:
@@ -163,10 +166,13 @@ class Verdict:
     effect: str | None
     confused_with: list[str]
     experiment: str | None
+    #: effects this trace cannot reveal (testability.py); named with their experiments
+    #: in ``experiment`` when no effect explains a gap above the noise floor
+    untestable: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict:
         return {"effect": self.effect, "confused_with": self.confused_with,
-                "experiment": self.experiment}
+                "experiment": self.experiment, "untestable": self.untestable}
 
 
 def rank(scores: list[Score]) -> list[Score]:
@@ -175,10 +181,21 @@ def rank(scores: list[Score]) -> list[Score]:
     return sorted(scores, key=lambda s: (not s.significant, s.delta_bic, s.nrmse_after))
 
 
-def verdict(ranked: list[Score]) -> Verdict:
-    """Name the best significant effect (or none) and those the data cannot tell apart."""
+def verdict(ranked: list[Score], gap_open: bool = False,
+            experiments: dict[str, str] | None = None) -> Verdict:
+    """Name the best significant effect (or none) and those the data cannot tell apart.
+
+    With no effect named although the gap is above the floor (``gap_open``), the
+    experiment is the one that would test the effects this trace cannot reveal
+    (``experiments``: untestable effect -> experiment)."""
+    experiments = experiments or {}
+    untestable = list(experiments)
     if not ranked or not ranked[0].significant:
-        return Verdict(None, [], None)
+        text = None
+        if gap_open and experiments:
+            text = ("gap unexplained; untestable on this excitation: "
+                    + "; ".join(f"{k}: {v}" for k, v in experiments.items()))
+        return Verdict(None, [], text, untestable)
     best = ranked[0]
     alike = [s for s in ranked[1:]
              if s.significant and (paired_t(s.mse_h, best.mse_h, best.overlap) < T_CONFUSED
@@ -198,4 +215,4 @@ def verdict(ranked: list[Score]) -> Verdict:
         texts = [EXPERIMENTS.get(frozenset({best.effect, c}), DEFAULT_EXPERIMENT)
                  for c in confused]
         experiment = "; ".join(dict.fromkeys(texts))
-    return Verdict(best.effect, confused, experiment)
+    return Verdict(best.effect, confused, experiment, untestable)
