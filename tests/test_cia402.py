@@ -27,7 +27,8 @@ def rig(request):
     print(f"bus: {channel}")
     bench = EmulatedBench(plant, seed=1)
     server = start_canopen_server(bench, "virtual", parse_bus(channel).channel)
-    net = CiA402Network(bus=channel, heartbeat_ms=100, timeout_s=0.4, sdo_timeout_s=0.1, state_timeout_s=0.2,
+    # heartbeat 0.5 s: a loaded CI host must not turn a starved emulator thread into a false fault
+    net = CiA402Network(bus=channel, heartbeat_ms=500, timeout_s=0.4, sdo_timeout_s=0.1, state_timeout_s=0.2,
                          lockstep=True)
     net.open()
     yield bench, net
