@@ -58,6 +58,8 @@ from gearbench.analysis.diagnose import harness  # noqa: E402
     ("time_delay", "multisine", 0.8),
     ("inertia_mismatch", "multisine", 0.8),
     ("encoder_quantization", "reversing", 0.3),   # 1000 counts/rev on the drive's encoder
+    ("backlash", "reversing", 0.3),     # rigid-contact disk in a gap, fitted by simulation
+    ("shaft_compliance", "chirp", 0.8), # strongly excited 40 Hz resonance (k > 0 enforced)
 ])
 def test_injected_effect_isolated(effect, excitation, min_shrink):
     case = harness.Case(effect, "moderate", excitation, 0,
@@ -65,6 +67,12 @@ def test_injected_effect_isolated(effect, excitation, min_shrink):
     out = harness.run_case(case)
     assert out.called == effect
     assert out.true_shrink > min_shrink
+    params = out.diagnosis.candidates[0].params
+    if effect == "backlash":      # injected gap 0.02 rad
+        assert 0.015 < params["gap_rad"] < 0.027
+    if effect == "shaft_compliance":   # disk on the shaft: sqrt(k / J_disk)
+        wn = np.sqrt(case.changes["shaft_stiffness"] / harness.DISK_KGM2[effect])
+        assert abs(params["wn_rad_s"] / wn - 1) < 0.05
 
 
 def test_equation_error_smoothing_matches_the_velocity_estimate():

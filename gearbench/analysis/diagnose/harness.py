@@ -55,6 +55,8 @@ def contact_damping(motor: MotorParams, disk_kgm2: float, zeta: float = CONTACT_
     jr = motor.J * disk_kgm2 / (motor.J + disk_kgm2)
     return float(2.0 * zeta * np.sqrt(motor.contact_stiffness * jr))
 LEVELS = ("low", "moderate", "high")
+#: testability's amplitude names -> the injection's MotorParams field
+AMPLITUDE_KEYS = {"gap_rad": "backlash_rad"}
 
 
 def clean_motor(seed: int = 0) -> MotorParams:
@@ -116,7 +118,10 @@ class Outcome:
         injected effect (None for clean controls)."""
         for c in self.diagnosis.candidates:
             if c.effect == self.case.effect:
-                return c.testable
+                # below the smallest amplitude the trace can show: not testable either
+                small = any(self.case.changes.get(AMPLITUDE_KEYS.get(k, k), np.inf) < v
+                            for k, v in (c.min_detectable or {}).items())
+                return bool(c.testable and not small)
         return None
 
     @property

@@ -466,8 +466,9 @@ class GivenNominal(Term):
 
 # ------------------------------------------------------------- batched grid scans
 def _batched_rss(Xb: np.ndarray, y: np.ndarray, fixed: dict[int, float], E: np.ndarray,
-                 k: int) -> tuple[np.ndarray, np.ndarray]:
-    """RSS and base coefficients of G least-squares fits [Xb | E_g] at once.
+                 k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """RSS, base coefficients and the candidates' own coefficients (G, k) of G
+    least-squares fits [Xb | E_g] at once.
 
     ``E`` holds the G candidates' k columns side by side (m, G*k).  The free base
     columns are projected out once (QR), so each candidate is a k-column fit to the
@@ -498,18 +499,22 @@ def _batched_rss(Xb: np.ndarray, y: np.ndarray, fixed: dict[int, float], E: np.n
     if free:
         rhs = qy[None, :] - np.einsum("pgk,gk->gp", qE.reshape(len(free), G, k), beta)
         coef[:, free] = np.linalg.solve(R, rhs.T).T / bsc
-    return rss, coef
+    return rss, coef, beta / esc.reshape(G, k)
 
 
 def scan_rss(sig: Signals, base_terms, win: Windows, fixed: dict[int, float] | None,
-             E: np.ndarray, k: int) -> np.ndarray:
+             E: np.ndarray, k: int, positive: tuple[int, ...] = ()) -> np.ndarray:
     """Equation-error RSS of ``base_terms`` + each of G candidates' k extra columns
     (``E``: integrated rows, (m, G*k)), exactly as ``fit_model`` would score each —
-    including its pinning of a hold fraction outside [0, 1] to the nearer bound."""
+    including its pinning of a hold fraction outside [0, 1] to the nearer bound.
+    Candidates whose extra coefficients listed in ``positive`` come out <= 0 (a
+    non-physical negative stiffness) score +inf."""
     parts = [_term_rows(sig, t, win) for t in base_terms]
     Xb, y = np.hstack([p[0] for p in parts]), parts[0][1]
     fixed = dict(fixed or {})
-    rss, coef = _batched_rss(Xb, y, fixed, E, k)
+    rss, coef, beta = _batched_rss(Xb, y, fixed, E, k)
+    if positive:
+        rss = np.where(np.all(beta[:, list(positive)] > 0, axis=1), rss, np.inf)
     t0 = base_terms[0]
     if isinstance(t0, CurrentTaps):
         a = coef[:, 0] + coef[:, 1]
@@ -529,5 +534,5 @@ def scan_rss(sig: Signals, base_terms, win: Windows, fixed: dict[int, float] | N
             fp = {j - 1: v for j, v in fixed.items() if j > 1}
         else:
             Xp, fp = Xb, {**fixed, 1: hc}
-        rss[g] = _batched_rss(Xp, y, fp, E[:, cols], k)[0]
+        rss[g] = np.where(np.isfinite(rss[g]), _batched_rss(Xp, y, fp, E[:, cols], k)[0], np.inf)
     return rss

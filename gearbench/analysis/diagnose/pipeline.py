@@ -34,7 +34,26 @@ class Diagnosis:
 SCAN_CHUNK = 4_000_000
 
 
-def _scan(sig, base, effect: Effect, wins) -> list[dict]:
+#: Fit horizons a simulation-error scan uses (evenly thinned; speed).
+SCAN_HORIZONS = 60
+
+
+def _sim_cost(sig, effect: Effect, base, win, starts, horizon):
+    """hp -> (model, simulation MSE on the fit horizons ``starts``) for effects scanned
+    by simulation error (``effect.by_simulation``): the nominal refitted by equation
+    error with the effect's settings held, the score taken from simulation."""
+    if len(starts) > SCAN_HORIZONS:
+        starts = starts[np.linspace(0, len(starts) - 1, SCAN_HORIZONS).round().astype(int)]
+
+    def cost(hp):
+        terms, fixed = effect.build(sig, base, hp)
+        model = fit_model(sig, terms, win, fixed)[0]
+        e = simerror.simulate(sig, model, starts, horizon)
+        return model, float(np.nan_to_num(np.mean(e ** 2), nan=1e300, posinf=1e300))
+    return cost
+
+
+def _scan(sig, base, effect: Effect, wins, sims=None) -> list[dict]:
     """Best grid setting per fit window set, by equation-error RSS.
 
     Effects that only add columns to the nominal (``extra``) are scanned in batches:
@@ -42,31 +61,44 @@ def _scan(sig, base, effect: Effect, wins) -> list[dict]:
     grid is solved in one projection (nominal.scan_rss); effects that change the
     nominal's own columns (delay, saturation) are refitted per grid point."""
     grid = effect.grid(sig, base)
+    if sims is not None:
+        return [min(grid, key=lambda hp: c(hp)[1]) for c in sims]
     k = sum(len(t.names) for t in effect.extra(grid[0]))
     if type(effect).build is not Effect.build or k == 0:
         def rss_at(hp, w):
             terms, fixed = effect.build(sig, base, hp)
-            return fit_model(sig, terms, w, fixed)[1]
+            model, rss = fit_model(sig, terms, w, fixed)
+            return rss if _physical(model, effect) else np.inf
         return [min(grid, key=lambda hp: rss_at(hp, w)) for w in wins]
     terms, fixed = base.terms(), base.fixed()
+    names = [n for t in effect.extra(grid[0]) for n in t.names]
+    positive = tuple(names.index(p) for p in effect.positive)
     rss = np.empty((len(wins), len(grid)))
     per = max(1, SCAN_CHUNK // (len(sig) * k))
     for a in range(0, len(grid), per):
         F = measured_features(sig, [t for hp in grid[a:a + per] for t in effect.extra(hp)])
         for i, w in enumerate(wins):
             E = integrated_rows(sig, F, w)[0]
-            rss[i, a:a + per] = scan_rss(sig, terms, w, fixed, E, k)
+            rss[i, a:a + per] = scan_rss(sig, terms, w, fixed, E, k, positive)
     return [grid[int(np.argmin(r))] for r in rss]
 
 
-def _fit_effect(sig, base, effect: Effect, win, hp0: dict | None = None):
+def _physical(model: Model, effect: Effect) -> bool:
+    p = model.params()
+    return all(p.get(n, 1.0) > 0 for n in effect.positive)
+
+
+def _fit_effect(sig, base, effect: Effect, win, hp0: dict | None = None, sim=None):
     """Fit the effect at grid setting ``hp0`` (the scan's best; scanned here if not
     given), then refine its continuous settings (Nelder-Mead in log space) —
-    resonances are sharp, grids are coarse."""
+    resonances are sharp, grids are coarse.  ``sim``: score by simulation error."""
     def fit(hp):
+        if sim is not None:
+            return (hp, *sim(hp))
         terms, fixed = effect.build(sig, base, hp)
         model, rss = fit_model(sig, terms, win, fixed)
-        return hp, model, rss
+        # a large finite cost, not inf: Nelder-Mead subtracts costs
+        return hp, model, (rss if _physical(model, effect) else 1e300)
 
     grid = effect.grid(sig, base)
     if hp0 is None:
@@ -171,8 +203,11 @@ def diagnose(trace: Trace, model: GivenModel | None = None) -> Diagnosis:
                                                  "(no motion where the effect acts)"},
                                    mse_nom, mse_nom, 1, floor.mse, v_rms, overlap=ov))
             continue
-        fits = [_fit_effect(sig, base, effect, w, hp)
-                for w, hp in zip(wins, _scan(sig, base, effect, wins))]
+        sims = ([_sim_cost(sig, effect, base, w, f.fit_starts, H)
+                 for w, f in zip(wins, sp.folds)] if getattr(effect, "by_simulation", False)
+                else [None] * len(wins))
+        hps = _scan(sig, base, effect, wins, sims if sims[0] is not None else None)
+        fits = [_fit_effect(sig, base, effect, w, hp, c) for w, hp, c in zip(wins, hps, sims)]
         after = _held_out(sig, sp, [m for _, m, _ in fits], order)
         refits[effect.name] = (effect, fits)
         # parameters reported from all the data, at the first fold's settings
@@ -197,8 +232,12 @@ def diagnose(trace: Trace, model: GivenModel | None = None) -> Diagnosis:
         after = _held_out(sig, sp, refined([m for _, m, _ in fits], fixed), order)
         ranked[i] = vd.rescore(sc, mse_nom, after, floor.mse, v_rms)
     tests = testability.assess(sig, floor, win_all, H, model is not None)
-    ranked = [replace(sc, testable=tests[sc.effect].testable, why=tests[sc.effect].why)
-              if sc.effect in tests else sc for sc in vd.rank(ranked)]
+    ranked = [replace(sc, testable=tests[sc.effect].testable, why=tests[sc.effect].why,
+                      min_detectable=tests[sc.effect].min_amplitude,
+                      significant=sc.significant and (tests[sc.effect].testable or
+                                                      sc.effect not in testability.PREREQUISITE))
+              if sc.effect in tests else sc for sc in ranked]
+    ranked = vd.rank(ranked)
     gap_open = float(np.mean(mse_nom)) > (1.0 + vd.MATERIAL) * floor.mse
     verdict = vd.verdict(ranked, gap_open, {k: t.experiment for k, t in tests.items()
                                             if not t.testable})
@@ -245,8 +284,9 @@ def _score_quantization(sig: Signals, floor: simerror.NoiseFloor, mse_nom, v_rms
     H = err_nom.shape[1]
     m = np.arange(1, H + 1)
     a, b = np.polynomial.polynomial.polyfit(m, np.mean(err_nom ** 2, axis=0), 1)
-    quant_var = 2 * simerror.velocity_noise(q / np.sqrt(12), sig.dt_s) ** 2
-    current_part = float(np.mean(floor.floor_var - 2 * floor.velocity_noise_rad_s ** 2))
+    quant_var = simerror.end_noise_var(q / np.sqrt(12), sig.dt_s)
+    s_th = floor.velocity_noise_rad_s / simerror.velocity_noise(1.0, sig.dt_s)
+    current_part = float(np.mean(floor.floor_var - simerror.end_noise_var(s_th, sig.dt_s)))
     growth = max(min(b * m.mean(), current_part), 0.0)
     floor_cont = max(growth, 1e-300)
     after = np.maximum(mse_nom - quant_var, 0.0)

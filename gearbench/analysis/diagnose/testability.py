@@ -18,7 +18,8 @@ above the data's own noise and not collinear with the nominal model:
 * kt saturation: current well above its noise, with a cubic term not collinear;
 * shaft compliance: excitation bandwidth (current PSD above the noise) reaching half
   the lowest plausible shaft resonance, F_SHAFT_MIN ((f/f_r)^2 >= 25 % at the top);
-* backlash: torque (acceleration) reversals to cross the gap;
+* backlash: torque (acceleration) reversals to cross the gap; the smallest gap that
+  shows above the floor from the jerk at reversals (``_smallest_gap``);
 * encoder quantisation: angles on a lattice, the step's noise material vs the floor;
 * inertia mismatch: only against a given model (an identified one absorbs J).
 """
@@ -30,7 +31,7 @@ import numpy as np
 from scipy.signal import savgol_filter, welch
 
 from .nominal import Signals, Windows, integrated_rows
-from .simerror import BLOCK_S, NoiseFloor, lattice_step, velocity_noise
+from .simerror import BLOCK_S, NoiseFloor, end_noise_var, lattice_step, velocity_noise
 
 #: Smallest unique share (after projecting out the nominal's regressors) that counts.
 U_MIN = 0.05
@@ -54,6 +55,9 @@ F_SHAFT_MIN = 20.0
 PSD_SNR = 10.0
 #: Acceleration reversals needed to cross a backlash gap repeatedly.
 MIN_TORQUE_REVERSALS = 4
+#: Effects that physically cannot act on a trace judged untestable for them (a gap is
+#: only crossed at torque reversals): never named there, whatever their fit does.
+PREREQUISITE = ("backlash",)
 
 EXPERIMENTS = {
     "coulomb_friction": "add velocity reversals or speed steps at different speeds "
@@ -80,14 +84,41 @@ EXPERIMENTS = {
 
 @dataclass(frozen=True)
 class Testability:
-    """Whether the trace can reveal an effect, why, and what would test it if not."""
+    """Whether the trace can reveal an effect, why, and what would test it if not;
+    ``min_amplitude``: the smallest amplitude that would show above the floor, where
+    cheap to estimate (a smaller one is not testable on this trace either)."""
 
     testable: bool
     why: str
     experiment: str | None = None
+    min_amplitude: dict | None = None
 
     def as_dict(self) -> dict:
-        return {"testable": self.testable, "why": self.why}
+        return {"testable": self.testable, "why": self.why,
+                "min_amplitude": self.min_amplitude}
+
+
+def _smallest_gap(acc: np.ndarray, n_rev: int, duration_s: float, floor_mse: float,
+                  dt: float) -> float:
+    """Smallest backlash gap whose signature reaches the noise floor.
+
+    At a torque reversal the disk (inertia ratio ~1) leaves its contact and the motor,
+    its acceleration ramping at the jerk j, crosses the gap g in t = (6 g / j)^(1/3),
+    reaching v = j t^2 / 2; the model error meanwhile rises to ~v/2 (then the impact
+    shares the momentum back), so each reversal adds ~(v/2)^2 t / 3 of squared error.
+    Over R reversals per second that is R j^(1/3) (6 g)^(5/3) / 48 — set equal to the
+    floor's MSE and solved for g."""
+    if n_rev == 0:
+        return float("inf")
+    s = np.sign(acc)
+    k = np.flatnonzero(s[1:] * s[:-1] < 0)
+    if not k.size:
+        return float("inf")
+    jerk = float(np.median(np.abs(acc[k + 1] - acc[k]))) / dt
+    rate = n_rev / duration_s
+    if jerk <= 0:
+        return float("inf")
+    return float((48 * floor_mse / (rate * jerk ** (1 / 3))) ** 0.6 / 6)
 
 
 def _unique_share(sig: Signals, win: Windows, basis: np.ndarray,
@@ -205,13 +236,18 @@ def assess(sig: Signals, floor: NoiseFloor, win: Windows, horizon: int,
     acc = savgol_filter(w, min(51, n - (1 - n % 2)), 2, deriv=1, delta=dt)
     a_band = 5 * s_w / (25 * dt)
     n_trev = _reversals(acc, a_band)
-    put("backlash", n_trev >= MIN_TORQUE_REVERSALS,
-        f"{n_trev} torque (acceleration) reversals (needs {MIN_TORQUE_REVERSALS})")
+    g_min = _smallest_gap(acc, n_trev, n * dt, floor.mse, dt)
+    out["backlash"] = Testability(
+        n_trev >= MIN_TORQUE_REVERSALS,
+        f"{n_trev} torque (acceleration) reversals (needs {MIN_TORQUE_REVERSALS}); "
+        f"smallest gap that shows above the floor ~{g_min:.2g} rad",
+        None if n_trev >= MIN_TORQUE_REVERSALS else EXPERIMENTS["backlash"],
+        {"gap_rad": g_min})
 
     q = lattice_step(th)
     if q:
-        qn = velocity_noise(q / np.sqrt(12), dt)
-        put("encoder_quantization", 2 * qn ** 2 >= 0.1 * floor.mse,
+        qn = np.sqrt(end_noise_var(q / np.sqrt(12), dt))
+        put("encoder_quantization", qn ** 2 >= 0.1 * floor.mse,
             f"angles on a lattice of {q:.3g} rad ({2 * np.pi / q:.0f} counts/rev): "
             f"quantisation noise {qn:.3g} rad/s vs floor {np.sqrt(floor.mse):.3g} rad/s")
     else:

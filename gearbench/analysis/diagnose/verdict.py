@@ -82,6 +82,7 @@ class Score:
     extra_params: int = 1
     testable: bool | None = None     # can this trace reveal the effect (testability.py)
     why: str = ""
+    min_detectable: dict | None = None   # smallest amplitude this trace shows (testability)
 
     def as_dict(self) -> dict:
         return {"effect": self.effect, "params": self.params,
@@ -89,7 +90,8 @@ class Score:
                 "shrink": self.shrink, "delta_bic": self.delta_bic,
                 "significant": self.significant, "t_stat": self.t_stat,
                 "nominal_shift": self.nominal_shift,
-                "testable": self.testable, "why": self.why}
+                "testable": self.testable, "why": self.why,
+                "min_detectable": self.min_detectable}
 
 
 def paired_t(before_h: np.ndarray, after_h: np.ndarray, overlap: int = 1) -> float:
