@@ -32,6 +32,7 @@ from .drives.registry import network_class
 from .errors import BenchFault, GearbenchError
 from .profile import load_profile
 from .records import RecordStream
+from .sequencer import AutoOperator
 
 __all__ = ["load_profile", "open_network", "open_bench", "run_profile", "Bench", "RunResult",
            "MotorResult", "EfficiencyPointResult", "LimitCheck", "AutoOperator", "TerminalOperator"]
@@ -48,13 +49,6 @@ class TerminalOperator:
             answer = "a"
         if answer.strip().lower().startswith("a"):
             raise BenchFault("operator abort at prompt")
-
-
-class AutoOperator:
-    """Every prompt answered at once (``--yes``, the simulated bench)."""
-
-    def confirm(self, prompt: str) -> None:
-        pass
 
 
 # ------------------------------------------------------------------ typed results

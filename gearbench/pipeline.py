@@ -50,15 +50,17 @@ def calibrate(unloaded: Trace, loaded: Trace, *, motor: str, disk_kgm2: float,
 
 def efficiency(step: Trace, motor_in: dict, motor_out: dict, *, ratio: float | None,
                settle_s: float, skip_samples: int = 0) -> dict:
-    """Efficiency points of one recorded efficiency segment (eq. 18 and P_out/P_in)."""
+    """Efficiency points of one recorded efficiency segment (eq. 18 and P_out/P_in).
+
+    ``motor_in``/``motor_out`` are calibration dicts, or ``{"Kt": ...}`` alone (datasheet
+    value, no loss model) for a motor the profile does not calibrate."""
     bench = bench_trace(fill_lost_samples(step).slice(skip_samples, None))
     bench.source = f"step {step.source}"
-    m_in = MotorCalibration.from_dict(_complete(motor_in), "motor in")
-    m_out = MotorCalibration.from_dict(_complete(motor_out), "motor out")
+    m_in, m_out = _calibration(motor_in, "motor in"), _calibration(motor_out, "motor out")
     return _efficiency(bench, m_in, m_out, ratio=ratio, settle_s=settle_s).to_dict()
 
 
-def _complete(d: dict) -> dict:
-    out = {"Kt_ci95": [d["Kt"], d["Kt"]], "J": 0.0, "D": 0.0, "Tc": 0.0, "method": "datasheet"}
-    out.update(d)
-    return out
+def _calibration(d: dict, where: str) -> MotorCalibration:
+    if set(d) == {"Kt"}:
+        return MotorCalibration.from_kt(d["Kt"], where)
+    return MotorCalibration.from_dict(d, where)

@@ -10,7 +10,7 @@ import math
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
-from .records import LimitResult, RunStop, Subscriber
+from .records import RunStop, Subscriber
 
 
 def _clean(o):
@@ -72,11 +72,6 @@ class ResultWriter(Subscriber):
 
     def __init__(self, out_dir: str | Path):
         self.out_dir = Path(out_dir)
-        self.limits: list[dict] = []
-
-    def on_limit(self, rec: LimitResult) -> None:
-        self.limits.append(dict(name=rec.name, value=rec.value, low=rec.low, high=rec.high,
-                                passed=rec.passed))
 
     def on_run_stop(self, rec: RunStop) -> None:
         write_result_json(self.out_dir / "result.json", rec.result)

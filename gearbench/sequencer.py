@@ -46,9 +46,6 @@ class Fixture(Protocol):
 class AutoOperator:
     """``--yes`` / simulated bench: every prompt is answered at once."""
 
-    def __init__(self, emit: Callable | None = None):
-        self.emit = emit
-
     def confirm(self, prompt: str) -> None:
         pass
 
@@ -291,7 +288,6 @@ class Sequencer:
         flushed = done = 0
         status = "ok"
         lost0 = net.lost_samples
-        t_wall = time.monotonic()
         try:
             for k in range(n):
                 if self._abort_reason:
@@ -315,7 +311,7 @@ class Sequencer:
                 if done - flushed >= BATCH_SAMPLES:
                     self._flush(seg.name, buf_idx, buf_t, cols, flushed, done)
                     flushed = done
-                    self._progress(seg, done, n, t_wall)
+                    self._progress(seg, done, n)
         except BenchFault:
             self.net.stop_all()   # first the drives, within this sample period; then the books
             status = "aborted" if self._abort_reason else "fault"
@@ -357,7 +353,7 @@ class Sequencer:
             self.emit(SampleBatch(step, idx[i0:i1].copy(), t[i0:i1].copy(),
                                   {c: v[i0:i1].copy() for c, v in cols.items()}))
 
-    def _progress(self, seg: Segment, k: int, n: int, t_wall: float) -> None:
+    def _progress(self, seg: Segment, k: int, n: int) -> None:
         done = self._samples_done + k
         frac = done / self._samples_total
         elapsed = time.monotonic() - self._wall0
@@ -381,8 +377,8 @@ class Sequencer:
         elif what == "efficiency":
             seg = self.traces[args["segment"]]
             ratio = self.profile.reducer.ratio if self.profile.reducer else None
-            res = pipeline.efficiency(seg, self.motors_result.get("in") or self._datasheet("in"),
-                                      self.motors_result.get("out") or self._datasheet("out"),
+            res = pipeline.efficiency(seg, self.motors_result.get("in") or {"Kt": self._kt("in")},
+                                      self.motors_result.get("out") or {"Kt": self._kt("out")},
                                       ratio=ratio, settle_s=seg.meta["settle_s"],
                                       skip_samples=seg.meta["n_ramp"])
             self.ratio = res["ratio"]
@@ -390,9 +386,6 @@ class Sequencer:
                 pt.setdefault("speed_setpoint_rad_s", args["speed"])
                 self.efficiency.append(pt)
                 self.emit(EfficiencyPoint(pt))
-
-    def _datasheet(self, motor: str) -> dict:
-        return {"Kt": self.profile.motors[motor].kt_datasheet, "D": 0.0, "Tc": 0.0}
 
     # ---------------------------------------------------------------- limits
     def _quantity(self, q: str):
@@ -419,8 +412,7 @@ class Sequencer:
                 name = lim.name if not isinstance(value, list) else \
                     f"{lim.name}[{self.efficiency[j]['speed_in_rad_s']:.0f}rad_s," \
                     f"{self.efficiency[j]['torque_out_nm']:.3g}Nm]"
-                ok = v is not None and np.isfinite(v) and \
-                    (lim.low is None or v >= lim.low) and (lim.high is None or v <= lim.high)
+                ok = v is not None and np.isfinite(v) and lim.passed(v)
                 rec = LimitResult(name, None if v is None else float(v), lim.low, lim.high,
                                   bool(ok), lim.quantity)
                 self.emit(rec)
