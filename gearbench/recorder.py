@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .records import Record, SampleBatch, StepStart, StepStop, Subscriber
+from .records import SampleBatch, StepStart, StepStop, Subscriber
 from .trace import Trace
 
 

@@ -269,7 +269,7 @@ class Sequencer:
     # ----------------------------------------------------------- acquisition
     def _acquire(self, seg: Segment) -> Trace:
         """Play ``seg``'s setpoints sample by sample, recording every sample."""
-        net, per = self.net, self.period_s
+        net = self.net
         motors = list(seg.commands)
         n = len(next(iter(seg.commands.values()))[1])
         self.emit(StepStart(seg.name, seg.step_kind, seg.description, n))

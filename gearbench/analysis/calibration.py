@@ -12,7 +12,7 @@ import numpy as np
 
 from ..errors import GearbenchError
 from ..trace import Trace
-from .identify import C_J, D_J, KT_J, TC_J, IdentificationResult, identify_trace
+from .identify import C_J, D_J, TC_J, IdentificationResult, identify_trace
 from .torque_constant import torque_constant
 
 REQUIRED_KEYS = ("Kt", "J", "D", "Tc")

@@ -31,7 +31,7 @@ import numpy as np
 from scipy.signal import savgol_filter, welch
 
 from .nominal import Signals, Windows, integrated_rows
-from .simerror import BLOCK_S, NoiseFloor, end_noise_var, lattice_step, velocity_noise
+from .simerror import BLOCK_S, NoiseFloor, end_noise_var, lattice_step
 
 #: Smallest unique share (after projecting out the nominal's regressors) that counts.
 U_MIN = 0.05
