@@ -22,6 +22,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from conftest import require_tool
 
 MAP_PATH = Path(__file__).resolve().parents[1] / "drivers" / "generic-modbus-servo.yaml"
 MAP = yaml.safe_load(MAP_PATH.read_text())
@@ -40,6 +41,11 @@ def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+@pytest.fixture(autouse=True)
+def _mbpoll_installed():
+    require_tool("mbpoll", "install Debian's independent Modbus client with `apt-get install mbpoll`")
 
 
 @pytest.fixture
@@ -65,10 +71,7 @@ def emulator(tmp_path):
 
 
 def mbpoll(port: int, *args: str) -> str:
-    exe = shutil.which("mbpoll")
-    if exe is None:
-        pytest.fail("mbpoll (Debian's independent Modbus client) is not installed; install it with "
-                    "`apt-get install mbpoll` (.ci/run does) — this test must not be skipped")
+    exe = require_tool("mbpoll", "install Debian's independent Modbus client with `apt-get install mbpoll`")
     out = subprocess.run([exe, "-m", "tcp", "-p", str(port), "-a", str(UNIT), "-0", "-1", "-o", "2", *args],
                          capture_output=True, text=True, timeout=10)
     assert out.returncode == 0, f"mbpoll {' '.join(args)} failed: {out.stdout[-300:]} {out.stderr[-300:]}"
@@ -141,7 +144,7 @@ def test_mbpoll_enables_the_drive_and_the_motor_turns(emulator):
 
 
 def test_mbpoll_sees_an_exception_for_a_read_only_register(emulator):
-    exe = shutil.which("mbpoll") or pytest.fail("mbpoll is not installed; install it with `apt-get install mbpoll`")
+    exe = shutil.which("mbpoll")
     out = subprocess.run([exe, "-m", "tcp", "-p", str(emulator), "-a", "1", "-0", "-1", "-t", "4",
                           "-r", str(REG["status"]["address"]), "127.0.0.1", "5"],
                          capture_output=True, text=True, timeout=10)
