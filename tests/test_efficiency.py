@@ -7,6 +7,7 @@ import pytest
 
 from gearbench.analysis.calibration import MotorCalibration, calibrate_motor
 from gearbench.analysis.efficiency import efficiency, steady_windows
+from gearbench.analysis.uncertainty import coverage_acceptance, coverage_factor
 from gearbench.errors import ExcitationError, TraceError
 from gearbench.trace import Trace
 
@@ -59,18 +60,36 @@ def test_reference_interpolation_cancels_a_linear_drift():
     assert abs(one_ref.points[-1].eta_incremental - 0.9) > 1e-3
 
 
-def test_interval_covers_truth_about_95_percent_and_widens_with_kt_uncertainty():
-    hits = total = 0
-    for seed in range(30):
-        tr, _, _ = hand_bench(noise=0.004, seed=seed, levels=(0, 1.0, 0))
+def test_interval_coverage_is_95_percent_within_a_two_sided_binomial_bound():
+    """200 noisy benches (fixed seeds): the incremental interval must hold the truth in
+    95 % of them — too narrow falls below the bound, ten times too wide above it."""
+    n = 200
+    hits = 0
+    for seed in range(n):
+        tr, _, _ = hand_bench(noise=0.004, seed=seed, levels=(0, 1.0, 0), dwell=1.5)
         (p,) = efficiency(tr, M_IN, M_OUT).points
         lo, hi = p.eta_incremental_ci95
-        hits += lo < 0.9 < hi
-        total += 1
-    assert 0.8 <= hits / total <= 1.0
-    wide_in = MotorCalibration(0.05, (0.0498, 0.0502), 2e-5, 2e-6, 0.008, "hand")
+        hits += lo <= 0.9 <= hi
+    low, high = coverage_acceptance(n)
+    assert low <= hits <= high, f"{hits}/{n} intervals hold the truth, accepted {low}..{high}"
+
+
+def test_interval_is_student_t_on_the_stored_std_and_adds_kt_uncertainty_in_quadrature():
+    tr, _, _ = hand_bench(noise=0.004, seed=1, levels=(0, 1.0, 0))
+    (p,) = efficiency(tr, M_IN, M_OUT).points
+    d = p.to_dict()
+    assert d["eta_incremental_std"] == p.eta_incremental_std > 0
+    assert 2 <= p.eta_incremental_dof < 100             # block means: a few dof per window
+    lo, hi = p.eta_incremental_ci95
+    assert (hi - lo) / 2 == pytest.approx(coverage_factor(p.eta_incremental_dof) * p.eta_incremental_std,
+                                          rel=1e-9)
+    u_rel = 0.002                                     # η ∝ 1/Kt_in: u_rel(η) gains u_rel(Kt_in)
+    wide_in = MotorCalibration(0.05, (0.0498, 0.0502), 2e-5, 2e-6, 0.008, "hand", Kt_std=0.05 * u_rel,
+                               Kt_dof=1e6)
     (q,) = efficiency(tr, wide_in, M_OUT).points
-    assert (q.eta_incremental_ci95[1] - q.eta_incremental_ci95[0]) > 1.5 * (hi - lo)
+    assert q.eta_incremental_std ** 2 == pytest.approx(
+        p.eta_incremental_std ** 2 + (p.eta_incremental * u_rel) ** 2, rel=1e-6)
+    assert q.eta_incremental_dof > p.eta_incremental_dof   # a known (type B) part raises ν
 
 
 def test_steady_windows_drop_settle_time_and_ramps():

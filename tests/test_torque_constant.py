@@ -6,6 +6,7 @@ from gearbench.analysis.calibration import MotorCalibration, calibrate_from_fits
 from gearbench.analysis.identify import D_J, KT_J, TC_J, IdentificationResult
 from gearbench.analysis.torque_constant import (paper_printed_eq17, torque_constant,
                                                 torque_constant_from_b2)
+from gearbench.analysis.uncertainty import coverage_acceptance, tolerance_std
 from gearbench.errors import GearbenchError
 
 KT, J, DISK = 0.0527, 1.5e-5, 2.01398e-5
@@ -62,6 +63,60 @@ def test_model_error_adds_in_quadrature_and_counts_as_known_in_the_dof():
     assert w_stat < w < 2 * 2.776 * res.torque_constant_std
 
 
+def test_disk_tolerance_adds_its_relative_uncertainty_to_kt_one_to_one():
+    """GUM first order: Kt ∝ j (eq. 17), so u_rel(Kt)² = u_rel(stat)² + u_rel(j)²; the disk
+    term is type B (known), so it raises the Welch–Satterthwaite dof."""
+    fu, fl = fake_fit(KT / J, 3.0, dof=20), fake_fit(KT / (J + DISK), 1.0, dof=20)
+    exact = torque_constant(fu, fl, DISK, model_b2_rel=0.0)
+    u_j = tolerance_std(0.01 * DISK, "datasheet")                 # ±1 % limits: u = 1 %/√3
+    res = torque_constant(fu, fl, DISK, disk_inertia_std=u_j, model_b2_rel=0.0)
+    assert res.disk_std == pytest.approx(KT * 0.01 / np.sqrt(3), rel=1e-12)
+    assert (res.torque_constant_std / KT) ** 2 == pytest.approx(
+        (exact.torque_constant_std / KT) ** 2 + (u_j / DISK) ** 2, rel=1e-12)
+    assert res.dof > exact.dof
+    assert res.rotor_inertia_std > exact.rotor_inertia_std
+    # the stored interval is Student-t on the stored std and dof
+    from gearbench.analysis.uncertainty import coverage_factor
+    lo, hi = res.torque_constant_ci95
+    assert (hi - lo) / 2 == pytest.approx(coverage_factor(res.dof) * res.torque_constant_std, rel=1e-12)
+    with pytest.raises(GearbenchError, match="standard uncertainty"):
+        torque_constant(fu, fl, DISK, disk_inertia_std=-1e-7)
+
+
+@pytest.mark.parametrize("source,tol", [("datasheet", 0.02), ("measured", 0.01)])
+def test_kt_interval_covers_95_percent_when_the_disk_differs_within_its_tolerance(source, tol):
+    """Monte Carlo of the whole chain's uncertainty model: the true disk is drawn from what
+    its tolerance says (datasheet: uniform within ±tol; measured: normal, tol = 2 sigma),
+    the fits scatter with their stated std; the analysis sees the nominal disk and the
+    tolerance. Coverage must be 95 % within a two-sided binomial bound. A dominant
+    rectangular (datasheet) term makes k = 1.96 conservative — ±1.96 u is wider than the
+    uniform's ±√3 u, GUM G.6.5 — so there only the lower bound applies."""
+    rng = np.random.default_rng(11)
+    n, su, sl = 300, 5.0, 2.0                     # noise alone: u_rel(Kt) ≈ 0.25 %
+    u_j = tolerance_std(tol * DISK, source)
+    hits = 0
+    for _ in range(n):
+        j_true = DISK * (1 + (rng.uniform(-tol, tol) if source == "datasheet" else rng.normal(0, tol / 2)))
+        fu = fake_fit(KT / J + rng.normal(0, su), su, dof=200)
+        fl = fake_fit(KT / (J + j_true) + rng.normal(0, sl), sl, dof=200)
+        lo, hi = torque_constant(fu, fl, DISK, disk_inertia_std=u_j, model_b2_rel=0.0).torque_constant_ci95
+        hits += lo <= KT <= hi
+    low, high = coverage_acceptance(n)
+    if source == "datasheet":
+        high = n
+    assert low <= hits <= high, f"{hits}/{n} intervals hold Kt, accepted {low}..{high}"
+    # and without the disk term the same intervals under-cover (the check can fail)
+    rng = np.random.default_rng(11)
+    misses = 0
+    for _ in range(n):
+        j_true = DISK * (1 + (rng.uniform(-tol, tol) if source == "datasheet" else rng.normal(0, tol / 2)))
+        fu = fake_fit(KT / J + rng.normal(0, su), su, dof=200)
+        fl = fake_fit(KT / (J + j_true) + rng.normal(0, sl), sl, dof=200)
+        lo, hi = torque_constant(fu, fl, DISK, model_b2_rel=0.0).torque_constant_ci95
+        misses += not lo <= KT <= hi
+    assert n - misses < low
+
+
 def test_swapped_runs_say_swap():
     with pytest.raises(GearbenchError, match="swap --loaded and --unloaded"):
         torque_constant(fake_fit(KT / (J + DISK)), fake_fit(KT / J), DISK)
@@ -80,9 +135,14 @@ def test_calibration_combines_losses_and_round_trips_through_json():
     assert cal.Kt == pytest.approx(KT) and cal.J == pytest.approx(J)
     assert cal.D == pytest.approx(2e-6) and cal.Tc == pytest.approx(0.008)
     d = cal.to_dict()
-    assert {"Kt", "Kt_ci95", "J", "D", "Tc", "method", "fit"} <= set(d)
+    assert {"Kt", "Kt_std", "Kt_dof", "Kt_ci95", "J", "D", "Tc", "method", "fit"} <= set(d)
     back = MotorCalibration.from_dict(d)
     assert back.Kt == cal.Kt and back.Kt_ci95 == cal.Kt_ci95 and back.Tc == cal.Tc
+    assert (back.Kt_std, back.Kt_dof) == (cal.Kt_std, cal.Kt_dof) and cal.Kt_std > 0
+    # the std is stored, not recovered from the interval: an interval alone is refused
+    old = {k: v for k, v in d.items() if k not in ("Kt_std", "Kt_dof")}
+    with pytest.raises(GearbenchError, match="no 'Kt_std'.*rerun 'gearbench calibrate --json'"):
+        MotorCalibration.from_dict(old, where="IN.json")
     np.testing.assert_allclose(back.loss_covariance, cal.loss_covariance)
     assert back.loss_torque_nm(-100.0) == pytest.approx(-(2e-6 * 100 + 0.008))
 

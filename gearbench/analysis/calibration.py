@@ -14,6 +14,7 @@ from ..errors import GearbenchError
 from ..trace import Trace
 from .identify import C_J, D_J, TC_J, IdentificationResult, identify_trace
 from .torque_constant import torque_constant
+from .uncertainty import DOF_MAX
 
 REQUIRED_KEYS = ("Kt", "J", "D", "Tc")
 # Model error of the losses: the two runs' (D, Tc) differ by far more than their
@@ -27,7 +28,9 @@ LOSS_RUN_SPREAD = 0.25
 class MotorCalibration:
     """One motor's identified model ``J θ'' + D θ' + Tc s(θ') = Kt i`` (SI units).
 
-    ``loss_covariance`` is the 2x2 covariance of (D, Tc): with one rotation direction
+    ``Kt_std`` is Kt's standard uncertainty and ``Kt_dof`` its degrees of freedom, as
+    computed (``Kt_ci95`` is derived from them, never the other way round; conventions
+    in ``gearbench.analysis.uncertainty``). ``loss_covariance`` is the 2x2 covariance of (D, Tc): with one rotation direction
     they trade off against each other, and only their combination at the operating
     speed, ``D ω + Tc``, is well known.
     """
@@ -40,19 +43,16 @@ class MotorCalibration:
     method: str
     fit: dict = field(default_factory=dict)
     loss_covariance: tuple[tuple[float, float], tuple[float, float]] = ((0.0, 0.0), (0.0, 0.0))
-
-    @property
-    def Kt_std(self) -> float:
-        """Standard uncertainty implied by the 95 % interval (normal approximation)."""
-        lo, hi = self.Kt_ci95
-        return max(hi - lo, 0.0) / (2 * 1.96)
+    Kt_std: float = 0.0
+    Kt_dof: float = DOF_MAX
 
     def loss_torque_nm(self, speed_rad_s: float) -> float:
         """Friction torque D ω + Tc sign(ω) the motor itself consumes at ``speed_rad_s``."""
         return self.D * speed_rad_s + self.Tc * float(np.sign(speed_rad_s))
 
     def to_dict(self) -> dict:
-        return {"Kt": self.Kt, "Kt_ci95": list(self.Kt_ci95), "J": self.J, "D": self.D,
+        return {"Kt": self.Kt, "Kt_std": self.Kt_std, "Kt_dof": self.Kt_dof,
+                "Kt_ci95": list(self.Kt_ci95), "J": self.J, "D": self.D,
                 "Tc": self.Tc, "method": self.method,
                 "fit": {**self.fit, "loss_covariance": [list(r) for r in self.loss_covariance]}}
 
@@ -79,6 +79,16 @@ class MotorCalibration:
             lo, hi = (float(ci[0]), float(ci[1]))
         except (TypeError, ValueError, IndexError, KeyError):
             raise GearbenchError(f"{where}: key 'Kt_ci95' must be [low, high], got {ci!r}") from None
+        # the standard uncertainty is read as stored, never recovered from the interval
+        if "Kt_ci95" in d and "Kt_std" not in d:
+            raise GearbenchError(f"{where}: has 'Kt_ci95' but no 'Kt_std' (written by an older "
+                                 f"gearbench); rerun 'gearbench calibrate --json'")
+        unc = {}
+        for k, default in (("Kt_std", 0.0), ("Kt_dof", DOF_MAX)):
+            v = d.get(k, default)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (np.isfinite(v) and v >= 0):
+                raise GearbenchError(f"{where}: key '{k}' must be a number >= 0, got {v!r}")
+            unc[k] = float(v)
         fit = dict(d.get("fit") or {})
         cov = fit.pop("loss_covariance", None)
         try:
@@ -87,7 +97,7 @@ class MotorCalibration:
         except (TypeError, ValueError, AssertionError):
             raise GearbenchError(f"{where}: 'fit.loss_covariance' must be a 2x2 list") from None
         return cls(vals["Kt"], (lo, hi), vals["J"], vals["D"], vals["Tc"],
-                   str(d.get("method", "unknown")), fit, loss_cov)
+                   str(d.get("method", "unknown")), fit, loss_cov, unc["Kt_std"], unc["Kt_dof"])
 
     @classmethod
     def from_kt(cls, kt: float, where: str = "--kt") -> "MotorCalibration":
@@ -98,15 +108,17 @@ class MotorCalibration:
 
 
 def calibrate_from_fits(unloaded: IdentificationResult, loaded: IdentificationResult,
-                        disk_kgm2: float, *, unloaded_name: str = "unloaded run",
+                        disk_kgm2: float, *, disk_std_kgm2: float = 0.0,
+                        unloaded_name: str = "unloaded run",
                         loaded_name: str = "loaded run") -> MotorCalibration:
     """Kt by corrected eq. 17, J = Kt/b2~, and D, Tc as the inverse-variance mean of
     the two runs' (D/J)·J and (Tc/J)·J. Their covariance adds a model-error term from
     the runs' disagreement Δ = (D, Tc)_unloaded − (D, Tc)_loaded: ``LOSS_RUN_SPREAD``·ΔΔᵀ
     (both runs measure the same motor's friction, so what separates them beyond
-    noise is model error, and it grows when the loss is extrapolated along Δ)."""
-    kt = torque_constant(unloaded, loaded, disk_kgm2, unloaded_name=unloaded_name,
-                         loaded_name=loaded_name)
+    noise is model error, and it grows when the loss is extrapolated along Δ).
+    ``disk_std_kgm2`` is the disk inertia's standard uncertainty (it enters Kt 1:1)."""
+    kt = torque_constant(unloaded, loaded, disk_kgm2, disk_inertia_std=disk_std_kgm2,
+                         unloaded_name=unloaded_name, loaded_name=loaded_name)
     J = kt.rotor_inertia_kgm2
     ests = []
     for fit, inertia in ((unloaded, J), (loaded, J + disk_kgm2)):
@@ -136,6 +148,7 @@ def calibrate_from_fits(unloaded: IdentificationResult, loaded: IdentificationRe
         "b2_std_unloaded": unloaded.b2_std, "b2_std_loaded": loaded.b2_std,
         "Kt_std": kt.torque_constant_std, "J_std": kt.rotor_inertia_std, "dof": kt.dof,
         "Kt_std_statistical": kt.statistical_std, "Kt_std_model": kt.model_std,
+        "Kt_std_disk": kt.disk_std, "disk_inertia_std_kgm2": disk_std_kgm2,
         "r2": min(unloaded.r2, loaded.r2), "rmse": max(unloaded.rmse, loaded.rmse),
         "n_samples": unloaded.n_samples + loaded.n_samples,
         "condition": max(unloaded.condition, loaded.condition),
@@ -150,20 +163,23 @@ def calibrate_from_fits(unloaded: IdentificationResult, loaded: IdentificationRe
     return MotorCalibration(
         Kt=kt.torque_constant_nm_a, Kt_ci95=kt.torque_constant_ci95, J=J,
         D=float(v[0]), Tc=float(v[1]), method=unloaded.method, fit=fit,
-        loss_covariance=tuple(tuple(float(x) for x in r) for r in cov))
+        loss_covariance=tuple(tuple(float(x) for x in r) for r in cov),
+        Kt_std=kt.torque_constant_std, Kt_dof=float(kt.dof))
 
 
 def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
-                    method: str = "default", **options) -> MotorCalibration:
+                    method: str = "default", *, disk_std_kgm2: float = 0.0,
+                    **options) -> MotorCalibration:
     """Identify both runs with ``method`` (``default``, ``paper``, ``paper-15ms``) and
-    combine them (corrected eq. 17). Raises GearbenchError subclasses on bad input."""
+    combine them (corrected eq. 17); ``disk_std_kgm2`` is the disk inertia's standard
+    uncertainty. Raises GearbenchError subclasses on bad input."""
     if not (np.isfinite(disk_kgm2) and disk_kgm2 > 0):
         raise GearbenchError(f"inertia must be > 0 kg m^2 (got {disk_kgm2}); pass the disk's "
                              f"inertia, e.g. --inertia 1.5e-5")
     fu = identify_trace(unloaded, method=method, **options)
     fl = identify_trace(loaded, method=method, **options)
-    return calibrate_from_fits(fu, fl, disk_kgm2, unloaded_name=unloaded.source,
-                               loaded_name=loaded.source)
+    return calibrate_from_fits(fu, fl, disk_kgm2, disk_std_kgm2=disk_std_kgm2,
+                               unloaded_name=unloaded.source, loaded_name=loaded.source)
 
 
 def _speed_range(*fits: IdentificationResult) -> tuple[float, float] | None:

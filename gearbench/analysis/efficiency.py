@@ -17,12 +17,15 @@ Per point
                           P_out = (−Kt_out·i_out + D_out·ω_out + Tc_out·s(ω_out))·ω_out
                           (the output motor's own friction is also driven by the shaft).
 Uncertainty: first-order propagation of the window means' standard errors (block
-means, so ripple and coloured noise count), the Kt intervals (with their model-error
-part), the (D, Tc) covariances (with the calibration runs' disagreement as model
+means, so ripple and coloured noise count; block count − 1 degrees of freedom), the Kt
+standard uncertainties (with their model-error and disk parts and their degrees of
+freedom), the (D, Tc) covariances (the calibration's degrees of freedom) (with the calibration runs' disagreement as model
 error, see ``calibration.calibrate_from_fits``) and the ratio. The loss D ω + Tc is
 linear in (D, Tc), so its propagated variance grows with the distance of the operating
 speed from the calibration runs' speeds: extrapolation widens the absolute interval by
-itself. Each point records whether either motor's loss was extrapolated beyond the
+itself. Each point stores its standard uncertainties and Welch–Satterthwaite degrees
+of freedom; the 95 % intervals are Student-t on them (``analysis.uncertainty``).
+Each point records whether either motor's loss was extrapolated beyond the
 speed range its calibration runs covered (``loss_extrapolated``).
 """
 from __future__ import annotations
@@ -34,8 +37,7 @@ import numpy as np
 from ..errors import ExcitationError, GearbenchError, TraceError
 from ..trace import BENCH_COLUMNS, Trace
 from .calibration import MotorCalibration
-
-Z95 = 1.96
+from .uncertainty import DOF_MAX, effective_dof, interval
 
 
 @dataclass(frozen=True)
@@ -53,6 +55,8 @@ class SteadyWindow:
     current_out_sem: float
     speed_in_rad_s: float
     speed_out_rad_s: float
+    current_in_dof: float = DOF_MAX     # degrees of freedom of the standard errors
+    current_out_dof: float = DOF_MAX
 
     @property
     def is_reference(self) -> bool:
@@ -77,12 +81,20 @@ class EfficiencyPoint:
     loss_extrapolated: bool = False
     loss_speed_range_in_rad_s: tuple[float, float] | None = None
     loss_speed_range_out_rad_s: tuple[float, float] | None = None
+    eta_incremental_std: float = 0.0
+    eta_incremental_dof: float = DOF_MAX
+    eta_absolute_std: float = 0.0
+    eta_absolute_dof: float = DOF_MAX
 
     def to_dict(self) -> dict:
         w = self.window
         return {"eta_incremental": self.eta_incremental,
+                "eta_incremental_std": self.eta_incremental_std,
+                "eta_incremental_dof": self.eta_incremental_dof,
                 "eta_incremental_ci95": list(self.eta_incremental_ci95),
-                "eta_absolute": self.eta_absolute, "eta_absolute_ci95": list(self.eta_absolute_ci95),
+                "eta_absolute": self.eta_absolute, "eta_absolute_std": self.eta_absolute_std,
+                "eta_absolute_dof": self.eta_absolute_dof,
+                "eta_absolute_ci95": list(self.eta_absolute_ci95),
                 "speed_in_rad_s": self.speed_in_rad_s, "torque_out_nm": self.torque_out_nm,
                 "torque_in_nm": self.torque_in_nm, "power_in_w": self.power_in_w,
                 "power_out_w": self.power_out_w, "out_command": w.out_command,
@@ -175,19 +187,20 @@ def taper(n: int, alpha: float = TAPER_ALPHA) -> np.ndarray:
     return np.where(edge < 1.0, 0.5 * (1.0 - np.cos(np.pi * np.minimum(edge, 1.0))), 1.0)
 
 
-def _mean_sem(x: np.ndarray, blocks: int = 10) -> tuple[float, float]:
-    """Tukey-weighted mean (see ``taper``) and its standard error: the block-means
-    standard error of the flat mean (robust to coloured noise) times the taper's
-    white-noise variance factor."""
+def _mean_sem(x: np.ndarray, blocks: int = 10) -> tuple[float, float, float]:
+    """Tukey-weighted mean (see ``taper``), its standard error and that error's degrees
+    of freedom: the block-means standard error of the flat mean (robust to coloured
+    noise, blocks − 1 dof) times the taper's white-noise variance factor."""
     w = taper(len(x))
     m = float(w @ x / w.sum())
     inflate = np.sqrt(len(x) * float(w @ w)) / float(w.sum())
     nb = min(blocks, len(x) // 10)
     if nb < 3:
-        return m, inflate * float(np.std(x) / np.sqrt(max(len(x) - 1, 1)))
+        return (m, inflate * float(np.std(x) / np.sqrt(max(len(x) - 1, 1))),
+                float(max(len(x) - 1, 1)))
     size = len(x) // nb
     bm = x[: nb * size].reshape(nb, size).mean(axis=1)
-    return m, inflate * float(np.std(bm, ddof=1) / np.sqrt(nb))
+    return m, inflate * float(np.std(bm, ddof=1) / np.sqrt(nb)), float(nb - 1)
 
 
 def measure_windows(trace: Trace, *, settle_s: float = 0.5) -> list[SteadyWindow]:
@@ -195,14 +208,15 @@ def measure_windows(trace: Trace, *, settle_s: float = 0.5) -> list[SteadyWindow
     ranges = steady_windows(t, trace["in_command"], trace["out_command"], settle_s=settle_s)
     res = []
     for s, e in ranges:
-        ci, ci_sem = _mean_sem(trace["in_current_a"][s:e])
-        co, co_sem = _mean_sem(trace["out_current_a"][s:e])
+        ci, ci_sem, ci_dof = _mean_sem(trace["in_current_a"][s:e])
+        co, co_sem, co_dof = _mean_sem(trace["out_current_a"][s:e])
         dt = t[e - 1] - t[s]
         res.append(SteadyWindow(
             s, e, float((t[s] + t[e - 1]) / 2), float(trace["in_command"][s]),
             float(trace["out_command"][s]) + 0.0, ci, ci_sem, co, co_sem,
             float((trace["in_position_rad"][e - 1] - trace["in_position_rad"][s]) / dt),
-            float((trace["out_position_rad"][e - 1] - trace["out_position_rad"][s]) / dt)))
+            float((trace["out_position_rad"][e - 1] - trace["out_position_rad"][s]) / dt),
+            ci_dof, co_dof))
     return res
 
 
@@ -266,16 +280,16 @@ def efficiency(trace: Trace, motor_in: MotorCalibration, motor_out: MotorCalibra
 
     points = []
     for w in loaded:
-        ref_in, ref_in_sem, ref_out, ref_out_sem = _reference(w, refs, trace.source)
-        p = _point(w, ref_in, ref_in_sem, ref_out, ref_out_sem, motor_in, motor_out,
-                   n_signed, n_rel_std, trace.source)
+        ref = _reference(w, refs, trace.source)
+        p = _point(w, ref, motor_in, motor_out, n_signed, n_rel_std, trace.source)
         points.append(p)
     return EfficiencyResult(n_abs, sign, abs(n_meas), tuple(points), tuple(refs))
 
 
 def _reference(w: SteadyWindow, refs: list[SteadyWindow], source: str):
     """Zero-load currents for window ``w``: linear in time between the nearest reference
-    windows before and after at the same speed command, else the nearest one."""
+    windows before and after at the same speed command, else the nearest one.
+    Returns (i_in, sem_in, dof_in, i_out, sem_out, dof_out)."""
     same = [r for r in refs if np.isclose(r.in_command, w.in_command, rtol=1e-6, atol=1e-9)]
     if not same:
         raise TraceError(f"{source}: no zero-load level at in_command = {w.in_command:g}; "
@@ -287,15 +301,17 @@ def _reference(w: SteadyWindow, refs: list[SteadyWindow], source: str):
         f = (w.t_mid_s - a.t_mid_s) / (b.t_mid_s - a.t_mid_s)
         cin = (1 - f) * a.current_in_a + f * b.current_in_a
         cout = (1 - f) * a.current_out_a + f * b.current_out_a
-        sin = float(np.hypot((1 - f) * a.current_in_sem, f * b.current_in_sem))
-        sout = float(np.hypot((1 - f) * a.current_out_sem, f * b.current_out_sem))
-        return cin, sin, cout, sout
+        vin = [((1 - f) * a.current_in_sem) ** 2, (f * b.current_in_sem) ** 2]
+        vout = [((1 - f) * a.current_out_sem) ** 2, (f * b.current_out_sem) ** 2]
+        return (cin, float(np.sqrt(sum(vin))), effective_dof(vin, [a.current_in_dof, b.current_in_dof]),
+                cout, float(np.sqrt(sum(vout))), effective_dof(vout, [a.current_out_dof, b.current_out_dof]))
     r = before[-1] if before else after[0]
-    return r.current_in_a, r.current_in_sem, r.current_out_a, r.current_out_sem
+    return (r.current_in_a, r.current_in_sem, r.current_in_dof,
+            r.current_out_a, r.current_out_sem, r.current_out_dof)
 
 
-def _point(w, ref_in, ref_in_sem, ref_out, ref_out_sem, m_in, m_out, n_signed, n_rel_std,
-           source) -> EfficiencyPoint:
+def _point(w, ref, m_in, m_out, n_signed, n_rel_std, source) -> EfficiencyPoint:
+    ref_in, ref_in_sem, ref_in_dof, ref_out, ref_out_sem, ref_out_dof = ref
     di_in, di_out = w.current_in_a - ref_in, w.current_out_a - ref_out
     if di_in * np.sign(w.speed_in_rad_s or 1.0) <= 0:
         raise ExcitationError(
@@ -316,6 +332,10 @@ def _point(w, ref_in, ref_in_sem, ref_out, ref_out_sem, m_in, m_out, n_signed, n
     cov = np.zeros((11, 11))
     sd = [w.current_in_sem, ref_in_sem, w.current_out_sem, ref_out_sem, m_in.Kt_std,
           m_out.Kt_std, abs(n_signed) * n_rel_std]
+    # degrees of freedom per input group: the 7 scalars, then each motor's (D, Tc) block
+    # (from the same calibration as its Kt); the ratio is type B (known)
+    dofs = [w.current_in_dof, ref_in_dof, w.current_out_dof, ref_out_dof, m_in.Kt_dof,
+            m_out.Kt_dof, DOF_MAX, m_in.Kt_dof, m_out.Kt_dof]
     cov[np.arange(7), np.arange(7)] = np.square(sd)
     cov[7:9, 7:9] = np.asarray(m_in.loss_covariance)
     cov[9:11, 9:11] = np.asarray(m_out.loss_covariance)
@@ -329,6 +349,11 @@ def _point(w, ref_in, ref_in_sem, ref_out, ref_out_sem, m_in, m_out, n_signed, n
         jac[:, k] = (etas(vp) - etas(vm)) / (2 * h)
     eta = etas(v0)
     std = np.sqrt(np.maximum(np.diag(jac @ cov @ jac.T), 0.0))
+    dof = []
+    for row in jac:
+        parts = [(row[k] * sd[k]) ** 2 for k in range(7)]
+        parts += [float(row[a:a + 2] @ cov[a:a + 2, a:a + 2] @ row[a:a + 2]) for a in (7, 9)]
+        dof.append(effective_dof(parts, dofs))
     t_in, t_out, p_in, p_out = shaft_powers(w.current_in_a, w.current_out_a, w.speed_in_rad_s,
                                             w.speed_out_rad_s, m_in, m_out)
     r_in, r_out = loss_speed_range(m_in), loss_speed_range(m_out)
@@ -337,6 +362,7 @@ def _point(w, ref_in, ref_in_sem, ref_out, ref_out_sem, m_in, m_out, n_signed, n
     return EfficiencyPoint(
         w, w.speed_in_rad_s, t_in * np.sign(w.speed_in_rad_s), t_out * np.sign(w.speed_out_rad_s),
         di_in, di_out,
-        float(eta[0]), (float(eta[0] - Z95 * std[0]), float(eta[0] + Z95 * std[0])),
-        float(eta[1]), (float(eta[1] - Z95 * std[1]), float(eta[1] + Z95 * std[1])),
-        p_in, p_out, bool(extrapolated), r_in, r_out)
+        float(eta[0]), interval(eta[0], std[0], dof[0]),
+        float(eta[1]), interval(eta[1], std[1], dof[1]),
+        p_in, p_out, bool(extrapolated), r_in, r_out,
+        float(std[0]), float(dof[0]), float(std[1]), float(dof[1]))

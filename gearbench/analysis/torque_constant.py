@@ -17,8 +17,10 @@ plant with fresh noise shows the Kt misses are deterministic, not noise — e.g.
 that steps its speed setpoint every SYNC and reports an instantaneous current sample
 biases b2 by 1-3 %, mostly the same in both runs (it cancels in eq. 17) but not entirely
 (the loaded run tracks the command differently), leaving 0.1-0.7 % on Kt that no split
-of a run can see. The interval is Student-t with Welch–Satterthwaite degrees of
-freedom (the model part counts as known).
+of a run can see. Kt is proportional to the disk's inertia j, so j's own relative
+standard uncertainty adds 1:1 to Kt's (u_rel(Kt)² gains u_rel(j)²). The interval is
+Student-t with Welch–Satterthwaite degrees of freedom, the model and disk parts
+counting as known (``gearbench.analysis.uncertainty``).
 """
 from __future__ import annotations
 
@@ -27,7 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ExcitationError, GearbenchError
-from .identify import IdentificationResult, t_quantile
+from .identify import IdentificationResult
+from .uncertainty import DOF_MAX, interval
 
 # Relative b2 error not shared by the two runs (1 sigma). Chosen on robustness seed 0
 # (Kt coverage 84 % -> 94 %), checked on seeds 1-3 (see the robustness benchmark).
@@ -39,8 +42,8 @@ class TorqueConstant:
     """Kt and rotor inertia with 95 % intervals (Student-t, ``dof`` degrees of freedom).
 
     ``torque_constant_std`` is the total standard uncertainty, the root sum of squares
-    of ``statistical_std`` (noise, from the runs' covariances) and ``model_std`` (model
-    error and the disk inertia's own uncertainty)."""
+    of ``statistical_std`` (noise, from the runs' covariances), ``model_std`` (b2 model
+    error) and ``disk_std`` (the disk inertia's own uncertainty, Kt·u(j)/j)."""
 
     torque_constant_nm_a: float
     torque_constant_ci95: tuple[float, float]
@@ -50,6 +53,7 @@ class TorqueConstant:
     dof: int
     statistical_std: float = 0.0
     model_std: float = 0.0
+    disk_std: float = 0.0
 
 
 def torque_constant_from_b2(b2_unloaded: float, b2_loaded: float, disk_inertia_kgm2: float) -> float:
@@ -69,7 +73,8 @@ def torque_constant(unloaded: IdentificationResult, loaded: IdentificationResult
     """Kt from two fits (corrected eq. 17) with its uncertainty by first-order propagation.
 
     With u = 1/b2^ − 1/b2~ = j/Kt:  ∂Kt/∂b2~ = −Kt²/(j b2~²),  ∂Kt/∂b2^ = Kt²/(j b2^²),
-    ∂Kt/∂j = Kt/j; the two runs are independent. ``model_b2_rel`` adds a relative
+    ∂Kt/∂j = Kt/j; the two runs are independent. ``disk_inertia_std`` is the disk's
+    standard uncertainty (kg m², see ``uncertainty.tolerance_std``). ``model_b2_rel`` adds a relative
     error of that size on b2 not shared by the runs, σ = ε·Kt/(1 − b2^/b2~) (module
     docstring), largest when the disk is light (None: ``MODEL_B2_REL``). The interval is
     Student-t with ν = σ⁴/(σ_stat⁴/ν_stat) (Welch–Satterthwaite), ν_stat the smaller of
@@ -100,17 +105,23 @@ def torque_constant(unloaded: IdentificationResult, loaded: IdentificationResult
     dkt_dbl = kt * kt / (j * bl * bl)
     if model_b2_rel is None:
         model_b2_rel = MODEL_B2_REL
+    if not (np.isfinite(disk_inertia_std) and disk_inertia_std >= 0):
+        raise GearbenchError(f"disk inertia standard uncertainty must be >= 0 kg m^2, got "
+                             f"{disk_inertia_std!r}")
     var_stat = (dkt_dbu * unloaded.b2_std) ** 2 + (dkt_dbl * loaded.b2_std) ** 2
-    var_known = (kt / j * disk_inertia_std) ** 2 + (model_b2_rel * kt * bu / (bu - bl)) ** 2
+    var_disk = (kt / j * disk_inertia_std) ** 2
+    var_model = (model_b2_rel * kt * bu / (bu - bl)) ** 2
+    var_known = var_disk + var_model
     std = float(np.sqrt(var_stat + var_known))
     dof_stat = int(min(unloaded.dof, loaded.dof))
+    # Welch–Satterthwaite with the model and disk parts known (infinite dof)
     dof = dof_stat if var_stat <= 0 else int(min(
-        (var_stat + var_known) ** 2 / (var_stat ** 2 / max(dof_stat, 1)), 10_000))
-    half = t_quantile(dof) * std
+        (var_stat + var_known) ** 2 / (var_stat ** 2 / max(dof_stat, 1)), DOF_MAX))
     # J = Kt / b2~ :  dJ = dKt / b2~ − Kt dbu / b2~² (correlated through bu).
     jr = kt / bu
     dj_dbu = dkt_dbu / bu - kt / bu ** 2
     dj_dbl = dkt_dbl / bu
-    j_std = float(np.hypot(dj_dbu * unloaded.b2_std, dj_dbl * loaded.b2_std))
-    return TorqueConstant(kt, (kt - half, kt + half), std, jr, j_std, dof,
-                          float(np.sqrt(var_stat)), float(np.sqrt(var_known)))
+    j_std = float(np.sqrt((dj_dbu * unloaded.b2_std) ** 2 + (dj_dbl * loaded.b2_std) ** 2
+                          + (jr / j * disk_inertia_std) ** 2))
+    return TorqueConstant(kt, interval(kt, std, dof), std, jr, j_std, dof,
+                          float(np.sqrt(var_stat)), float(np.sqrt(var_model)), float(np.sqrt(var_disk)))

@@ -98,7 +98,7 @@ def _efficiency_errors(trace, plant, cal_in, cal_out, settle_s):
     for p in res.points:
         if abs(p.window.out_command) < 0.5 * plant.motor_out.rated_current_a - 1e-9:
             continue
-        truth = bench_operating_point(plant, p.speed_in_rad_s, p.window.out_command)
+        truth = bench_operating_point(plant, p.window.in_command, p.window.out_command)
         inc.append(100 * (p.eta_incremental - truth["eta_incremental"]))
         ab.append(100 * (p.eta_absolute - truth["eta_absolute"]))
     return inc, ab

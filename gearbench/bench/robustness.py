@@ -36,7 +36,6 @@ METHODS = ("paper-15ms", "paper", "default")
 TARGETS = {"kt_pct": 0.2, "inc_pp": 0.2, "abs_pp": 0.3}
 PERIOD_S = 1e-3
 BIASED_SIGMAS = 2.0          # |error| > 2 x its own standard uncertainty: biased, not noise
-Z95 = 1.96
 
 
 @dataclass(frozen=True)
@@ -74,7 +73,7 @@ class Case:
 @dataclass
 class Outcome:
     """One method on one case: errors, their reported standard uncertainties (same
-    units, from the 95 % intervals) and whether each interval holds the truth."""
+    units, as the method stores them) and whether each 95 % interval holds the truth."""
 
     kt_err_pct: list = field(default_factory=list)
     inc_err_pp: list = field(default_factory=list)
@@ -250,12 +249,12 @@ def run_case(case: Case, methods=METHODS, data: dict | None = None) -> dict[str,
             for p in res.points:
                 if abs(p.window.out_command) < 0.5 * plant.motor_out.rated_current_a - 1e-12:
                     continue
-                truth = bench_operating_point(plant, p.speed_in_rad_s, p.window.out_command)
+                truth = bench_operating_point(plant, p.window.in_command, p.window.out_command)
                 for kind, errs, stds, cover in (("incremental", oc.inc_err_pp, oc.inc_std_pp, oc.inc_cover),
                                                 ("absolute", oc.abs_err_pp, oc.abs_std_pp, oc.abs_cover)):
                     value, (lo_, hi_) = getattr(p, f"eta_{kind}"), getattr(p, f"eta_{kind}_ci95")
                     errs.append(100 * (value - truth[f"eta_{kind}"]))
-                    stds.append(100 * (hi_ - lo_) / (2 * Z95))
+                    stds.append(100 * getattr(p, f"eta_{kind}_std"))
                     cover.append(lo_ <= truth[f"eta_{kind}"] <= hi_)
                 oc.abs_extrapolated.append(p.loss_extrapolated)
         except Exception as exc:            # a failure is a result here, not a crash

@@ -1,0 +1,79 @@
+"""One convention for uncertainties (GUM, JCGM 100:2008), used by every result.
+
+- Every result carries its **standard uncertainty** ``std`` (1 sigma) and its
+  **degrees of freedom** ``dof``; both are computed and stored, never read back
+  from an interval.
+- Inputs combine to first order: u² = Σ (∂f/∂x_i · u_i)² (correlated inputs as a
+  covariance block).
+- ``dof`` is the Welch–Satterthwaite effective value ν = u⁴ / Σ (u_i⁴/ν_i); type B
+  inputs (tolerances, model-error terms) count as known exactly (ν_i = ∞).
+- Every interval is the **95 % coverage interval** value ± k·u with
+  k = t₀.₉₇₅(ν) (Student-t; 1.96 only when ν is infinite).
+- A tolerance read from a profile or a command line is converted to a standard
+  uncertainty by its source: ``datasheet`` = limits ±a that the value lies within
+  (rectangular distribution, u = a/√3, GUM 4.3.7); ``measured`` = the expanded
+  uncertainty at 95 % of a measurement (calibration certificate, k = 2, u = a/2).
+"""
+from __future__ import annotations
+
+import math
+
+from scipy import stats
+
+COVERAGE = 0.95
+DOF_MAX = 1e6                  # "infinite": JSON has no inf, and t(1e6) = 1.95997
+TOLERANCE_SOURCES = {
+    "datasheet": math.sqrt(3.0),   # ± limits, rectangular
+    "measured": 2.0,               # expanded uncertainty, k = 2 (95 %)
+}
+
+
+def coverage_factor(dof: float, level: float = COVERAGE) -> float:
+    """k for a ``level`` coverage interval with ``dof`` degrees of freedom (Student-t)."""
+    dof = float(dof)
+    if not dof >= 1.0:
+        dof = 1.0
+    if dof >= DOF_MAX:
+        return float(stats.norm.ppf(0.5 + level / 2))
+    return float(stats.t.ppf(0.5 + level / 2, dof))
+
+
+def interval(value: float, std: float, dof: float, level: float = COVERAGE) -> tuple[float, float]:
+    """The ``level`` coverage interval value ± k(dof)·std."""
+    half = coverage_factor(dof, level) * std
+    return float(value - half), float(value + half)
+
+
+def effective_dof(variances, dofs) -> float:
+    """Welch–Satterthwaite: ν = (Σ v_i)² / Σ (v_i²/ν_i) over the contributions' variances
+    v_i; a contribution with ν_i = inf (or ≥ DOF_MAX) is known exactly. Capped at DOF_MAX."""
+    total = 0.0
+    denom = 0.0
+    for v, nu in zip(variances, dofs):
+        v = float(v)
+        total += v
+        if v > 0 and nu < DOF_MAX:
+            denom += v * v / max(float(nu), 1.0)
+    if denom <= 0:
+        return DOF_MAX
+    return float(min(total * total / denom, DOF_MAX))
+
+
+def tolerance_std(tolerance: float, source: str) -> float:
+    """Standard uncertainty of a value known to ± ``tolerance`` from ``source``
+    (``datasheet``: limits, u = a/√3; ``measured``: 95 % expanded uncertainty, u = a/2)."""
+    try:
+        return float(tolerance) / TOLERANCE_SOURCES[source]
+    except KeyError:
+        raise ValueError(f"tolerance source must be one of {', '.join(TOLERANCE_SOURCES)}, "
+                         f"got {source!r}") from None
+
+
+def coverage_acceptance(trials: int, level: float = COVERAGE, alpha: float = 2e-3) -> tuple[int, int]:
+    """Two-sided binomial acceptance range for the number of intervals (out of ``trials``
+    independent ones) that hold the truth when their true coverage is ``level``: a count
+    outside [low, high] has probability <= ``alpha`` (half on each side). Intervals too
+    wide fall above it, too narrow below it."""
+    low = int(stats.binom.ppf(alpha / 2, trials, level))
+    high = int(stats.binom.isf(alpha / 2, trials, level))
+    return low, high
