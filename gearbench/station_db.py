@@ -21,6 +21,14 @@ CREATE TABLE IF NOT EXISTS measurements (
     run_id TEXT NOT NULL REFERENCES runs(run_id), name TEXT NOT NULL, value REAL,
     low REAL, high REAL, passed INTEGER, unit TEXT);
 CREATE INDEX IF NOT EXISTS measurements_run ON measurements(run_id);
+-- the outbox: a run is pending for a central database until a row here says it landed
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT);
+CREATE TABLE IF NOT EXISTS central_pushes (
+    run_id TEXT NOT NULL, target TEXT NOT NULL, pushed_utc TEXT, PRIMARY KEY (run_id, target));
+-- reference ("golden") units of this station and their stored baseline run
+CREATE TABLE IF NOT EXISTS golden (
+    serial TEXT NOT NULL, profile TEXT NOT NULL, baseline_run_id TEXT, set_utc TEXT,
+    PRIMARY KEY (serial, profile));
 """
 
 
@@ -30,6 +38,20 @@ def connect(path: str | Path) -> sqlite3.Connection:
     con = sqlite3.connect(p)
     con.executescript(SCHEMA)
     return con
+
+
+def station_id(con: sqlite3.Connection, db_path: str | Path | None = None) -> str:
+    """The station this database belongs to, fixed when first asked: $GEARBENCH_STATION,
+    else the station config's ``station:``, else the host name."""
+    row = con.execute("SELECT value FROM meta WHERE key = 'station'").fetchone()
+    if row:
+        return row[0]
+    from .central.config import default_station
+
+    sid = default_station(db_path)
+    with con:
+        con.execute("INSERT OR IGNORE INTO meta VALUES ('station', ?)", (sid,))
+    return con.execute("SELECT value FROM meta WHERE key = 'station'").fetchone()[0]
 
 
 def measurements_of(result: dict) -> list[tuple]:
@@ -55,6 +77,7 @@ def measurements_of(result: dict) -> list[tuple]:
 def store_run(path: str | Path, result: dict) -> None:
     con = connect(path)
     try:
+        station_id(con, path)   # a station database knows its station before its first run
         with con:
             con.execute(
                 "INSERT OR REPLACE INTO runs VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?)",

@@ -1,41 +1,51 @@
-"""gearbench history SN: past runs of a serial from the station database."""
+"""gearbench history SN: past runs of a serial, from the station or the central database."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
-
-from ..errors import GearbenchError
 
 NAME = "history"
-HELP = "List the runs of a serial number from the station database."
+HELP = "List the runs of a serial number (station database, or the central one with --central)."
 
 
 def add_arguments(p) -> None:
-    p.add_argument("serial", help="unit serial number")
-    p.add_argument("--db", default="results/station.sqlite",
-                   help="station database (default: results/station.sqlite)")
+    p.add_argument("serial", nargs="?", help="unit serial number (omit to list by the filters below)")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--db", default="results/station.sqlite",
+                     help="station database (default: results/station.sqlite)")
+    src.add_argument("--central", metavar="URL", help="the central database postgresql://...")
+    p.add_argument("--station", help="only runs of this station")
+    p.add_argument("--profile", help="only runs of this profile (its name)")
+    p.add_argument("--since", help="runs started at or after this UTC date/time, e.g. 2026-11-01")
+    p.add_argument("--until", help="runs started before this UTC date/time")
+    p.add_argument("--verdict", choices=["passed", "failed", "fault", "aborted"])
+    p.add_argument("--limit", type=int, default=None, help="at most this many runs (newest first)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
 
 def run(args) -> int:
-    from ..station_db import history
+    from ..central.query import RunQuery, open_results
+    from ..errors import GearbenchError
 
-    db = Path(args.db)
-    if not db.exists():
-        raise GearbenchError(f"{db}: no station database here; pass --db PATH "
-                             f"(gearbench run writes it next to its output folder)")
-    runs = history(db, args.serial)
+    if args.serial is None and not any((args.station, args.profile, args.since, args.until, args.verdict)):
+        raise GearbenchError("give a serial number, or at least one of --station --profile "
+                             "--since --until --verdict")
+    q = RunQuery(serial=args.serial, station=args.station, profile=args.profile, since=args.since,
+                 until=args.until, verdict=args.verdict, limit=args.limit)
+    source = args.central or args.db
+    with open_results(source) as db:
+        runs = db.runs(q)
     if args.json:
         print(json.dumps({"serial": args.serial, "runs": runs}, default=str))
         return 0
     if not runs:
-        print(f"no runs for serial {args.serial} in {db}")
+        print(f"no runs for {args.serial or 'these filters'} in {getattr(db, 'name', source)}")
         return 0
-    print(f"{'started (UTC)':<30}{'profile':<14}{'status':<9}{'ratio':>9}  run / folder")
+    print(f"{'started (UTC)':<31}{'station':<16}{'serial':<12}{'profile':<14}{'status':<9}{'ratio':>9}"
+          f"  run / folder")
     for r in runs:
         ratio = f"{r['ratio']:.4f}" if r["ratio"] is not None else "-"
-        print(f"{r['started_utc']:<30}{r['profile']:<14}{r['status']:<9}{ratio:>9}  "
-              f"{r['run_id']} {r['out_dir']}")
+        print(f"{r['started_utc'] or '-':<31}{r['station']:<16}{r['serial']:<12}{r['profile'] or '-':<14}"
+              f"{r['status']:<9}{ratio:>9}  {r['run_id']} {r['trace_uri']}")
         for m in r["measurements"]:
             if m["name"].startswith("limit."):
                 ok = "PASS" if m["passed"] else "FAIL"

@@ -5,6 +5,8 @@ import sys
 from datetime import datetime, timezone
 from pathlib import Path
 
+from ..central.config import central_url
+from ..central.push import CentralPush
 from ..errors import GearbenchError
 
 NAME = "run"
@@ -26,6 +28,13 @@ def add_arguments(p) -> None:
                    help="identification method (default: bias-corrected; paper: as published)")
     p.add_argument("--seed", type=int, default=None, help="--sim: plant noise seed (default: profile's)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.add_argument("--central", metavar="URL",
+                   help="also push the finished run to this central database postgresql://... "
+                        "(default: $GEARBENCH_CENTRAL or central: in the station config); "
+                        "the station database stays the outbox if it is unreachable")
+    p.add_argument("--golden", action="store_true",
+                   help="the unit is a reference unit: compare it to its stored baseline "
+                        "(its first passed golden run), exit 1 if it deviates")
 
 
 def run(args) -> int:
@@ -40,8 +49,32 @@ def run(args) -> int:
     if not args.yes and not args.sim and not sys.stdin.isatty():
         raise GearbenchError("no operator terminal to answer the mounting prompts; "
                              "run from a terminal or pass --yes for an unattended run")
+    db = Path(args.db) if args.db else out.resolve().parent / "station.sqlite"  # as open_bench
+    subscribers = []
+    url = central_url(args.central, db)
+    if url:
+        subscribers.append(CentralPush(db, url, quiet=args.quiet))
+    if args.golden:
+        from ..golden import mark_golden
+        from ..profile import load_profile
+
+        mark_golden(db, serial, load_profile(args.profile).name)
     result = run_profile(args.profile, sim=args.sim, out_dir=out, serial=serial,
-                         db=args.db, yes=args.yes or args.sim, rrd=args.rrd, live=args.live,
+                         db=db, yes=args.yes or args.sim, rrd=args.rrd, live=args.live,
                          connect=args.connect, method=args.method, seed=args.seed,
-                         quiet=args.quiet)
+                         quiet=args.quiet, subscribers=subscribers)
+    if args.golden:
+        return _golden(db, out, result)
     return int(result["exit_code"])
+
+
+def _golden(db: Path, out: Path, result: dict) -> int:
+    from ..golden import check_golden, format_report
+    from ..report import write_result_json
+
+    rep = check_golden(db, result)
+    write_result_json(out / "golden.json", rep)
+    print("\n".join(format_report(rep)), file=sys.stderr)
+    if result["exit_code"]:
+        return int(result["exit_code"])
+    return 1 if rep["status"] in ("deviates", "not-judged") else 0
