@@ -30,7 +30,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="gearbench",
         description="Gear-reducer efficiency without a torque transducer.")
-    parser.add_argument("--version", action="version", version=f"gearbench {__version__}")
+    from .analysis import METHOD_VERSIONS
+
+    methods = ", ".join(f"{m} {v}" for m, v in METHOD_VERSIONS.items())
+    parser.add_argument("--version", action="version",
+                        version=f"gearbench {__version__} (analysis methods: {methods})")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for mod in _command_modules():
         p = sub.add_parser(mod.NAME, help=mod.HELP, description=mod.HELP)

@@ -10,6 +10,7 @@ and ends the run with exit code 3, keeping every sample recorded before it.
 from __future__ import annotations
 
 import signal
+import socket
 import threading
 import time
 import uuid
@@ -19,6 +20,8 @@ from typing import Callable, Protocol
 
 import numpy as np
 
+from . import __version__
+from .analysis import METHOD_VERSIONS
 from .drives.base import DriveNetwork, Mode
 from .errors import BenchFault, GearbenchError
 from .records import (Calibration, EfficiencyPoint, LimitResult, Message, Progress, RunStart,
@@ -95,6 +98,8 @@ class Sequencer:
         self.motors_result: dict[str, dict] = {}
         self.efficiency: list[dict] = []
         self.ratio: float | None = None
+        self.prompts: list[dict] = []              # operator prompts and when each was confirmed
+        self.lost_by_step: dict[str, int] = {}
 
     # ------------------------------------------------------------------ abort
     def request_abort(self, reason: str) -> None:
@@ -145,6 +150,7 @@ class Sequencer:
             actions.append(("prompt", step.remove_prompt or f"Remove disk '{disk.name}' from motor '{m}'",
                             dict(coupling="none", disk_kgm2={})))
             actions.append(("analyse", "calibrate", dict(motor=m, disk=disk.inertia_kgm2,
+                            disk_std=disk.inertia_std_kgm2,
                             unloaded=f"calibrate-{m}-unloaded",
                             loaded=f"calibrate-{m}-{disk.name}")))
         elif isinstance(step, LoadStep):
@@ -263,7 +269,10 @@ class Sequencer:
 
     def _prompt(self, text: str, mount: dict) -> None:
         self.emit(Message(text, level="prompt"))
+        shown = now_utc()
         self.operator.confirm(text)
+        self.prompts.append({"prompt": text, "shown_utc": shown, "confirmed_utc": now_utc(),
+                             "operator": type(self.operator).__name__})
         self.fixture.mount(**mount)
 
     # ----------------------------------------------------------- acquisition
@@ -326,6 +335,7 @@ class Sequencer:
                         pass
             self._flush(seg.name, buf_idx, buf_t, cols, flushed, done)
             self._samples_done += done
+            self.lost_by_step[seg.name] = net.lost_samples - lost0
             self.emit(StepStop(seg.name, status, done, net.lost_samples - lost0))
             self.traces[seg.name] = Trace(buf_t[:done], {"sample": buf_idx[:done],
                                           **{c: v[:done] for c, v in cols.items()}},
@@ -371,7 +381,8 @@ class Sequencer:
         if what == "calibrate":
             m = args["motor"]
             cal = pipeline.calibrate(self.traces[args["unloaded"]], self.traces[args["loaded"]],
-                                     motor=m, disk_kgm2=args["disk"], method=self.method)
+                                     motor=m, disk_kgm2=args["disk"], method=self.method,
+                                     disk_std_kgm2=args.get("disk_std", 0.0))
             self.motors_result[m] = cal
             self.emit(Calibration(m, cal))
         elif what == "efficiency":
@@ -430,12 +441,16 @@ class Sequencer:
             "started_utc": started, "finished_utc": now_utc(),
             "status": status, "passed": status == "passed", "exit_code": exit_code,
             "reason": reason, "method": self.method,
+            "gearbench_version": __version__, "method_version": METHOD_VERSIONS.get(self.method, ""),
+            "station": {"name": p.bench.name, "host": socket.gethostname()},
+            "prompts": self.prompts,
             "motors": self.motors_result, "ratio": self.ratio,
             "efficiency": self.efficiency, "limits": limits,
             "bench_time_s": n_samples * self.period_s,
             "wall_time_s": time.monotonic() - self._wall0,
             "samples": n_samples, "lost_samples": self.net.lost_samples,
             "steps": {name: len(t) for name, t in self.traces.items()},
+            "lost_samples_by_step": dict(self.lost_by_step),
             "out_dir": str(self.out_dir),
         }
         if self.sim_truth is not None:

@@ -40,11 +40,12 @@ from canopen.emcy import EmcyError
 from canopen.sdo import SdoAbortedError, SdoCommunicationError, SdoVariable
 
 from ..errors import BenchFault, DriveError
+from ..shipped import shipped_driver
 from .base import AxisConfig, Drive, DriveNetwork, Mode, Sample
 from .buses import open_bus, parse_bus
 from .scaling import DriveScaling, unwrap_int32
 
-DEFAULT_EDS = str(Path(__file__).resolve().parents[2] / "drivers" / "cia402-servo.eds")
+DEFAULT_EDS = str(shipped_driver("cia402-servo.eds"))
 REQUIRED_OBJECTS = {0x1000: "device type", 0x1017: "producer heartbeat time", 0x1400: "RPDO1 communication",
                     0x1401: "RPDO2 communication", 0x1600: "RPDO1 mapping", 0x1601: "RPDO2 mapping",
                     0x1800: "TPDO1 communication", 0x1801: "TPDO2 communication", 0x1A00: "TPDO1 mapping",

@@ -23,6 +23,7 @@ from typing import Mapping
 import yaml
 
 from ..errors import ProfileError
+from ..shipped import shipped_driver
 
 #: type name -> (struct code, number of 16-bit words)
 TYPES: dict[str, tuple[str, int]] = {
@@ -220,11 +221,11 @@ def _number(text) -> float:
 
 
 def resolve_description(path: str | Path) -> Path:
-    """A path as given, else the same name under the repository's ``drivers/``."""
+    """A path as given, else the same name among the shipped drive descriptions."""
     p = Path(path)
     if p.exists():
         return p
-    fallback = Path(__file__).resolve().parents[2] / "drivers" / p.name
+    fallback = shipped_driver(p.name)
     return fallback if fallback.exists() else p
 
 

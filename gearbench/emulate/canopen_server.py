@@ -19,17 +19,17 @@ from __future__ import annotations
 import struct
 import threading
 import time
-from pathlib import Path
 
 import canopen
 from canopen.objectdictionary import ODVariable
 
 from ..drives.buses import BusSpec, open_bus
 from ..drives.scaling import DriveScaling
+from ..shipped import shipped_driver
 from .bench import EmulatedBench
 from .cia402_axis import Cia402Axis
 
-DEFAULT_EDS = str(Path(__file__).resolve().parents[2] / "drivers" / "cia402-servo.eds")
+DEFAULT_EDS = str(shipped_driver("cia402-servo.eds"))
 NMT_OPERATIONAL = 5
 PDO_INVALID = 1 << 31
 LIVE = (0x6041, 0x6061, 0x6064, 0x606C, 0x6077, 0x6078, 0x603F, 0x1001, 0x2001)

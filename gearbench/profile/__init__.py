@@ -26,16 +26,19 @@ __all__ = ["load_profile", "parse_profile_text", "Profile", "BenchSpec", "BusSpe
 def load_profile(path: str | Path) -> Profile:
     """Read and validate a profile file; ``ProfileError`` (one line, file:line:col) on any problem.
 
-    Relative drive paths resolve against the profile's folder, then the current
-    directory, then the repository root.
+    A bare name (``cvt``) is ``./profiles/cvt.yaml`` or the shipped example. Relative
+    drive paths resolve against the profile's folder, the station, then the shipped
+    drive descriptions (``gearbench.shipped``).
     """
-    shown = str(path)
-    p = Path(path)
+    from ..shipped import find_profile, shipped_profiles
+
+    p = find_profile(path)
+    shown = str(path) if p == Path(path) else str(p)
     try:
         data = p.read_bytes()
     except FileNotFoundError:
-        raise ProfileError(f"{shown}: no such profile file; check the path "
-                           f"(shipped profiles: profiles/cvt.yaml, profiles/cyclo.yaml)") from None
+        raise ProfileError(f"{shown}: no such profile file; check the path, or give a shipped "
+                           f"profile by name ({', '.join(shipped_profiles())})") from None
     except IsADirectoryError:
         raise ProfileError(f"{shown}: is a folder, not a profile; give a .yaml file inside it") from None
     except OSError as exc:

@@ -261,14 +261,15 @@ def _bench(c: _Checker, top) -> BenchSpec:
 
 
 def _resolve_drive(c: _Checker, value: str, path, base_dir: Path) -> str:
-    rel = Path(value).expanduser()
-    candidates = [rel] if rel.is_absolute() else [base_dir / rel, Path.cwd() / rel, REPO_ROOT / rel]
-    for cand in candidates:
-        if cand.is_file():
-            return str(cand.resolve())
-    looked = ", ".join(dict.fromkeys(str(x) for x in candidates))
-    c.fail(path, f"drive description '{value}' not found (looked in {looked})",
-           "fix the path, relative to the profile's folder or the repository (e.g. drivers/cia402-servo.eds)")
+    # Order (documented in gearbench.shipped): profile's folder, station, shipped.
+    from ..shipped import find_drive
+
+    found, looked = find_drive(value, base_dir)
+    if found is not None:
+        return str(found)
+    c.fail(path, f"drive description '{value}' not found (looked in {', '.join(map(str, looked))})",
+           "fix the path, relative to the profile's folder or the station (e.g. drivers/cia402-servo.eds), "
+           "or put the file in the station's drivers/ folder")
 
 
 _DRIVE_SUFFIXES = {"cia402": (".eds", ".dcf"), "modbus": (".yaml", ".yml")}
