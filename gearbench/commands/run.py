@@ -8,6 +8,7 @@ from pathlib import Path
 from ..central.config import central_url
 from ..central.push import CentralPush
 from ..errors import GearbenchError
+from ..reanalysis import ProfileSnapshot
 
 NAME = "run"
 HELP = "Run a test profile on the bench (or on the simulated bench with --sim)."
@@ -50,7 +51,7 @@ def run(args) -> int:
         raise GearbenchError("no operator terminal to answer the mounting prompts; "
                              "run from a terminal or pass --yes for an unattended run")
     db = Path(args.db) if args.db else out.resolve().parent / "station.sqlite"  # as open_bench
-    subscribers = []
+    subscribers = [ProfileSnapshot()]   # profile.yaml in the run folder, for re-analysis
     url = central_url(args.central, db)
     if url:
         subscribers.append(CentralPush(db, url, quiet=args.quiet))
