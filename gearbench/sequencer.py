@@ -151,6 +151,7 @@ class Sequencer:
                             dict(coupling="none", disk_kgm2={})))
             actions.append(("analyse", "calibrate", dict(motor=m, disk=disk.inertia_kgm2,
                             disk_std=disk.inertia_std_kgm2,
+                            disk_std=disk.inertia_std_kgm2,
                             unloaded=f"calibrate-{m}-unloaded",
                             loaded=f"calibrate-{m}-{disk.name}")))
         elif isinstance(step, LoadStep):
@@ -454,18 +455,7 @@ class Sequencer:
             "out_dir": str(self.out_dir),
         }
         if self.sim_truth is not None:
-            result["simulation_truth"] = self.sim_truth_for(result)
+            from .sim.truth import simulation_truth   # the plant's, at the commanded points
+
+            result["simulation_truth"] = simulation_truth(self.sim_truth, self.efficiency)
         return result
-
-    def sim_truth_for(self, result: dict) -> dict:
-        """The simulated plant's truth in the shape of the result."""
-        from .sim import PlantParams, efficiency_truth
-
-        plant = PlantParams.from_dict(self.sim_truth, "simulation")
-        truth = plant.truth()
-        eff = []
-        for pt in result["efficiency"]:
-            t = efficiency_truth(plant, pt["speed_in_rad_s"], pt["torque_out_nm"])
-            eff.append({"speed_in_rad_s": pt["speed_in_rad_s"], "torque_out_nm": pt["torque_out_nm"],
-                        **t})
-        return {"motors": truth["motors"], "ratio": truth["ratio"], "efficiency": eff}

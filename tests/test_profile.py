@@ -58,6 +58,8 @@ def test_shipped_profiles_validate(name):
     for m in p.motors.values():
         assert Path(m.drive).is_file() and Path(m.drive).is_absolute()
     assert p.simulation is not None
+    for d in p.disks.values():      # Kt's largest uncertainty term, with its source
+        assert 0 < d.inertia_tolerance_rel <= 0.02 and d.inertia_source in ("datasheet", "measured")
     from gearbench.sim import PlantParams
     plant = PlantParams.from_dict(p.simulation, "simulation")
     assert plant.period_s == p.bench.period_s
@@ -131,8 +133,18 @@ CASES = [
      "low (0.85) must be <= high (0.55)"),
     ("efficiency_range: [0.55, 0.85]", "efficiency_range: [0.55, 1.2]", "efficiency_range",
      "reducer.efficiency_range[1]: must be <= 1 (got 1.2)"),
-    ("{inertia_kgm2: 2.0e-5}", "{inertia_kgm2: -2.0e-5}", "{inertia_kgm2: -2",
+    ("{inertia_kgm2: 2.0e-5,", "{inertia_kgm2: -2.0e-5,", "{inertia_kgm2: -2",
      "disks.disk_a.inertia_kgm2: must be > 0 (got -2e-05)"),
+    (", inertia_tolerance_rel: 0.005,", ",", "disk_a:",
+     "disks.disk_a: missing key 'inertia_tolerance_rel'; add 'inertia_tolerance_rel:' with how well"),
+    ("inertia_tolerance_rel: 0.005,", "inertia_tolerance_rel: 0,", "disk_a:",
+     "disks.disk_a.inertia_tolerance_rel: must be > 0 (got 0)"),
+    ("inertia_tolerance_rel: 0.005,", "inertia_tolerance_rel: 5,", "disk_a:",
+     "disks.disk_a.inertia_tolerance_rel: must be <= 0.5 (got 5)"),
+    ("inertia_source: measured}", "inertia_source: guessed}", "disk_a:",
+     "disks.disk_a.inertia_source: must be one of datasheet, measured (got 'guessed')"),
+    (", inertia_source: measured}", "}", "disk_a:",
+     "disks.disk_a: missing key 'inertia_source'; add 'inertia_source:' with where the tolerance"),
     ("    disk: disk_a", "    disk: disk_b", "disk: disk_b", "unknown disk 'disk_b' (known: disk_a); did you mean 'disk_a'?"),
     ("    motor: out", "    motor: outt", "motor: outt", "steps[1].motor: unknown motor 'outt'"),
     ("    waveform: excite", "    waveform: excit", "waveform: excit", "did you mean 'excite'?"),
@@ -266,8 +278,12 @@ def test_drive_paths_resolve_relative_to_the_profile(tmp_path):
 
 
 def test_scientific_notation_without_dot_is_a_float():
-    p = parse(replace_once(CVT_TEXT, "{inertia_kgm2: 2.0e-5}", "{inertia_kgm2: 2e-5}"))
+    p = parse(replace_once(CVT_TEXT, "{inertia_kgm2: 2.0e-5,", "{inertia_kgm2: 2e-5,"))
     assert p.disks["disk_a"].inertia_kgm2 == 2e-5
+    # measured: ±0.5 % is a 95 % expanded uncertainty (k = 2); datasheet: limits (u = tol/√3)
+    assert p.disks["disk_a"].inertia_std_kgm2 == pytest.approx(2e-5 * 0.005 / 2, rel=1e-12)
+    ds = parse(replace_once(CVT_TEXT, "inertia_source: measured", "inertia_source: datasheet"))
+    assert ds.disks["disk_a"].inertia_std_kgm2 == pytest.approx(2e-5 * 0.005 / 3 ** 0.5, rel=1e-12)
 
 
 def test_limit_forms():

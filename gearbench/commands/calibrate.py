@@ -5,6 +5,7 @@ import math
 
 from ..analysis.calibration import calibrate_motor
 from ..analysis.identify import METHODS
+from ..analysis.uncertainty import TOLERANCE_SOURCES, tolerance_std
 from ..errors import GearbenchError
 from ..trace import SINGLE_MOTOR_COLUMNS
 from ._offline import dump, read_trace
@@ -18,6 +19,12 @@ def add_arguments(p) -> None:
     p.add_argument("--loaded", required=True, metavar="L.csv", help="run with the inertia disk")
     p.add_argument("--inertia", required=True, type=float, metavar="J",
                    help="the disk's inertia, kg m^2")
+    p.add_argument("--inertia-tolerance", type=float, default=0.0, metavar="REL",
+                   help="how well the disk's inertia is known, relative (0.005 = ±0.5 %%); it adds to "
+                        "Kt's uncertainty 1:1. Default 0: taken as exact, and said so")
+    p.add_argument("--inertia-source", choices=tuple(TOLERANCE_SOURCES), default="datasheet",
+                   help="datasheet: the tolerance is ± limits (u = tol/√3); measured: it is a 95 %% "
+                        "expanded uncertainty (u = tol/2). Default datasheet")
     p.add_argument("--method", choices=METHODS, default="default",
                    help="identification method (default: bias-reduced; paper: as published)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
@@ -27,16 +34,25 @@ def run(args) -> int:
     if not (math.isfinite(args.inertia) and args.inertia > 0):
         raise GearbenchError(f"--inertia must be > 0 kg m^2 (got {args.inertia}); pass the disk's "
                              f"inertia, e.g. --inertia 1.5e-5")
+    tol = args.inertia_tolerance
+    if not (math.isfinite(tol) and 0 <= tol <= 0.5):
+        raise GearbenchError(f"--inertia-tolerance must be a relative tolerance between 0 and 0.5 "
+                             f"(got {tol}); e.g. --inertia-tolerance 0.005 for ±0.5 %")
     unloaded = read_trace(args.unloaded, SINGLE_MOTOR_COLUMNS)
     loaded = read_trace(args.loaded, SINGLE_MOTOR_COLUMNS)
-    cal = calibrate_motor(unloaded, loaded, args.inertia, method=args.method)
+    disk_std = tolerance_std(tol * args.inertia, args.inertia_source)
+    cal = calibrate_motor(unloaded, loaded, args.inertia, method=args.method, disk_std_kgm2=disk_std)
     if args.json:
         dump(cal.to_dict())
         return 0
     lo, hi = cal.Kt_ci95
     f = cal.fit
     print(f"method       {cal.method}")
-    print(f"Kt           {cal.Kt:.6g} N m/A   (95 %: {lo:.6g} .. {hi:.6g})")
+    print(f"Kt           {cal.Kt:.6g} N m/A   (95 %: {lo:.6g} .. {hi:.6g}; std {cal.Kt_std:.3g}, "
+          f"dof {cal.Kt_dof:.0f})")
+    if tol == 0:
+        print("             disk inertia taken as exact: the interval leaves out its tolerance "
+              "(pass --inertia-tolerance)")
     print(f"J            {cal.J:.6g} kg m^2 (rotor, without disk)")
     print(f"D            {cal.D:.6g} N m s/rad")
     print(f"Tc           {cal.Tc:.6g} N m")

@@ -57,8 +57,22 @@ class ReducerSpec:
 
 @dataclass(frozen=True)
 class DiskSpec:
+    """An inertia disk: its inertia and how well that is known.
+
+    ``inertia_tolerance_rel`` is read by ``inertia_source`` (``datasheet``: ± limits,
+    rectangular; ``measured``: expanded uncertainty at 95 %, k = 2); ``inertia_std_kgm2``
+    is the standard uncertainty it implies (``gearbench.analysis.uncertainty``)."""
+
     name: str
     inertia_kgm2: float
+    inertia_tolerance_rel: float = 0.0
+    inertia_source: str = "datasheet"
+
+    @property
+    def inertia_std_kgm2(self) -> float:
+        from ..analysis.uncertainty import tolerance_std
+
+        return tolerance_std(self.inertia_tolerance_rel * self.inertia_kgm2, self.inertia_source)
 
 
 @dataclass(frozen=True)

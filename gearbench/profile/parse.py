@@ -55,6 +55,9 @@ MEANING = {
     "cvt_setting": "the CVT adjuster position as a fraction of its travel, 0 < s <= 1",
     "efficiency_range": "the expected efficiency as [low, high], e.g. [0.6, 0.9]",
     "inertia_kgm2": "the disk's moment of inertia in kg m^2, e.g. 2.0e-5",
+    "inertia_tolerance_rel": "how well the disk's inertia is known, relative, e.g. 0.005 for +/-0.5 %",
+    "inertia_source": "where the tolerance comes from: datasheet (+/- limits) or measured "
+                      "(95 % expanded uncertainty)",
     "duration_s": "the length of each calibration run in s",
     "speeds_in_rad_s": "the input speeds in rad/s, e.g. [100, 200, 300]",
     "torques_out_nm": "the output braking torques in N m, e.g. [0.02, 0.04, 0.06, 0.08]",
@@ -351,14 +354,20 @@ def _reducer(c: _Checker, top) -> ReducerSpec | None:
 
 def _disks(c: _Checker, top) -> dict[str, DiskSpec]:
     p = ("disks",)
-    m = c.mapping(top.get("disks") or {}, p, "disks: {disk1: {inertia_kgm2: 2.0e-5}}")
+    example = "{inertia_kgm2: 2.0e-5, inertia_tolerance_rel: 0.005, inertia_source: measured}"
+    m = c.mapping(top.get("disks") or {}, p, f"disks: {{disk1: {example}}}")
     disks = {}
     for name, raw in m.items():
         dp = p + (name,)
         c.ident(name, dp, "disk")
-        d = c.mapping(raw, dp, f"disks.{name}: {{inertia_kgm2: 2.0e-5}}")
-        c.keys(d, dp, ("inertia_kgm2",), required=("inertia_kgm2",))
-        disks[name] = DiskSpec(name=name, inertia_kgm2=c.number(d, dp, "inertia_kgm2", gt=0.0, le=10.0))
+        d = c.mapping(raw, dp, f"disks.{name}: {example}")
+        # Kt is proportional to the disk's inertia: its tolerance is part of Kt's uncertainty
+        keys = ("inertia_kgm2", "inertia_tolerance_rel", "inertia_source")
+        c.keys(d, dp, keys, required=keys)
+        disks[name] = DiskSpec(name=name, inertia_kgm2=c.number(d, dp, "inertia_kgm2", gt=0.0, le=10.0),
+                               inertia_tolerance_rel=c.number(d, dp, "inertia_tolerance_rel", gt=0.0, le=0.5),
+                               inertia_source=c.string(d, dp, "inertia_source",
+                                                       choices=("datasheet", "measured")))
     return disks
 
 
