@@ -211,6 +211,7 @@ def test_bus_strings():
     assert parse_bus("udp_multicast:[ff15::1]:5000") == BusSpec("udp_multicast", "ff15::1", 5000)
     assert parse_bus("socketcan:vcan0") == BusSpec("socketcan", "vcan0")
     assert str(BusSpec("udp_multicast", "239.1.2.3", 5000)) == "udp_multicast:239.1.2.3:5000"
-    for bad in ("vcan0", "pcan:1", "udp_multicast:239.1.2.3:99999"):
+    assert parse_bus("pcan:PCAN_USBBUS1") == BusSpec("pcan", "PCAN_USBBUS1")   # any python-can interface
+    for bad in ("vcan0", "pcann:1", "udp_multicast:239.1.2.3:99999"):
         with pytest.raises(DriveError, match="bus"):
             parse_bus(bad)

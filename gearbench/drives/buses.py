@@ -6,7 +6,12 @@ Accepted forms:
 - ``udp_multicast:239.74.163.2:43113`` (IPv4 group:port), ``udp_multicast:[ff15::1]:43113``
   (IPv6), or without ``:port`` for python-can's default port — a real bus between
   processes that needs no kernel CAN support; classic CAN frames (``fd=False``);
-- ``virtual:name`` — in-process only.
+- ``virtual:name`` — in-process only;
+- any other interface python-can knows (``can.interfaces.VALID_INTERFACES``, which
+  includes installed ``can.interface`` entry-point plug-ins): ``pcan:PCAN_USBBUS1``,
+  ``kvaser:0``, ``ixxat:0``, ``vector:0``, ``slcan:/dev/ttyACM0``, ... The adapter's
+  own options (``bitrate``, Vector's ``app_name``, ...) come from the profile's
+  ``bench.bus`` (``bitrate:`` and ``options: {bus_kwargs: {...}}``).
 
 ``bus_for_tests()`` tells tests which cross-process bus to use: socketcan on
 ``$GEARBENCH_VCAN`` when set (``.ci/run`` sets it where it could create vcan0), else
@@ -22,7 +27,18 @@ import can
 
 from ..errors import DriveError
 
-INTERFACES = ("socketcan", "udp_multicast", "virtual")
+INTERFACES = tuple(sorted(can.interfaces.VALID_INTERFACES))   # built-in + entry-point plug-ins
+# What the open error suggests, for the adapters end-of-line testers commonly use.
+DRIVER_HINTS = {
+    "socketcan": "no kernel CAN here? create it with `ip link add dev vcan0 type vcan; ip link set up vcan0` "
+                 "or use udp_multicast; a real adapter: `ip link set can0 up type can bitrate 1000000`",
+    "pcan": "install PEAK's PCAN-Basic driver (Windows; on Linux PCAN-USB is socketcan:can0) and check "
+            "the channel name, e.g. PCAN_USBBUS1",
+    "kvaser": "install Kvaser's CANlib driver and check the channel number (0 = first channel)",
+    "ixxat": "install the IXXAT VCI 4 driver and check the channel number (0 = first channel)",
+    "vector": "install the Vector XL Driver Library and assign the channel to the application "
+              "(Vector Hardware Config; app_name in bus_kwargs, default CANalyzer)",
+}
 DEFAULT_GROUP = "239.74.163.2"
 RECV_BUFFER_BYTES = 4 * 1024 * 1024   # bursts of TPDOs must not overflow the default ~200 kB
 
@@ -56,9 +72,11 @@ def parse_bus(spec: str) -> BusSpec:
     """``"udp_multicast:239.1.2.3:5000"`` -> BusSpec; DriveError naming the fix otherwise."""
     interface, sep, channel = spec.partition(":")
     if not sep or not channel or interface not in INTERFACES:
-        raise DriveError(f"bus '{spec}': expected INTERFACE:CHANNEL with INTERFACE one of "
-                         f"{', '.join(INTERFACES)} (e.g. socketcan:vcan0, udp_multicast:{DEFAULT_GROUP}:43113, "
-                         f"virtual:bench)")
+        known = ("" if not sep or interface in INTERFACES else
+                 f"'{interface}' is not a python-can interface{_did_you_mean(interface)}; ")
+        raise DriveError(f"bus '{spec}': {known}expected INTERFACE:CHANNEL with INTERFACE one of python-can's "
+                         f"{', '.join(INTERFACES)} (e.g. socketcan:can0, pcan:PCAN_USBBUS1, kvaser:0, "
+                         f"udp_multicast:{DEFAULT_GROUP}:43113, virtual:bench)")
     port = None
     if interface == "udp_multicast":
         host, port_text = channel, ""
@@ -75,16 +93,23 @@ def parse_bus(spec: str) -> BusSpec:
     return BusSpec(interface, channel, port)
 
 
+def _did_you_mean(name: str) -> str:
+    import difflib
+    close = difflib.get_close_matches(name, INTERFACES, n=1)
+    return f" (did you mean {close[0]}?)" if close else ""
+
+
 def open_bus(spec: str | BusSpec, **overrides) -> can.BusABC:
-    """Open the bus; errors become DriveError naming the bus."""
+    """Open the bus; ``overrides`` are the adapter's options (bitrate, app_name, ...);
+    errors become DriveError naming the bus and what to install or check."""
     bs = parse_bus(spec) if isinstance(spec, str) else spec
     kwargs = {**bs.kwargs, **overrides}
     try:
         bus = can.Bus(interface=bs.interface, channel=bs.channel, **kwargs)
-    except (can.CanError, OSError, ValueError) as exc:
-        hint = (" (no kernel CAN here? create it with `ip link add dev vcan0 type vcan; ip link set up vcan0` "
-                "or use udp_multicast)" if bs.interface == "socketcan" else "")
-        raise DriveError(f"cannot open CAN bus {bs}: {exc}{hint}") from exc
+    except Exception as exc:   # vendor back-ends fail in many ways (kvaser: NameError without CANlib)
+        hint = DRIVER_HINTS.get(bs.interface, "check the adapter's driver and the python-can documentation "
+                                              f"for the '{bs.interface}' interface")
+        raise DriveError(f"cannot open CAN bus {bs}: {type(exc).__name__}: {exc} ({hint})") from exc
     if bs.interface == "udp_multicast":
         try:  # loss under bursts comes mostly from the small default receive buffer
             bus._multicast._socket.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECV_BUFFER_BYTES)

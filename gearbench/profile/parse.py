@@ -28,7 +28,7 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 TOP_KEYS = ("name", "description", "bench", "motors", "reducer", "disks", "waveforms", "steps", "limits",
             "simulation")
 MOTOR_NAMES = ("in", "out")
-CAN_INTERFACES = ("udp_multicast", "socketcan", "virtual")
+CAN_EXAMPLE_CHANNELS = {"socketcan": "can0", "pcan": "PCAN_USBBUS1", "kvaser": 0, "ixxat": 0, "vector": 0}
 STEP_KINDS = ("calibrate", "load", "efficiency")
 MOTOR_QUANTITIES = ("Kt", "Kt_rel_datasheet", "J", "D", "Tc")
 EFFICIENCY_QUANTITIES = ("eta_incremental", "eta_absolute")
@@ -40,7 +40,9 @@ MEANING = {
     "name": "a short name", "description": "a one-line description",
     "period_s": "the sample (SYNC) period in s, e.g. 0.001",
     "family": "the drive family: cia402 or modbus",
-    "interface": "the CAN interface: socketcan, udp_multicast or virtual",
+    "interface": "the CAN interface python-can opens: socketcan, pcan, kvaser, ixxat, vector, ... "
+                 "(udp_multicast or virtual for a simulated bench)",
+    "bitrate": "the CAN bit rate in bit/s, e.g. 1000000",
     "channel": "the CAN channel, e.g. can0",
     "host": "the Modbus TCP host, e.g. 127.0.0.1", "port": "the Modbus TCP port, e.g. 502",
     "drive": "the drive description file, e.g. drivers/cia402-servo.eds",
@@ -229,7 +231,7 @@ def _bench(c: _Checker, top) -> BenchSpec:
     period = c.number(m, p, "period_s", 1e-3, gt=0.0, le=0.1)
     bp = p + ("bus",)
     b = c.mapping(m["bus"], bp, "bus: {family: cia402, interface: socketcan, channel: can0}")
-    c.keys(b, bp, ("family", "interface", "channel", "host", "port", "options"), required=("family",))
+    c.keys(b, bp, ("family", "interface", "channel", "bitrate", "host", "port", "options"), required=("family",))
     family = c.string(b, bp, "family")
     families = _known_families()
     if family not in families:
@@ -241,12 +243,19 @@ def _bench(c: _Checker, top) -> BenchSpec:
         for key in ("host", "port"):
             if key in b:
                 c.fail(bp + (key,), "is for a modbus bus", "remove it, or set family: modbus")
-        interface = c.string(b, bp, "interface", choices=CAN_INTERFACES)
+        from ..drives.buses import INTERFACES   # every interface python-can knows, plug-ins included
+        interface = c.string(b, bp, "interface", choices=INTERFACES)
         channel = c.string(b, bp, "channel", None)
-        if interface == "socketcan" and channel is None:
-            c.fail(bp, "a socketcan bus needs 'channel'", "add 'channel: can0' (or vcan0)")
+        if interface not in ("udp_multicast", "virtual") and channel is None:
+            example = CAN_EXAMPLE_CHANNELS.get(interface, "the adapter's channel")
+            c.fail(bp, f"a {interface} bus needs 'channel'",
+                   f"add 'channel: {example}'" + (" (or vcan0)" if interface == "socketcan" else ""))
+        if "bitrate" in b:   # the adapter's bit rate, passed to python-can with the other bus_kwargs
+            kw = dict(options.get("bus_kwargs") or {})
+            kw["bitrate"] = c.integer(b, bp, "bitrate", ge=10_000, le=8_000_000)
+            options = {**options, "bus_kwargs": kw}
     elif family == "modbus":
-        for key in ("interface", "channel"):
+        for key in ("interface", "channel", "bitrate"):
             if key in b:
                 c.fail(bp + (key,), "is for a CAN bus", "remove it, or set family: cia402")
         host = c.string(b, bp, "host")
