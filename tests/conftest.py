@@ -12,6 +12,24 @@ def in_ci() -> bool:
     return os.environ.get("CI", "").lower() in ("1", "true", "yes")
 
 
+def require_dev_data() -> None:
+    """Skip (fail in CI, where ``../shared`` is always beside the clone) when the dev
+    data sets are absent."""
+    from gearbench.bench._data import DEV_DIR
+
+    if not (DEV_DIR / "truth.json").is_file():
+        message = f"dev data not found at {DEV_DIR} (../shared/datasets/dev beside the checkout)"
+        if in_ci():
+            pytest.fail(message + " (CI provides ../shared; in CI this test must not be skipped)")
+        pytest.skip(message)
+
+
+@pytest.fixture(scope="session")      # before any module fixture that reads the data
+def dev_data():
+    """Use as ``pytest.mark.usefixtures("dev_data")`` on tests that read the dev data."""
+    require_dev_data()
+
+
 def require_tool(name: str, install_hint: str) -> str:
     """Path of an external program, or skip (fail in CI) with a one-line reason.
 

@@ -1,15 +1,16 @@
 """Offline commands end to end (calibrate, identify, efficiency) and bad input, case by case:
 exit code 2, one line on stderr naming the file/column and the fix, no traceback."""
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from gearbench.bench._data import DEV_DIR
 from gearbench.cli import main
 from gearbench.trace import Trace
 
-DEV = Path("/work/shared/datasets/dev")
+DEV = DEV_DIR                       # ../shared/datasets/dev beside the checkout
+pytestmark = pytest.mark.usefixtures("dev_data")   # skipped without it, failed in CI
 UA, LA = DEV / "calib_motor_a_unloaded.csv", DEV / "calib_motor_a_loaded.csv"
 UB, LB = DEV / "calib_motor_b_unloaded.csv", DEV / "calib_motor_b_loaded.csv"
 BENCH = DEV / "bench_motor_a_in_motor_b_out.csv"

@@ -1,15 +1,16 @@
 """An operator who forgets the disk must get a refusal, not a Kt made of noise."""
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
-DEV = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "dev"
+from gearbench.bench._data import DEV_DIR
+
+DEV = DEV_DIR
 U = DEV / "calib_motor_a_unloaded.csv"
 
 
-@pytest.mark.skipif(not U.exists(), reason="../shared/datasets/dev not beside the repo")
+@pytest.mark.usefixtures("dev_data")           # skipped without it, failed in CI
 def test_same_inertia_in_both_runs_is_refused():
     p = subprocess.run([sys.executable, "-m", "gearbench", "calibrate", "--unloaded", str(U),
                         "--loaded", str(U), "--inertia", "1.5e-5", "--json"],

@@ -1,6 +1,5 @@
 """Efficiency: signs on a hand-made bench, drift cancellation, windows, dev and sim data."""
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -8,10 +7,11 @@ import pytest
 from gearbench.analysis.calibration import MotorCalibration, calibrate_motor
 from gearbench.analysis.efficiency import efficiency, steady_windows
 from gearbench.analysis.uncertainty import coverage_acceptance, coverage_factor
+from gearbench.bench._data import DEV_DIR
 from gearbench.errors import ExcitationError, TraceError
 from gearbench.trace import Trace
 
-DEV = Path("/work/shared/datasets/dev")
+DEV = DEV_DIR                       # ../shared/datasets/dev beside the checkout
 M_IN = MotorCalibration(0.05, (0.05, 0.05), 2e-5, 2e-6, 0.008, "hand")
 M_OUT = MotorCalibration(0.04, (0.04, 0.04), 1e-5, 1e-6, 0.005, "hand")
 
@@ -111,6 +111,7 @@ def test_bench_without_zero_load_or_with_wrong_sign_is_refused():
         efficiency(flipped, M_IN, M_OUT)
 
 
+@pytest.mark.usefixtures("dev_data")
 def test_dev_bench_meets_targets():
     truth = json.loads((DEV / "truth.json").read_text())
     cal = {}

@@ -2,7 +2,6 @@
 interval, the excitation check, speed."""
 import json
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,10 +9,11 @@ import pytest
 from gearbench.analysis.calibration import calibrate_motor
 from gearbench.analysis.identify import (D_J, KT_J, TC_J, identify, identify_default,
                                          identify_paper, t_quantile)
+from gearbench.bench._data import DEV_DIR
 from gearbench.errors import ExcitationError
 from gearbench.trace import Trace
 
-DEV = Path("/work/shared/datasets/dev")
+DEV = DEV_DIR                       # ../shared/datasets/dev beside the checkout
 
 
 def synth_motor(*, kt=0.05, j=2e-5, d=2e-6, tc=0.008, seconds=3.0, rate=1000.0,
@@ -115,6 +115,7 @@ def test_default_absorbs_a_current_delay():
     assert abs(no_lag.b2 / b2 - 1) > 2 * abs(fit.b2 / b2 - 1)    # the lag term matters
 
 
+@pytest.mark.usefixtures("dev_data")
 def test_default_calibration_on_dev_data_meets_kt_target():
     truth = json.loads((DEV / "truth.json").read_text())["calibration"]
     for name, tr in truth.items():

@@ -26,10 +26,10 @@ from ..analysis.efficiency import efficiency
 from ..analysis.identify import identify, identify_default, identify_paper
 from ..errors import GearbenchError
 from ..trace import Trace
+from ._data import DEV_DIR          # ../shared/datasets/dev beside the checkout
 
 METHODS = ("paper-15ms", "paper", "default")
 DISK_KGM2 = 2 * 1.00699e-5          # the paper's two disks
-DEV_DIR = Path("/work/shared/datasets/dev")
 TARGETS = {"kt_pct": 0.2, "inc_pp": 0.2, "abs_pp": 0.3}
 
 
