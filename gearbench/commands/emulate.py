@@ -59,6 +59,20 @@ def load_plant(profile: str | None):
         raise ProfileError(f"{profile}: {exc}") from exc
 
 
+def profile_drives(profile: str | None, bench) -> dict[int, str]:
+    """{node id: EDS} of a CANopen profile's motors (the emulator plays those drive models);
+    the bench's axes follow the profile's addresses. Empty without a profile."""
+    if not profile:
+        return {}
+    from ..profile import load_profile
+
+    p = load_profile(profile)
+    if p.bench.bus.family != "cia402":
+        return {}
+    bench.axes = {m.address: name for name, m in p.motors.items() if name in bench.drives}
+    return {m.address: str(m.drive) for m in p.motors.values()}
+
+
 def _host_port(text: str) -> tuple[str, int]:
     host, sep, port = text.rpartition(":")
     if not sep or not port.isdigit():
@@ -92,7 +106,8 @@ def run(args) -> int:
     try:
         if can_spec:
             bs = parse_bus(can_spec)
-            handles.append(start_canopen_server(bench, bs.interface, bs.channel, port=bs.port))
+            handles.append(start_canopen_server(bench, bs.interface, bs.channel, port=bs.port,
+                                                eds=profile_drives(args.profile, bench)))
         if args.modbus:
             from ..emulate.modbus_server import start_modbus_server
             host, port = _host_port(args.modbus)

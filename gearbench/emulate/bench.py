@@ -48,6 +48,7 @@ class EmulatedBench:
                 max_current_a=getattr(motor, "current_limit_a", 3.0),
                 speed_limit_rad_s=getattr(motor, "speed_limit_rad_s", 420.0),
                 counts_per_rev=getattr(motor, "counts_per_rev", 10000))
+            self.drives[name].period_s = world.period_s
         self.latest: dict = {}
         self._world_modes: dict[str, str] = {}
         self.sample_index = 0

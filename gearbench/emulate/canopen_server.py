@@ -1,16 +1,28 @@
-"""CANopen front-end of the emulated bench: nodes 1 and 2 as CiA 402 servo drives.
+"""CANopen front-end of the emulated bench: one CiA 402 servo drive per axis, playing
+the drive model the profile names.
 
-Built on canopen's ``LocalNode`` (SDO server, NMT slave, object dictionary from
-``drivers/cia402-servo.eds``) plus what it lacks (upstream #145, #558, #520):
+Each node serves the object dictionary of *its* EDS (the vendor's file as shipped,
+or ``drivers/cia402-servo.eds``) joined with its drive description
+(``gearbench.drives.description``): identity, supported modes, the unit objects
+(encoder resolution, 0x60A9 velocity unit, rated current), the current object in
+its unit, PDO limits. An object missing from the EDS is missing here (SDO abort
+0x06020000), a read-only one refuses writes, a mapping the real drive could not
+hold is refused (0x06040041 not mappable, 0x06040042 longer than 8 bytes), a unit
+object takes only the values the description allows (0x06090030).
+
+Built on canopen's ``LocalNode`` (SDO server, NMT slave) plus what it lacks
+(upstream #145, #558, #520):
 
 - SYNC: the world advances one period per SYNC (lockstep), then every node in NMT
   OPERATIONAL sends its synchronous TPDOs from the mapping *currently* in its object
   dictionary. A SYNC counter (0x1019 > 1) that jumps advances the missed periods
-  too, so drive time stays SYNC count x period.
+  too, so drive time stays SYNC count x period. A SYNC with a counter byte sent to a
+  node whose 0x1019 is 0 or absent gets EMCY 0x8240 "unexpected SYNC data length"
+  (CiA 301), as CANopenNode-based drives answer it.
 - RPDOs: decoded with the current mapping; transmission type 255 applies at once,
   1-240 at the next SYNC (CiA 301). Controlword, modes of operation, target velocity
-  and target torque go to the node's ``Cia402Axis`` (also when written by SDO).
-- PDO configuration written by the master takes effect at once.
+  and target torque go to the node's ``Cia402Axis`` in SI (also when written by SDO).
+- Profile modes 3/4 ramp with 0x6083/0x6084/0x6087 as the dictionary holds them.
 - EMCY on faults and on fault reset; heartbeat producer from 0x1017.
 - Fault options from ``EmulatedBench``: TPDO drop rate, muted nodes.
 """
@@ -22,9 +34,11 @@ import time
 
 import canopen
 from canopen.objectdictionary import ODVariable
+from canopen.sdo import SdoAbortedError
 
 from ..drives.buses import BusSpec, open_bus
-from ..drives.scaling import DriveScaling
+from ..drives.description import DriveModel, ObjRef, axis_units, modes_to_bits, resolve, unit_objects
+from ..errors import DriveError
 from ..shipped import shipped_driver
 from .bench import EmulatedBench
 from .cia402_axis import Cia402Axis
@@ -32,7 +46,9 @@ from .cia402_axis import Cia402Axis
 DEFAULT_EDS = str(shipped_driver("cia402-servo.eds"))
 NMT_OPERATIONAL = 5
 PDO_INVALID = 1 << 31
-LIVE = (0x6041, 0x6061, 0x6064, 0x606C, 0x6077, 0x6078, 0x603F, 0x1001, 0x2001)
+ABORT_NOT_MAPPABLE, ABORT_PDO_LENGTH, ABORT_VALUE_RANGE = 0x06040041, 0x06040042, 0x06090030
+EMCY_SYNC_LENGTH = 0x8240
+DEVICE_TYPE_SERVO = 0x00020192
 
 
 class _Pdo:
@@ -45,23 +61,59 @@ class _Pdo:
 
 
 class DriveNode(canopen.LocalNode):
-    """A LocalNode wired to one ``Cia402Axis``."""
+    """A LocalNode wired to one ``Cia402Axis``, playing ``model`` (EDS + description)."""
 
-    def __init__(self, node_id: int, eds: str, bench: EmulatedBench, axis: Cia402Axis):
+    def __init__(self, node_id: int, eds: str, bench: EmulatedBench, axis: Cia402Axis,
+                 model: DriveModel | None = None):
         super().__init__(node_id, eds)
         self.bench, self.axis = bench, axis
-        self.live: dict[int, int] = {i: 0 for i in LIVE}
+        self.model = m = model if model is not None else resolve(eds, node_id)
+        self.units = None
         self.tpdos: list[_Pdo] = []
         self.rpdos: dict[int, _Pdo] = {}
         self.pending: list[tuple[int, int]] = []       # (index, value) of sync RPDOs
+        self.target_writes = 0                          # setpoints received (tests: none before verification)
+        self.sync_length_errors = 0
         self._loading = True
         od = self.object_dictionary
-        self.set_raw(0x608F, 1, axis.counts_per_rev)
-        self.set_raw(0x608F, 2, 1)
-        self.set_raw(0x6075, 0, round(axis.rated_current_a * 1000))
-        self.set_raw(0x6073, 0, min(0xFFFF, round(axis.max_current_a / axis.rated_current_a * 1000)))
-        self.set_raw(0x6072, 0, od[0x6073].decode_raw(self.get_data(0x6073, 0)))
-        self.set_raw(0x605A, 0, axis.quick_stop_option)
+        self.live: dict[ObjRef, int] = {ObjRef(i): 0 for i in (0x6041, 0x6061, 0x6064, 0x606C, 0x6077, 0x603F, 0x1001)
+                                        if i in od}
+        for ref in (m.current, m.sync_echo):
+            if ref is not None and m.var(ref) is not None:
+                self.live[ref] = 0
+        self._fill_defaults()
+        if 0x1000 in od:
+            self.set_raw(0x1000, 0, m.device_type if m.device_type is not None else DEVICE_TYPE_SERVO)
+        if 0x1018 in od:
+            for sub, value in ((1, m.vendor_id), (2, m.product_code)):
+                if value is not None and sub in od[0x1018].subindices:
+                    self.set_raw(0x1018, sub, value)
+        modes = m.supported_modes if m.supported_modes is not None else (3, 4, 9, 10)
+        axis.supported_modes = tuple(modes)
+        if 0x6502 in od:
+            self.set_raw(0x6502, 0, modes_to_bits(modes))
+        if m.counts_per_rev is not None:
+            if m.counts_per_rev.index == 0x608F:
+                self.set_raw(0x608F, 1, axis.counts_per_rev)
+                self.set_raw(0x608F, 2, 1)
+            else:
+                self.set_raw(m.counts_per_rev.index, m.counts_per_rev.subindex, axis.counts_per_rev)
+        for ref, value in m.expect.items():
+            if not isinstance(value, tuple):
+                self.set_raw(ref.index, ref.subindex, value)
+        if isinstance(m.velocity_unit, ObjRef) and self.raw(m.velocity_unit.index, m.velocity_unit.subindex) == 0:
+            self.set_raw(m.velocity_unit.index, m.velocity_unit.subindex, 0x00B44700)   # rpm if the EDS says nothing
+        if m.rated_current is not None:
+            self.set_raw(m.rated_current.index, m.rated_current.subindex,
+                         round(axis.rated_current_a / self._per_current_unit(m.rated_current_unit)))
+        if m.current_limit is not None:
+            self.set_raw(m.current_limit.index, m.current_limit.subindex,
+                         min(0xFFFF if m.bits(m.current_limit) == 16 else 0xFFFFFFFF,
+                             round(axis.max_current_a / self._per_current_unit(m.current_limit_unit))))
+        if 0x6072 in od and 0x6073 in od:
+            self.set_raw(0x6072, 0, self.raw(0x6073))
+        if 0x605A in od:
+            self.set_raw(0x605A, 0, axis.quick_stop_option)
         self._loading = False
         self._rescale()
         self.add_read_callback(self._on_read)
@@ -70,6 +122,18 @@ class DriveNode(canopen.LocalNode):
         axis.fault_listeners.append(self._on_fault)
 
     # -------------------------------------------------------------- dictionary
+    def _fill_defaults(self) -> None:
+        """A real drive answers every object it has: EDS entries without DefaultValue read 0."""
+        for obj in self.object_dictionary.values():
+            variables = [obj] if isinstance(obj, ODVariable) else list(getattr(obj, "subindices", {}).values())
+            for v in variables:
+                if v.default is None and v.data_type in (1, 2, 3, 4, 5, 6, 7):
+                    low = v.min if v.min is not None and v.min > 0 else 0
+                    self.data_store.setdefault(v.index, {})[v.subindex] = v.encode_raw(low)
+
+    def _per_current_unit(self, unit: str) -> float:
+        return {"mA": 1e-3, "A": 1.0, "permille_rated": self.axis.rated_current_a / 1000.0}[unit]
+
     def set_raw(self, index: int, subindex: int, value: int) -> None:
         obj = self._find_object(index, subindex)
         self.set_data(index, subindex, obj.encode_raw(value))
@@ -79,28 +143,70 @@ class DriveNode(canopen.LocalNode):
         return obj.decode_raw(self.get_data(index, subindex))
 
     def set_data(self, index, subindex, data, check_writable=False):
+        if not self._loading:
+            self._refuse_what_the_drive_would(index, subindex, data)
         super().set_data(index, subindex, data, check_writable)
         if self._loading:
             return
+        ref, m = ObjRef(index, subindex), self.model
         if 0x1400 <= index <= 0x1BFF or index == 0x1019:
             self.read_pdo_config()
-        elif index in (0x608F, 0x6075):
+        elif ref in unit_objects(m) or index == 0x608F:
             self._rescale()
-        elif index == 0x6073:
-            self.axis.max_current_a = self.scaling.current_a(self.raw(0x6073))
+        elif ref == m.current_limit:
+            self.axis.max_current_a = self.raw(index, subindex) * self._per_current_unit(m.current_limit_unit)
         elif index == 0x605A:
             self.axis.quick_stop_option = self.raw(0x605A)
+        if ref in m.ramps.values():
+            self._apply_ramps()
 
-    def _rescale(self):
-        self.scaling = DriveScaling(
-            counts_per_rev=max(1, round(self.raw(0x608F, 1) / max(1, self.raw(0x608F, 2)))),
-            rated_current_a=max(1, self.raw(0x6075)) / 1000.0)
+    def _refuse_what_the_drive_would(self, index: int, subindex: int, data: bytes) -> None:
+        m = self.model
+        if 0x1600 <= index <= 0x17FF or 0x1A00 <= index <= 0x1BFF:
+            value = int.from_bytes(bytes(data[:4]).ljust(4, b"\0"), "little")
+            if subindex > 0 and value:
+                v = m.var(ObjRef(value >> 16, (value >> 8) & 0xFF))
+                if v is None or not v.pdo_mappable or (value & 0xFF) != m.bits(ObjRef(v.index, v.subindex)):
+                    raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+            elif subindex == 0 and value:
+                total = 0
+                for sub in range(1, value + 1):
+                    try:
+                        total += self.raw(index, sub) & 0xFF
+                    except (KeyError, SdoAbortedError):
+                        raise SdoAbortedError(ABORT_PDO_LENGTH) from None
+                if total > 64:
+                    raise SdoAbortedError(ABORT_PDO_LENGTH)
+        if isinstance(m.velocity_unit, ObjRef) and (index, subindex) == (m.velocity_unit.index, m.velocity_unit.subindex):
+            value = int.from_bytes(bytes(data[:4]).ljust(4, b"\0"), "little")
+            if value not in m.velocity_allowed and value != self.raw(index, subindex):
+                raise SdoAbortedError(ABORT_VALUE_RANGE)
+
+    def _rescale(self) -> None:
+        try:
+            values = {ref: self.raw(ref.index, ref.subindex) for ref in unit_objects(self.model)}
+            self.units, _ = axis_units(self.model, values, f"emulated node {self.id}")
+        except (DriveError, KeyError, ValueError):
+            self.units = None      # a drive without usable units cannot move; the master refuses it
+        self._apply_ramps()
+
+    def _apply_ramps(self) -> None:
+        a, u, m = self.axis, self.units, self.model
+        if u is None:
+            return
+        for key, attr in (("acceleration", "profile_accel_rad_s2"), ("deceleration", "profile_decel_rad_s2")):
+            ref = m.ramps.get(key)
+            setattr(a, attr, None if ref is None else self.raw(ref.index, ref.subindex) * u.velocity_rad_s_per_unit)
+        ref = m.ramps.get("torque_slope")
+        a.torque_slope_a_s = None if ref is None or u.torque_a_per_unit is None else \
+            self.raw(ref.index, ref.subindex) * u.torque_a_per_unit
 
     def _on_read(self, index, subindex, od):
-        if index in self.live:
+        ref = ObjRef(index, subindex)
+        if ref in self.live:
             with self.bench.lock:
                 self._refresh_status()
-                return self.live[index]
+                return self.live[ref]
         return None
 
     def _on_write(self, index, subindex, od, data):
@@ -112,7 +218,7 @@ class DriveNode(canopen.LocalNode):
     def _read_pdos(self, comm_base: int, map_base: int) -> list[_Pdo]:
         pdos = []
         for n in range(4):
-            if comm_base + n not in self.object_dictionary:
+            if comm_base + n not in self.object_dictionary or map_base + n not in self.object_dictionary:
                 continue
             cob = self.raw(comm_base + n, 1)
             if cob & PDO_INVALID:
@@ -137,6 +243,10 @@ class DriveNode(canopen.LocalNode):
                 self.network.subscribe(cob, self.on_rpdo)
         self.rpdos = rpdos
 
+    @property
+    def expects_sync_counter(self) -> bool:
+        return 0x1019 in self.object_dictionary and self.raw(0x1019) > 1
+
     def on_rpdo(self, can_id, data, timestamp):
         pdo = self.rpdos.get(can_id)
         if pdo is None or self.nmt._state != NMT_OPERATIONAL or self.axis.name in self.bench.muted:
@@ -157,15 +267,19 @@ class DriveNode(canopen.LocalNode):
 
     def apply(self, index: int, value: int) -> None:
         """A write to a drive object (by PDO or SDO) -> the axis, in SI."""
-        a = self.axis
+        a, u = self.axis, self.units
         if index == 0x6040:
             a.write_controlword(value)
         elif index == 0x6060:
             a.set_mode(value)
         elif index == 0x60FF:
-            a.target_velocity_rad_s = self.scaling.velocity_rad_s(value)
-        elif index == 0x6071:   # current mode: per-mille of rated current
-            a.target_current_a = self.scaling.current_a(value)
+            self.target_writes += 1
+            a.target_velocity_rad_s = u.velocity_rad_s(value) if u is not None else 0.0
+        elif index == 0x6071:
+            self.target_writes += 1
+            # the drive's own relation of torque to current: per-mille of rated current when described;
+            # a drive whose relation gearbench does not know is never commanded in torque by it
+            a.target_current_a = value * a.rated_current_a / 1000.0
         self._refresh_status()
 
     def apply_pending(self) -> None:
@@ -175,18 +289,24 @@ class DriveNode(canopen.LocalNode):
 
     def _refresh_status(self) -> None:
         a, live = self.axis, self.live
-        live[0x6041] = a.statusword
-        live[0x6061] = a.mode_display
-        live[0x603F] = a.error_code
-        live[0x1001] = a.error_register
+        for index, value in ((0x6041, a.statusword), (0x6061, a.mode_display), (0x603F, a.error_code),
+                             (0x1001, a.error_register)):
+            if ObjRef(index) in live:
+                live[ObjRef(index)] = value
 
-    def update_actuals(self, m, sync_counter: int) -> None:
-        s, live = self.scaling, self.live
+    def update_actuals(self, meas, sync_counter: int) -> None:
+        u, live, m = self.units, self.live, self.model
         self._refresh_status()
-        live[0x2001] = sync_counter
-        live[0x6064] = s.position_counts(m.position_rad)
-        live[0x606C] = s.velocity_counts_s(m.velocity_rad_s)
-        live[0x6078] = live[0x6077] = s.current_permille(m.current_a)
+        if m.sync_echo is not None and m.sync_echo in live:
+            live[m.sync_echo] = sync_counter
+        if u is None:
+            return
+        live[ObjRef(0x6064)] = u.position_counts(meas.position_rad)
+        live[ObjRef(0x606C)] = u.velocity_raw(meas.velocity_rad_s)
+        if m.current is not None and m.current in live:
+            live[m.current] = u.current_raw(meas.current_a)
+        if ObjRef(0x6077) in live:    # torque actual, per-mille of rated torque (= rated current)
+            live[ObjRef(0x6077)] = max(-32768, min(32767, round(meas.current_a / self.axis.rated_current_a * 1000)))
 
     def tpdo_frames(self, steps: int) -> list[tuple[int, bytes]]:
         frames = []
@@ -196,10 +316,17 @@ class DriveNode(canopen.LocalNode):
                 continue
             pdo.countdown = pdo.trans_type
             payload = b"".join(
-                obj.encode_raw(self.live[obj.index]) if obj.index in self.live
+                obj.encode_raw(self.live[ObjRef(obj.index, obj.subindex)])
+                if ObjRef(obj.index, obj.subindex) in self.live
                 else self.get_data(obj.index, obj.subindex) for obj in pdo.entries)
             frames.append((pdo.cob_id, payload))
         return frames
+
+    def sync_length_error(self) -> None:
+        """CiA 301: a SYNC whose length does not match 0x1019 -> EMCY 0x8240 (the drive keeps running)."""
+        self.sync_length_errors += 1
+        if self.has_network() and self.axis.name not in self.bench.muted:
+            self.emcy.send(EMCY_SYNC_LENGTH, 0x11)   # error register: generic + communication
 
     def _on_fault(self, axis, code) -> None:
         self._refresh_status()
@@ -213,12 +340,13 @@ class DriveNode(canopen.LocalNode):
 class CanopenServer:
     """Handle returned by ``start_canopen_server``: ``.stop()``, ``.nodes``, ``.sync_count``."""
 
-    def __init__(self, bench: EmulatedBench, bus, eds: str):
+    def __init__(self, bench: EmulatedBench, bus, eds: str | dict[int, str]):
         self.bench, self.bus = bench, bus
         self.network = canopen.Network(bus)
         self.nodes: list[DriveNode] = []
         for address in sorted(bench.axes):
-            node = DriveNode(address, eds, bench, bench.drive(address))
+            node_eds = eds.get(address, DEFAULT_EDS) if isinstance(eds, dict) else eds
+            node = DriveNode(address, node_eds, bench, bench.drive(address))
             self.network.add_node(node)
             self.network.unsubscribe(node.sdo.rx_cobid, node.sdo.on_request)
             self.network.subscribe(node.sdo.rx_cobid, self._sdo_filter(node))
@@ -244,11 +372,15 @@ class CanopenServer:
 
     def on_sync(self, can_id, data, timestamp):
         steps, counter = 1, 0
-        if data:   # SYNC counter (CiA 301 0x1019): advance the SYNCs we did not hear as well
-            overflow = max(2, self.nodes[0].raw(0x1019))
-            if self._last_counter is not None:
-                steps = (data[0] - self._last_counter - 1) % overflow + 1
-            self._last_counter = counter = data[0]
+        if data:
+            wrong = [n for n in self.nodes if not n.expects_sync_counter]
+            for node in wrong:
+                node.sync_length_error()
+            if not wrong:   # SYNC counter (CiA 301 0x1019): advance the SYNCs we did not hear as well
+                overflow = max(2, self.nodes[0].raw(0x1019))
+                if self._last_counter is not None:
+                    steps = (data[0] - self._last_counter - 1) % overflow + 1
+                self._last_counter = counter = data[0]
         frames = []
         with self.bench.lock:
             for node in self.nodes:
@@ -284,8 +416,12 @@ class CanopenServer:
 
 
 def start_canopen_server(bench: EmulatedBench, interface: str, channel: str, *,
-                         eds: str = DEFAULT_EDS, port: int | None = None, **bus_kwargs) -> CanopenServer:
-    """Put ``bench``'s drives on a CAN bus as CANopen nodes (ids = ``bench.axes``)."""
+                         eds: str | dict[int, str] = DEFAULT_EDS, port: int | None = None,
+                         **bus_kwargs) -> CanopenServer:
+    """Put ``bench``'s drives on a CAN bus as CANopen nodes (ids = ``bench.axes``).
+
+    ``eds``: one EDS for every node, or {node id: EDS} (a profile's drives).
+    """
     bus = open_bus(BusSpec(interface, channel, port), **bus_kwargs)
     try:
         return CanopenServer(bench, bus, eds)

@@ -8,6 +8,10 @@ Both front-ends (CANopen, Modbus) drive it with the same calls, in SI units:
 
 State machine: CiA 402 (IEC 61800-7-201) figure "power drive system state machine",
 transitions 0-16. Statusword values are the ones canopen's ``BaseNode402`` decodes.
+Modes: those of ``supported_modes`` (the drive model's 0x6502); profile velocity (3)
+ramps toward the target with ``profile_accel_rad_s2``/``profile_decel_rad_s2`` and
+profile torque (4) with ``torque_slope_a_s`` (0x6083/0x6084/0x6087 in SI, None = no
+ramp); cyclic synchronous modes (9/10) take each setpoint as it comes.
 Limits: over-current (|current command| above ``max_current_a`` for
 ``OVERCURRENT_SAMPLES`` samples, EMCY 0x2310) and over-speed (|speed| above
 ``OVERSPEED_FACTOR`` x speed limit, EMCY 0x8400) put the drive in FAULT with the
@@ -46,6 +50,14 @@ OVERSPEED_FACTOR = 1.2
 STANDSTILL_RAD_S = 0.5         # quick stop counts as done below this speed
 
 
+def _toward(now: float, target: float, rate: float | None, period_s: float) -> float:
+    """One period of a drive-side ramp from ``now`` toward ``target`` (rate None: a step)."""
+    if rate is None:
+        return target
+    step = rate * period_s
+    return target if abs(target - now) <= step else now + step * (1 if target > now else -1)
+
+
 class Cia402Axis:
     """One emulated servo drive: state machine, mode, targets and protections.
 
@@ -66,6 +78,13 @@ class Cia402Axis:
         self.target_velocity_rad_s = 0.0
         self.target_current_a = 0.0
         self.quick_stop_option = 6          # 0x605A: 1/2 -> then switch on disabled; 5/6 -> stay
+        self.supported_modes: tuple[int, ...] = SUPPORTED_MODES
+        self.period_s = 1e-3                # one physics step (set by the bench)
+        self.profile_accel_rad_s2: float | None = None
+        self.profile_decel_rad_s2: float | None = None
+        self.torque_slope_a_s: float | None = None
+        self._ramp_velocity = 0.0           # profile-mode setpoints as ramped by the drive
+        self._ramp_current = 0.0
         self.error_code = 0                 # 0x603F
         self.target_reached = False
         self.fault_listeners: list[Callable[["Cia402Axis", int], None]] = []
@@ -123,7 +142,7 @@ class Cia402Axis:
     def set_mode(self, mode: int) -> None:
         """0x6060; an unsupported mode is ignored (the display keeps the old one)."""
         self.mode = mode
-        if mode in SUPPORTED_MODES or mode == 0:
+        if mode in self.supported_modes and mode in SUPPORTED_MODES or mode == 0:
             self.mode_display = mode
 
     def inject_fault(self, code: int) -> None:
@@ -136,9 +155,17 @@ class Cia402Axis:
         if self.state == "OPERATION ENABLED":
             if self.mode_display in VELOCITY_MODES:
                 v = max(-self.speed_limit_rad_s, min(self.speed_limit_rad_s, self.target_velocity_rad_s))
+                if self.mode_display == PROFILE_VELOCITY:
+                    speeding_up = abs(v) > abs(self._ramp_velocity)
+                    rate = self.profile_accel_rad_s2 if speeding_up else self.profile_decel_rad_s2
+                    v = self._ramp_velocity = _toward(self._ramp_velocity, v, rate, self.period_s)
                 return "velocity", v
             if self.mode_display in TORQUE_MODES:
-                return "torque", self.target_current_a
+                i = self.target_current_a
+                if self.mode_display == PROFILE_TORQUE:
+                    i = self._ramp_current = _toward(self._ramp_current, i, self.torque_slope_a_s, self.period_s)
+                return "torque", i
+        self._ramp_velocity = self._ramp_current = 0.0
         if self.state == "QUICK STOP ACTIVE":
             return "velocity", 0.0          # decelerate on the drive's velocity loop
         return "off", 0.0
