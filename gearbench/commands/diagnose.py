@@ -90,14 +90,30 @@ def summary(d: dict, name: str) -> str:
         lines.append(f"  {v['experiment']}")
     else:
         lines.append("verdict: none — the gap is at the noise floor")
+    chain, rem = d.get("chain") or [], d.get("remaining") or {}
+    if chain:
+        lines.append("chain (effects added one at a time, all refitted together; held-out):")
+        for k, c in enumerate(chain, 1):
+            lines.append(f"  {k}. {c['effect']:22s} shrink {c['shrink_heldout']:6.0%}  cumulative "
+                         f"{c['cumulative_shrink']:6.0%}  ({c['gap_ratio_after']:.2f}x floor after)"
+                         + (f"  [alike: {', '.join(c['confused_with'])}]" if c["confused_with"] else ""))
+    if rem:
+        state = ("at the noise floor" if rem["at_noise_floor"] else
+                 "UNKNOWN EFFECT: a significant gap that no candidate explains"
+                 if rem["unknown_effect"] else f"stopped ({rem['stopped']})")
+        lines.append(f"remaining: {rem['share_of_gap']:.0%} of the original gap, "
+                     f"{rem['gap_ratio']:.2f}x the noise floor — {state}")
+        if rem["where"] and not rem["at_noise_floor"]:
+            lines.append("  where: " + "; ".join(f"{c['dimension']} {c['label']} {c['ratio']:.1f}x"
+                                                 for c in rem["where"][:5]))
     if v.get("untestable"):
         lines.append(f"not testable on this trace: {', '.join(v['untestable'])}")
     return "\n".join(lines)
 
 
 def write_report(result, folder: Path) -> list[str]:
-    """PNG heat maps of the nominal model's residuals (pure-numpy PNG writer)."""
-    from ..analysis.diagnose.png import heatmap_png
+    """Heat maps of the nominal model's residuals (matplotlib: axes, units, colour bar)."""
+    from ..plots import heatmap_png
 
     try:
         folder.mkdir(parents=True, exist_ok=True)
@@ -106,18 +122,34 @@ def write_report(result, folder: Path) -> list[str]:
                              f"choose a writable --report DIR") from None
     maps = result.residuals
     floor = float(maps["floor_rad_s"])
+    err = np.abs(np.asarray(maps["horizon_error_rad_s"], float))
+    t = np.asarray(maps["time_s"], float).reshape(err.shape) if err.ndim == 2 else None
+    if t is not None and t.size:   # rows: horizon starts, columns: time into the horizon
+        start, into = (float(t[0, 0]), float(t[-1, 0])), (0.0, float(t[0, -1] - t[0, 0]))
+    else:
+        start, into = (0.0, float(err.shape[0]) if err.ndim == 2 else 1.0), (0.0, 1.0)
+    speed = tuple(maps.get("speed_range_rad_s", (0.0, 1.0)))
+    label = "rms simulation error / noise floor"
     files = {
-        # rows: horizon step (bottom = start), columns: horizon (time) — |error| / floor
-        "horizon_error.png": (np.abs(maps["horizon_error_rad_s"]).T / floor, 4),
-        # rows: rotor angle 0..2pi, columns: |speed| bins — rms error / floor
-        "speed_angle.png": (maps["speed_angle_rms"] / floor, 12),
-        # rows: current bins, columns: |speed| bins — rms error / floor
-        "speed_current.png": (maps["speed_current_rms"] / floor, 12),
+        "horizon_error.png": dict(values=err.T / floor if err.ndim == 2 else np.atleast_2d(err) / floor,
+                                  x_extent=start, y_extent=into, xlabel="horizon start [s]",
+                                  ylabel="time into the horizon [s]", colorbar_label="|simulation error| / noise floor",
+                                  title=f"Held-out simulation error of the nominal model (floor {floor:.3g} rad/s)"),
+        "speed_angle.png": dict(values=maps["speed_angle_rms"] / floor, x_extent=speed,
+                                y_extent=tuple(maps.get("angle_range_rad", (0.0, 2 * np.pi))),
+                                xlabel="|speed| [rad/s]", ylabel="rotor angle mod 2π [rad]",
+                                colorbar_label=label, title="Where the error is: speed × rotor angle"),
+        "speed_current.png": dict(values=maps["speed_current_rms"] / floor, x_extent=speed,
+                                  y_extent=tuple(maps.get("current_range_a", (0.0, 1.0))),
+                                  xlabel="|speed| [rad/s]", ylabel="current [A]",
+                                  colorbar_label=label, title="Where the error is: speed × current"),
     }
     written = []
-    for name, (arr, scale) in files.items():
+    for name, spec in files.items():
+        arr = np.asarray(spec["values"], float)
+        top = max(3.0, float(np.nanmax(arr))) if np.isfinite(arr).any() else 3.0
         path = folder / name
-        path.write_bytes(heatmap_png(arr, scale=scale, vmin=0.0, vmax=max(3.0, float(np.nanmax(arr)) if np.isfinite(arr).any() else 3.0)))
+        path.write_bytes(heatmap_png(vmin=0.0, vmax=top, **spec))
         written.append(str(path))
     (folder / "diagnosis.json").write_text(json.dumps(_jsonable(result.as_dict()), indent=1))
     written.append(str(folder / "diagnosis.json"))

@@ -24,7 +24,7 @@ from numba import njit
 # ---- motor block (per axis, base a*MP)
 KT, J, D, C, TC, TS, WS, EPS, COG_A, COG_N, RIP_A, RIP_N, KSAT, OFF, GAIN, NOISE, RES, \
     Q, BETA, DELAY, KSH, CSH, BL, JD, DISK, KP, KI, ILIM, WLIM, LOOPK, VALPHA, LOOPT, \
-    MODE, SP_INTERP, NAVG = range(35)
+    MODE, SP_INTERP, NAVG, TCA, DA, TPA, TPN = range(39)
 MP = 40
 # ---- plant block (base PB)
 PB = 2 * MP
@@ -64,8 +64,22 @@ def _friction(w, tc, ts, ws, eps, d):
 
 
 @njit(cache=True)
-def _motor_friction(pp, b, w):
-    return _friction(w, pp[b + TC], pp[b + TS], pp[b + WS], pp[b + EPS], pp[b + D])
+def _motor_friction(pp, b, w, th):
+    """Friction of one motor; optional direction-dependent Coulomb/viscous parts
+    (Tc ± TCA, D ± DA) and a Coulomb torque varying with the rotor angle
+    (Tc·(1 + TPA·sin(TPN·θ))) — all off (0) by default."""
+    f, df = _friction(w, pp[b + TC], pp[b + TS], pp[b + WS], pp[b + EPS], pp[b + D])
+    tca = pp[b + TCA]
+    da = pp[b + DA]
+    tpa = pp[b + TPA]
+    if tca != 0.0 or da != 0.0 or tpa != 0.0:
+        eps = pp[b + EPS]
+        t = math.tanh(w / eps)
+        dt_ = (1.0 - t * t) / eps
+        p = pp[b + TC] * tpa * math.sin(pp[b + TPN] * th) if tpa > 0.0 else 0.0
+        f += tca * t * t + da * t * w + p * t
+        df = max(df + 2.0 * tca * t * dt_ + da * (t + w * dt_) + p * dt_, 0.0)
+    return f, df
 
 
 @njit(cache=True)
@@ -152,7 +166,7 @@ def _free_axis(pp, st, a, te, dt):
     b = a * MP
     s = a * SS
     w = st[s + W]
-    f, df = _motor_friction(pp, b, w)
+    f, df = _motor_friction(pp, b, w, st[s + TH])
     disk = pp[b + DISK]
     if disk == DISK_TWO_MASS:
         tau = _gap_torque(st[s + TH] - st[s + THD], w - st[s + WD], pp[b + KSH], pp[b + CSH],
@@ -213,9 +227,9 @@ def _rigid_reducer(pp, st, te_in, te_out, dt):
     w = st[W]
     r, rp, _ = _kinematics(pp, th)
     eta = _mesh_eta(pp, w)
-    fi, dfi = _motor_friction(pp, bi, w)
+    fi, dfi = _motor_friction(pp, bi, w, th)
     dr, ddr = _drag(pp, w)
-    fo, dfo = _motor_friction(pp, bo, r * w)
+    fo, dfo = _motor_friction(pp, bo, r * w, st[SS + TH])
     jin = pp[bi + J]
     jout = pp[bo + J]
     x = te_in - fi - dr
@@ -257,9 +271,9 @@ def _backlash_reducer(pp, st, te_in, te_out, dt):
     tm = _gap_torque(delta, wi - n * wo, pp[PB + MESH_K], pp[PB + MESH_C], pp[PB + MESH_BL])
     eta = _mesh_eta(pp, wi)
     e = eta if tm * wi >= 0.0 else 1.0 / eta
-    fi, dfi = _motor_friction(pp, 0, wi)
+    fi, dfi = _motor_friction(pp, 0, wi, st[TH])
     dr, ddr = _drag(pp, wi)
-    fo, dfo = _motor_friction(pp, MP, wo)
+    fo, dfo = _motor_friction(pp, MP, wo, st[SS + TH])
     wi_new = wi + dt * (te_in - fi - dr - tm) / (pp[J] + dt * (dfi + ddr))
     wo_new = wo + dt * (te_out - fo + n * e * tm) / (pp[MP + J] + dt * dfo)
     st[GB + E_IN] += (tm + dr + ddr * (wi_new - wi)) * wi_new * dt

@@ -43,6 +43,10 @@ class MotorParams:
     Ts: float = 0.0                 # N m extra static (Stribeck) friction
     ws: float = 5.0                 # rad/s Stribeck speed
     friction_eps_rad_s: float = 0.01  # smoothing of sign(ω): tanh(ω/eps)
+    Tc_asym: float = 0.0            # N m: Coulomb is Tc + Tc_asym turning forward, Tc − Tc_asym back
+    D_asym: float = 0.0             # N m s/rad: viscous is D + D_asym forward, D − D_asym back
+    Tc_pos_amp: float = 0.0         # Coulomb varies with angle: Tc·(1 + amp·sin(order·θ))
+    Tc_pos_order: int = 1           # periods of that variation per revolution
     cog_amp: float = 0.002          # N m cogging amplitude
     cog_order: int = 6              # cogging periods per revolution
     ripple_amp: float = 0.0         # commutation torque ripple, fraction of Kt*i
@@ -83,7 +87,7 @@ class MotorParams:
                         "current_noise_a", "current_resolution_a", "current_lag_s",
                         "delay_samples", "shaft_stiffness", "shaft_damping", "backlash_rad",
                         "vel_kp", "vel_ki", "vel_filter_s", "cog_order", "ripple_order",
-                        "current_avg_s")
+                        "current_avg_s", "Tc_pos_amp")
         _check_numbers(self, where)
         for name in positive:
             if not getattr(self, name) > 0:
@@ -96,6 +100,11 @@ class MotorParams:
         if self.setpoint_interpolation not in (0, 1):
             raise ProfileError(f"{where}.setpoint_interpolation: 1 (linear between SYNC "
                                f"setpoints) or 0 (steps), got {self.setpoint_interpolation!r}")
+        if abs(self.Tc_asym) > self.Tc or abs(self.D_asym) > self.D:
+            raise ProfileError(f"{where}.Tc_asym/D_asym: at most Tc / D in size (friction "
+                               f"cannot push the motor)")
+        if self.Tc_pos_amp > 1 or self.Tc_pos_order < 1:
+            raise ProfileError(f"{where}.Tc_pos_amp: at most 1; Tc_pos_order: at least 1")
         if self.ripple_amp >= 1:
             raise ProfileError(f"{where}.ripple_amp: a fraction of Kt*i, must be < 1")
 

@@ -243,7 +243,9 @@ class BenchWorld:
                              (K.RES, m.current_resolution_a), (K.DELAY, m.delay_samples),
                              (K.CSH, m.shaft_damping), (K.BL, m.backlash_rad),
                              (K.KP, m.vel_kp), (K.KI, m.vel_ki), (K.ILIM, m.current_limit_a),
-                             (K.WLIM, m.speed_limit_rad_s), (K.MODE, MODES[self._modes[axis]])):
+                             (K.WLIM, m.speed_limit_rad_s), (K.MODE, MODES[self._modes[axis]]),
+                             (K.TCA, m.Tc_asym), (K.DA, m.D_asym), (K.TPA, m.Tc_pos_amp),
+                             (K.TPN, m.Tc_pos_order)):
                 pp[b + idx] = val
             pp[b + K.SP_INTERP] = float(m.setpoint_interpolation)
             pp[b + K.NAVG] = max(1, int(round(m.current_avg_s / dt)))

@@ -6,7 +6,8 @@ own, linear in their coefficients) and ``describe`` (fitted parameters with 95 %
 intervals, torques as current equivalents ``*_a`` = torque / Kt).  Coefficients are
 per unit inertia (N m / J), so a torque T appears as T/J = (T/Kt) * (Kt/J).
 
-Vocabulary: coulomb_friction, stribeck_friction, cogging, torque_ripple,
+Vocabulary: coulomb_friction, stribeck_friction, direction_friction,
+position_friction, cogging, torque_ripple,
 current_offset, time_delay, kt_saturation, shaft_compliance, backlash,
 encoder_quantization, inertia_mismatch.
 """
@@ -30,20 +31,55 @@ MIN_SUPPORT = 0.02
 @dataclass(frozen=True)
 class Base:
     """The nominal model effects augment: identified (refitted with the effect) or
-    given (kept fixed; only the effect's own coefficients are fitted)."""
+    given (kept fixed; only the effect's own coefficients are fitted).
+
+    ``chosen``: effects already added by the diagnosis chain, ``((effect, hp), ...)``
+    in the order added; their terms (and nominal settings such as a delay) are part
+    of this base, so a new candidate is fitted together with all of them."""
 
     given: GivenModel | None = None
     spring: bool = False
+    chosen: tuple = ()
 
-    def terms(self, delay: int = 0, sat_a: float = 0.0) -> list[Term]:
+    def with_effect(self, effect: "Effect", hp: dict) -> "Base":
+        return Base(self.given, self.spring, (*self.chosen, (effect, dict(hp))))
+
+    @property
+    def chosen_names(self) -> tuple[str, ...]:
+        return tuple(e.name for e, _ in self.chosen)
+
+    def _settings(self) -> tuple[int, float]:
+        delay, sat = 0, 0.0
+        for _, hp in self.chosen:
+            delay = int(hp.get("delay_samples", delay))
+            sat = float(hp.get("kt_sat_a", sat))
+        return delay, sat
+
+    def _core(self, delay: int | None, sat_a: float | None) -> list[Term]:
+        d0, s0 = self._settings()
+        delay = d0 if delay is None else delay
+        sat_a = s0 if sat_a is None else sat_a
         if self.given is None:
             return nominal_terms(self.spring, delay, sat_a)
         g = self.given
         return [GivenNominal(kt_over_j=g.kt_over_j, d_over_j=g.d_over_j,
                              c_over_j=g.c_over_j, delay=delay, sat_a=sat_a)]
 
+    def terms(self, delay: int | None = None, sat_a: float | None = None) -> list[Term]:
+        terms = self._core(delay, sat_a)
+        for effect, hp in self.chosen:
+            terms += effect.chain_terms(hp)[0]
+        return terms
+
     def fixed(self, free_scale: bool = False) -> dict[int, float]:
-        return {} if (self.given is None or free_scale) else {0: 1.0}
+        free_scale = free_scale or "inertia_mismatch" in self.chosen_names
+        out = {} if (self.given is None or free_scale) else {0: 1.0}
+        j = sum(len(t.names) for t in self._core(None, None))
+        for effect, hp in self.chosen:
+            terms, fx = effect.chain_terms(hp)
+            out.update({j + k: v for k, v in fx.items()})
+            j += sum(len(t.names) for t in terms)
+        return out
 
     def kt_over_j(self, model: Model) -> float:
         if self.given is None:
@@ -83,6 +119,14 @@ class Effect:
     def extra(self, hp: dict) -> list[Term]:
         return []
 
+    def chain_terms(self, hp: dict) -> tuple[list[Term], dict[int, float]]:
+        """Terms this effect leaves in the model once the chain has chosen it, with
+        any coefficients held (index within these terms -> value)."""
+        return self.extra(hp), {}
+
+    #: can the chain add this effect to the model (and then look for more)?
+    chainable = True
+
     def describe(self, model: Model, base: Base, hp: dict) -> dict:
         return dict(hp)
 
@@ -111,12 +155,38 @@ class StribeckTerm(Term):
         return [-np.tanh(omega / self.eps) * np.exp(-(omega / self.ws) ** 2)]
 
 
+def speed_scale(sig: Signals) -> float:
+    """Top speed of the trace (99.5th percentile of |w|): widths and speeds of the
+    friction models are fractions of it, so a trace in rad, deg, mm or m gives the
+    same fit scaled (no threshold in the user's position unit)."""
+    v = sig.cache.get("speed_scale")
+    if v is None:
+        v = float(np.percentile(np.abs(sig.velocity_rad_s), 99.5)) or 1e-300
+        sig.cache["speed_scale"] = v
+    return v
+
+
+#: Coulomb smoothing widths scanned, as fractions of the top speed (then refined).
+EPS_FRACTIONS = (2e-4, 1e-3, 7e-3)
+
+
+def _eps_grid(sig: Signals) -> list[float]:
+    return [f * speed_scale(sig) for f in EPS_FRACTIONS]
+
+
+def _chosen_eps(sig: Signals, base: Base) -> float | None:
+    for e, hp in base.chosen:
+        if "eps_rad_s" in hp:
+            return float(hp["eps_rad_s"])
+    return None
+
+
 class CoulombFriction(Effect):
     name = "coulomb_friction"
     continuous = ("eps_rad_s",)
 
     def grid(self, sig, base):
-        return [{"eps_rad_s": e} for e in (0.05, 0.3, 2.0)]
+        return [{"eps_rad_s": e} for e in _eps_grid(sig)]
 
     def extra(self, hp):
         return [CoulombTerm(eps=hp["eps_rad_s"])]
@@ -135,8 +205,8 @@ class StribeckFriction(Effect):
         # (beyond that it is Coulomb friction by another name), and only where the trace
         # has low-speed motion to see it — else the regressor is ~0 and any fit is noise
         w = np.abs(sig.velocity_rad_s)
-        top = max(1.0, 0.25 * float(np.max(w)))
-        grid = [{"ws_rad_s": float(ws)} for ws in np.geomspace(min(0.5, top / 2), top, 7)]
+        top = 0.25 * float(np.max(w))
+        grid = [{"ws_rad_s": float(ws)} for ws in np.geomspace(top / 500, top, 7)]
         return [g for g in grid if np.mean(np.exp(-(w / g["ws_rad_s"]) ** 2)) > MIN_SUPPORT]
     def extra(self, hp):
         return [StribeckTerm(ws=hp["ws_rad_s"])]
@@ -436,6 +506,13 @@ class RigidGapTerm(Term):
         return new, [th2, w2]
 
 
+def _gap_grid(sig: Signals) -> np.ndarray:
+    """Gaps scanned: from 1/300 to 1/3 of the distance the axis covers in one sample
+    at top speed (unit-free)."""
+    step = speed_scale(sig) * sig.dt_s
+    return np.geomspace(step / 300, step / 3, 9)
+
+
 class Backlash(Effect):
     """A disk behind a gap with rigid contact (impacts share momentum): the gap is
     scanned, the inertia ratio J_disk/J is the one linear coefficient.  (A stiff
@@ -450,15 +527,106 @@ class Backlash(Effect):
 
     def grid(self, sig, base):
         return [{"gap_rad": float(g), "disk_over_motor_inertia": float(r)}
-                for g in np.geomspace(1e-3, 0.1, 9) for r in (0.2, 0.5, 1.0, 2.0)]
+                for g in _gap_grid(sig) for r in (0.2, 0.5, 1.0, 2.0)]
 
     def build(self, sig, base, hp):
         terms = base.terms()
         fixed = {**base.fixed(), sum(len(t.names) for t in terms): hp["disk_over_motor_inertia"]}
         return terms + [RigidGapTerm(gap=hp["gap_rad"])], fixed
 
+    def chain_terms(self, hp):
+        return [RigidGapTerm(gap=hp["gap_rad"])], {0: hp["disk_over_motor_inertia"]}
+
     def describe(self, model, base, hp):
         return dict(hp)
+
+
+# ------------------------------------------------- direction / position friction
+@dataclass(frozen=True)
+class DirectionTerm(Term):
+    """Direction-dependent friction on top of Coulomb + viscous:
+    -dTc/J |tanh(w/eps)| - dD/J |w|, so forward Tc+ = Tc + dTc, D+ = D + dD and
+    backward Tc- = Tc - dTc, D- = D - dD."""
+
+    names: tuple[str, ...] = ("dtc_over_j", "dd_over_j")
+    eps: float = 0.3
+
+    def simulate(self, sig, theta, omega, idx, state):
+        return [-np.abs(np.tanh(omega / self.eps)), -np.abs(omega)]
+
+
+class DirectionFriction(Effect):
+    """Separate Coulomb and viscous friction per direction (ball screws, seals and
+    preloaded gears often differ forward and back).  Adds its own Coulomb term when
+    the chain has none yet."""
+
+    name = "direction_friction"
+
+    def grid(self, sig, base):
+        eps = _chosen_eps(sig, base)
+        coulomb = "coulomb_friction" not in base.chosen_names
+        return [{"eps_rad_s": e, "with_coulomb": coulomb}
+                for e in ([eps] if eps else _eps_grid(sig))]
+
+    def extra(self, hp):
+        t = [DirectionTerm(eps=hp["eps_rad_s"])]
+        return ([CoulombTerm(eps=hp["eps_rad_s"])] + t) if hp["with_coulomb"] else t
+
+    def describe(self, model, base, hp):
+        p, kj = model.params(), base.kt_over_j(model)
+        tc, d = p.get("tc_over_j", 0.0), p.get("d_over_j", 0.0)
+        dtc, dd = _pm(model, "dtc_over_j", 1.0 / kj), _pm(model, "dd_over_j", 1.0 / kj)
+        return {"Tc_forward_a": (tc / kj + dtc[0]), "Tc_backward_a": (tc / kj - dtc[0]),
+                "dTc_a_pm": dtc[1],
+                "D_forward_a_per_speed": (d / kj + dd[0]), "D_backward_a_per_speed": (d / kj - dd[0]),
+                "dD_a_per_speed_pm": dd[1], "eps_rad_s": hp["eps_rad_s"]}
+
+
+@dataclass(frozen=True)
+class PositionFrictionTerm(Term):
+    """Coulomb friction whose level varies with position: -tanh(w/eps) (s g1 + c g2)/J
+    with (g1, g2) = (sin, cos)(N th) over the rotor angle, or Legendre P1, P2 of the
+    position over the travel (unit-free: normalised to the trace's range)."""
+
+    names: tuple[str, ...] = ("pf1_over_j", "pf2_over_j")
+    eps: float = 0.3
+    order: int = 0          # 0: along the travel
+    lo: float = 0.0
+    span: float = 1.0
+
+    def simulate(self, sig, theta, omega, idx, state):
+        s = np.tanh(omega / self.eps)
+        if self.order:
+            return [-s * np.sin(self.order * theta), -s * np.cos(self.order * theta)]
+        x = 2.0 * (theta - self.lo) / self.span - 1.0
+        return [-s * x, -s * (1.5 * x * x - 0.5)]
+
+
+#: Rotor-angle orders scanned for position-dependent friction (eccentric screws,
+#: seals and gears: low orders).
+POS_FRICTION_ORDERS = 8
+
+
+class PositionFriction(Effect):
+    name = "position_friction"
+
+    def grid(self, sig, base):
+        eps = _chosen_eps(sig, base) or _eps_grid(sig)[1]
+        lo, span = float(np.min(sig.position_rad)), float(np.ptp(sig.position_rad)) or 1.0
+        g = [{"order": 0, "eps_rad_s": eps, "lo": lo, "span": span}]
+        return g + [{"order": n, "eps_rad_s": eps, "lo": lo, "span": span}
+                    for n in range(1, POS_FRICTION_ORDERS + 1)]
+
+    def extra(self, hp):
+        return [PositionFrictionTerm(eps=hp["eps_rad_s"], order=hp["order"], lo=hp["lo"],
+                                     span=hp["span"])]
+
+    def describe(self, model, base, hp):
+        amp, h, ph = _amp_phase(model, "pf1_over_j", "pf2_over_j", 1.0 / base.kt_over_j(model))
+        where = ("along the travel (P1, P2 of position)" if not hp["order"]
+                 else f"order {hp['order']} of the rotor angle")
+        return {"variation_a": amp, "variation_a_pm": h, "pattern": where,
+                "order": hp["order"], "eps_rad_s": hp["eps_rad_s"]}
 
 
 class EncoderQuantization(Effect):
@@ -473,7 +641,7 @@ class EncoderQuantization(Effect):
 
 
 LIBRARY: tuple[Effect, ...] = (
-    CoulombFriction(), StribeckFriction(), Cogging(), TorqueRipple(), CurrentOffset(),
+    CoulombFriction(), StribeckFriction(), DirectionFriction(), PositionFriction(), Cogging(), TorqueRipple(), CurrentOffset(),
     TimeDelay(), KtSaturation(), ShaftCompliance(), Backlash(), EncoderQuantization(),
     InertiaMismatch(),
 )

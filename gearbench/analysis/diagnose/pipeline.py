@@ -23,11 +23,14 @@ class Diagnosis:
     candidates: list[vd.Score]
     verdict: vd.Verdict
     residuals: dict = field(repr=False, default_factory=dict)   # arrays for plots/rerun
+    chain: list[dict] = field(default_factory=list)   # effects in the order added
+    remaining: dict = field(default_factory=dict)     # what the chain leaves unexplained
 
     def as_dict(self) -> dict:
         return {"nominal": self.nominal, "where": self.where,
                 "candidates": [c.as_dict() for c in self.candidates],
-                "verdict": self.verdict.as_dict()}
+                "verdict": self.verdict.as_dict(),
+                "chain": self.chain, "remaining": self.remaining}
 
 
 #: Most trace samples x grid columns featurised at once in a batched scan (memory).
@@ -53,33 +56,35 @@ def _sim_cost(sig, effect: Effect, base, win, starts, horizon):
     return cost
 
 
-def _scan(sig, base, effect: Effect, wins, sims=None) -> list[dict]:
-    """Best grid setting per fit window set, by equation-error RSS.
+def _scan(sig, bases, effect: Effect, wins, sims=None) -> list[dict]:
+    """Best grid setting per fit window set (``bases[i]`` the model augmented for
+    window set ``wins[i]``), by equation-error RSS.
 
     Effects that only add columns to the nominal (``extra``) are scanned in batches:
     each grid point's features are computed once for all folds, and every fold's
     grid is solved in one projection (nominal.scan_rss); effects that change the
     nominal's own columns (delay, saturation) are refitted per grid point."""
-    grid = effect.grid(sig, base)
+    if not isinstance(bases, (list, tuple)):
+        bases = [bases] * len(wins)
+    grid = effect.grid(sig, bases[0])
     if sims is not None:
         return [min(grid, key=lambda hp: c(hp)[1]) for c in sims]
     k = sum(len(t.names) for t in effect.extra(grid[0]))
     if type(effect).build is not Effect.build or k == 0:
-        def rss_at(hp, w):
+        def rss_at(hp, w, base):
             terms, fixed = effect.build(sig, base, hp)
             model, rss = fit_model(sig, terms, w, fixed)
             return rss if _physical(model, effect) else np.inf
-        return [min(grid, key=lambda hp: rss_at(hp, w)) for w in wins]
-    terms, fixed = base.terms(), base.fixed()
+        return [min(grid, key=lambda hp: rss_at(hp, w, b)) for w, b in zip(wins, bases)]
     names = [n for t in effect.extra(grid[0]) for n in t.names]
     positive = tuple(names.index(p) for p in effect.positive)
     rss = np.empty((len(wins), len(grid)))
     per = max(1, SCAN_CHUNK // (len(sig) * k))
     for a in range(0, len(grid), per):
         F = measured_features(sig, [t for hp in grid[a:a + per] for t in effect.extra(hp)])
-        for i, w in enumerate(wins):
+        for i, (w, b) in enumerate(zip(wins, bases)):
             E = integrated_rows(sig, F, w)[0]
-            rss[i, a:a + per] = scan_rss(sig, terms, w, fixed, E, k, positive)
+            rss[i, a:a + per] = scan_rss(sig, b.terms(), w, b.fixed(), E, k, positive)
     return [grid[int(np.argmin(r))] for r in rss]
 
 
@@ -143,7 +148,94 @@ def _held_out(sig, sp: simerror.Split, models, order) -> np.ndarray:
     return np.concatenate(mse)[order]
 
 
-def diagnose(trace: Trace, model: GivenModel | None = None) -> Diagnosis:
+#: Most effects the chain adds (each step rescans every candidate).
+MAX_CHAIN = 4
+
+
+@dataclass
+class _State:
+    """The model the chain has built so far: one base per fold (each fold's nonlinear
+    settings chosen on its own fit blocks, so held-out scoring stays honest), one for
+    all the data (fold 0's settings; for reporting), its held-out errors and the
+    per-fold refined models."""
+
+    bases: list
+    base_all: Base
+    folds: list
+    mse: np.ndarray
+    model_all: Model
+    noise_removed: float = 0.0     # quantisation noise variance explained (per horizon)
+
+
+def _evaluate(sig, sp, wins, win_all, st: _State, floor, v_rms, ov, order, given, err_cur,
+              exclude=()):
+    """Score every candidate not yet chosen against the current model ``st``."""
+    H = sp.horizon
+    cur_phys = physical(st.model_all) if given is None else {
+        "kt_over_j": st.base_all.kt_over_j(st.model_all)}
+    scores, refits = [], {}
+    base0 = st.bases[0]
+    for effect in LIBRARY:
+        if effect.name in exclude:
+            continue
+        if isinstance(effect, EncoderQuantization):
+            scores.append(_score_quantization(sig, floor, st.mse, v_rms, ov, err_cur))
+            continue
+        if not effect.grid(sig, base0):  # nothing on this trace can show the effect
+            scores.append(vd.score(effect.name, {"note": "not testable on this trace "
+                                                 "(no motion where the effect acts)"},
+                                   st.mse, st.mse, 1, floor.mse, v_rms, overlap=ov))
+            continue
+        sims = ([_sim_cost(sig, effect, b, w, f.fit_starts, H)
+                 for b, w, f in zip(st.bases, wins, sp.folds)]
+                if getattr(effect, "by_simulation", False) else [None] * len(wins))
+        hps = _scan(sig, st.bases, effect, wins, sims if sims[0] is not None else None)
+        fits = [_fit_effect(sig, b, effect, w, hp, c)
+                for b, w, hp, c in zip(st.bases, wins, hps, sims)]
+        after = _held_out(sig, sp, [m for _, m, _ in fits], order)
+        after = np.maximum(after - st.noise_removed, 0.0)
+        refits[effect.name] = (effect, fits)
+        # parameters reported from all the data, at the first fold's settings
+        hp = fits[0][0]
+        terms, fixed = effect.build(sig, st.base_all, hp)
+        m, _ = fit_model(sig, terms, win_all, fixed)
+        # scanned settings count as parameters too (Occam between look-alikes)
+        k_extra = (_n_free(m, st.base_all, effect) - _n_free(st.model_all, st.base_all, None)
+                   + _n_settings(effect, sig, base0))
+        phys = physical(m) if given is None else {"kt_over_j": st.base_all.kt_over_j(m)}
+        shift = {k: (phys[k] - cur_phys[k]) / cur_phys[k]
+                 for k in ("kt_over_j", "d_over_j") if k in phys and cur_phys.get(k)}
+        sc = vd.score(effect.name, effect.describe(m, st.base_all, hp), st.mse, after,
+                      max(k_extra, 1), floor.mse, v_rms, shift, overlap=ov)
+        scores.append(sc)
+    # the leading candidates are refined on simulation error too (the nominal was), so
+    # none wins only because equation error left the nominal biased
+    ranked = vd.rank(scores)
+    refined_folds = {}
+    for i, sc in enumerate(ranked[:N_REFINE]):
+        if sc.effect not in refits:
+            continue
+        effect, fits = refits[sc.effect]
+        models = []
+        for (hp, m, _), b, f in zip(fits, st.bases, sp.folds):
+            fixed = tuple(effect.build(sig, b, hp)[1])
+            models.append(simerror.refine(sig, m, f.fit_starts, H, fixed))
+        after = np.maximum(_held_out(sig, sp, models, order) - st.noise_removed, 0.0)
+        refined_folds[sc.effect] = models
+        ranked[i] = vd.rescore(sc, st.mse, after, floor.mse, v_rms)
+    return ranked, refits, refined_folds
+
+
+def _gate(ranked, tests):
+    """Testability decides: an effect the trace cannot reveal is never significant."""
+    return vd.rank([replace(sc, testable=tests[sc.effect].testable, why=tests[sc.effect].why,
+                            min_detectable=tests[sc.effect].min_amplitude,
+                            significant=sc.significant and tests[sc.effect].testable)
+                    if sc.effect in tests else sc for sc in ranked])
+
+
+def diagnose(trace: Trace, model: GivenModel | None = None, *, chain: bool = True,
+             max_chain: int = MAX_CHAIN) -> Diagnosis:
     """Diagnose one single-motor trace (columns position_rad, current_a).
 
     1. nominal: the paper's model (C = 0 unless a spring shows on held-out data),
@@ -151,7 +243,11 @@ def diagnose(trace: Trace, model: GivenModel | None = None) -> Diagnosis:
     2. where: residual maps of simulation and equation error vs the noise floor;
     3. which / how far: each effect in the library fitted as an augmentation (its
        settings scanned) on one fold and scored by simulation error on the other,
-       both ways round (two-fold cross-fitting, see simerror.split and verdict.py).
+       both ways round (two-fold cross-fitting, see simerror.split and verdict.py);
+    4. the chain (``chain=True``): forward selection — the best significant effect is
+       added to the model, every remaining candidate is scored again against the
+       augmented model (all chosen effects' coefficients refitted together), until
+       the held-out error reaches the noise floor or no candidate is significant.
 
     A pure function of its inputs: every memo lives on this call's ``Signals``.
     """
@@ -164,7 +260,7 @@ def diagnose(trace: Trace, model: GivenModel | None = None) -> Diagnosis:
     order = np.argsort(starts, kind="stable")
     starts = starts[order]
     v_rms = float(np.sqrt(np.mean(sig.velocity_rad_s[np.add.outer(starts, np.arange(1, H + 1))] ** 2)))
-    v_rms = max(v_rms, 1e-9)
+    v_rms = max(v_rms, 1e-300)
     ov = H // sp.stride
 
     base = Base(given=model)
@@ -193,51 +289,11 @@ def diagnose(trace: Trace, model: GivenModel | None = None) -> Diagnosis:
         "kt_over_j": base.kt_over_j(nom), "d_over_j": model.d_over_j,
         "c_over_j": model.c_over_j, "hold_fraction": hold_fraction(nom)}
 
-    scores, refits = [], {}
-    for effect in LIBRARY:
-        if isinstance(effect, EncoderQuantization):
-            scores.append(_score_quantization(sig, floor, mse_nom, v_rms, ov, err_nom))
-            continue
-        if not effect.grid(sig, base):  # nothing on this trace can show the effect
-            scores.append(vd.score(effect.name, {"note": "not testable on this trace "
-                                                 "(no motion where the effect acts)"},
-                                   mse_nom, mse_nom, 1, floor.mse, v_rms, overlap=ov))
-            continue
-        sims = ([_sim_cost(sig, effect, base, w, f.fit_starts, H)
-                 for w, f in zip(wins, sp.folds)] if getattr(effect, "by_simulation", False)
-                else [None] * len(wins))
-        hps = _scan(sig, base, effect, wins, sims if sims[0] is not None else None)
-        fits = [_fit_effect(sig, base, effect, w, hp, c) for w, hp, c in zip(wins, hps, sims)]
-        after = _held_out(sig, sp, [m for _, m, _ in fits], order)
-        refits[effect.name] = (effect, fits)
-        # parameters reported from all the data, at the first fold's settings
-        hp = fits[0][0]
-        terms, fixed = effect.build(sig, base, hp)
-        m, _ = fit_model(sig, terms, win_all, fixed)
-        # scanned settings count as parameters too (Occam between look-alikes)
-        k_extra = _n_free(m, base, effect) - _n_free(nom, base, None) + _n_settings(effect, sig, base)
-        phys = physical(m) if model is None else {"kt_over_j": base.kt_over_j(m)}
-        shift = {k: (phys[k] - nominal_phys[k]) / nominal_phys[k]
-                 for k in ("kt_over_j", "d_over_j") if k in phys and nominal_phys.get(k)}
-        scores.append(vd.score(effect.name, effect.describe(m, base, hp), mse_nom, after,
-                               max(k_extra, 1), floor.mse, v_rms, shift, overlap=ov))
-    # the leading candidates are refined on simulation error too (the nominal was), so
-    # none wins only because equation error left the nominal biased
-    ranked = vd.rank(scores)
-    for i, sc in enumerate(ranked[:N_REFINE]):
-        if sc.effect not in refits:
-            continue
-        effect, fits = refits[sc.effect]
-        fixed = tuple(effect.build(sig, base, fits[0][0])[1])
-        after = _held_out(sig, sp, refined([m for _, m, _ in fits], fixed), order)
-        ranked[i] = vd.rescore(sc, mse_nom, after, floor.mse, v_rms)
+    st = _State([base, base], base, nom_folds, mse_nom, nom)
     tests = testability.assess(sig, floor, win_all, H, model is not None)
-    ranked = [replace(sc, testable=tests[sc.effect].testable, why=tests[sc.effect].why,
-                      min_detectable=tests[sc.effect].min_amplitude,
-                      significant=sc.significant and (tests[sc.effect].testable or
-                                                      sc.effect not in testability.PREREQUISITE))
-              if sc.effect in tests else sc for sc in ranked]
-    ranked = vd.rank(ranked)
+    ranked, refits, refined_folds = _evaluate(sig, sp, wins, win_all, st, floor, v_rms, ov,
+                                              order, model, err_nom)
+    ranked = _gate(ranked, tests)
     gap_open = float(np.mean(mse_nom)) > (1.0 + vd.MATERIAL) * floor.mse
     verdict = vd.verdict(ranked, gap_open, {k: t.experiment for k, t in tests.items()
                                             if not t.testable})
@@ -253,7 +309,100 @@ def diagnose(trace: Trace, model: GivenModel | None = None) -> Diagnosis:
            "horizon_overlap": int(ov),
            "spring_kept": bool(base.spring), "given_model": model is not None}
     nominal = {"params": {**nominal_phys, **_sigmas(nom, model)}, "fit": fit}
-    return Diagnosis(nominal, where_cells, ranked, verdict, maps)
+
+    steps, st = _chain(sig, sp, wins, win_all, st, floor, v_rms, ov, order, model, tests,
+                       ranked, refits, refined_folds, max_chain if chain else 1)
+    remaining = _remaining(sig, st, mse_nom, floor, starts, H, steps, where_cells, ov,
+                           max_chain if chain else 1)
+    return Diagnosis(nominal, where_cells, ranked, verdict, maps, steps, remaining)
+
+
+def _chain(sig, sp, wins, win_all, st, floor, v_rms, ov, order, model, tests, ranked,
+           refits, refined_folds, max_steps):
+    """Forward selection: add the best significant effect, rescore the rest."""
+    gap0 = vd.excess(float(np.mean(st.mse)), floor.mse)
+    steps: list[dict] = []
+    H = sp.horizon
+    for k in range(max_steps):
+        best = next((sc for sc in ranked if sc.significant), None)
+        if best is None:
+            break
+        v = vd.verdict(ranked)
+        name = v.effect
+        best = next(sc for sc in ranked if sc.effect == name)
+        if name == "encoder_quantization":
+            st = _State(st.bases, st.base_all, st.folds, best.mse_h, st.model_all,
+                        st.noise_removed + float(np.mean(st.mse - best.mse_h)))
+            params = best.params
+        else:
+            effect, fits = refits[name]
+            folds = refined_folds.get(name) or [m for _, m, _ in fits]
+            bases = [b.with_effect(effect, hp) for b, (hp, _, _) in zip(st.bases, fits)]
+            base_all = st.base_all.with_effect(effect, fits[0][0])
+            m_all, _ = fit_model(sig, base_all.terms(), win_all, base_all.fixed())
+            st = _State(bases, base_all, folds, best.mse_h, m_all, st.noise_removed)
+            params = best.params
+        gap = vd.excess(float(np.mean(st.mse)), floor.mse)
+        steps.append({"effect": name, "params": params,
+                      "shrink_heldout": float(best.shrink),
+                      "cumulative_shrink": float(1.0 - gap / gap0) if gap0 > 0 else 0.0,
+                      "significant": bool(best.significant), "delta_bic": float(best.delta_bic),
+                      "t_stat": float(best.t_stat),
+                      "gap_ratio_after": float(np.sqrt(np.mean(st.mse) / floor.mse)),
+                      "confused_with": v.confused_with, "experiment": v.experiment})
+        at_floor = float(np.mean(st.mse)) <= (1.0 + vd.MATERIAL) * floor.mse
+        if at_floor or k + 1 >= max_steps:
+            break
+        starts = sp.score_starts[order]
+        err_cur = simerror.simulate(sig, st.model_all, starts, H)
+        ranked, refits, refined_folds = _evaluate(
+            sig, sp, wins, win_all, st, floor, v_rms, ov, order, model, err_cur,
+            exclude=_excluded(st.base_all, steps, model))
+        ranked = _gate(ranked, tests)
+    # every chosen effect's parameters, refitted together in the final model
+    for s in steps:
+        for effect, hp in st.base_all.chosen:
+            if effect.name == s["effect"]:
+                s["params_final"] = effect.describe(st.model_all, st.base_all, hp)
+    return steps, st
+
+
+def _excluded(base: Base, steps, model) -> tuple[str, ...]:
+    """Candidates the chain no longer tries: those chosen, a Coulomb term already
+    inside direction-dependent friction, inertia when the nominal absorbs it."""
+    out = [s["effect"] for s in steps]
+    if any(e.name == "direction_friction" and hp.get("with_coulomb") for e, hp in base.chosen):
+        out.append("coulomb_friction")
+    if model is None:
+        out.append("inertia_mismatch")
+    return tuple(out)
+
+
+def _remaining(sig, st, mse_nom, floor, starts, H, steps, where_nom, ov, max_steps) -> dict:
+    """What is left after the chain: share of the original gap, where it lies, and
+    whether a significant gap remains that no candidate explains."""
+    gap0 = vd.excess(float(np.mean(mse_nom)), floor.mse)
+    gap = vd.excess(float(np.mean(st.mse)), floor.mse)
+    at_floor = float(np.mean(st.mse)) <= (1.0 + vd.MATERIAL) * floor.mse
+    # is what is left significantly above the floor (horizons are correlated: NW t)?
+    t_gap = vd.paired_t(st.mse, np.full_like(st.mse, floor.mse), ov)
+    left = bool(not at_floor and t_gap > vd.T_CRIT)
+    stop = ("noise_floor" if at_floor else
+            "max_steps" if len(steps) >= max_steps else "no_significant_candidate")
+    if steps and st.base_all.chosen:
+        err = simerror.simulate(sig, st.model_all, starts, H)
+        cells, _ = wh.breakdown(sig, st.model_all, err, starts, floor)
+    else:
+        cells = where_nom
+    hot = sorted((c for c in cells if c["above_floor"]), key=lambda c: -c["ratio"])
+    return {"share_of_gap": float(gap / gap0) if gap0 > 0 else 0.0,
+            "sim_rms_rad_s": float(np.sqrt(np.mean(st.mse))),
+            "noise_floor_rad_s": float(np.sqrt(floor.mse)),
+            "gap_ratio": float(np.sqrt(np.mean(st.mse) / floor.mse)),
+            "at_noise_floor": bool(at_floor), "significant_gap": left,
+            "t_vs_floor": float(t_gap), "stopped": stop,
+            "unknown_effect": bool(left and stop == "no_significant_candidate"),
+            "where": hot[:8]}
 
 
 def _sigmas(nom: Model, model) -> dict:

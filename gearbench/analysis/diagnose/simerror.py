@@ -146,15 +146,17 @@ def lattice_step(theta: np.ndarray, max_divisor: int = 64) -> float | None:
 
     The largest q = dmin/k (dmin the smallest non-zero change) that all samples sit on.
     """
+    # relative tolerances only: the unit of the angle is the user's (rad, deg, m...)
+    scale = float(np.max(np.abs(theta))) or 1.0
     steps = np.abs(np.diff(theta))
-    steps = steps[steps > 1e-12]
+    steps = steps[steps > 1e-12 * scale]
     if not steps.size:
         return None
     dmin = float(np.min(steps))
     x = theta - theta[0]
     for k in range(1, max_divisor + 1):
         q = dmin / k
-        if q < 1e-7:
+        if q < 1e-9 * scale:    # finer than float64 CSV digits can hold a lattice
             break
         for span in (1e3, 1e5, np.inf):  # refine q on ever wider ranges (file rounding)
             near = np.abs(x / q) < span

@@ -39,8 +39,11 @@ U_MIN = 0.05
 MIN_SPREAD = 0.25
 #: Share of the trace needed at low speed for Stribeck friction.
 MIN_LOW_SHARE = 0.02
-#: Highest plausible Stribeck speed of a servo motor, rad/s (typical 0.1-10 rad/s).
-W_STRIBECK_MAX = 10.0
+#: Highest Stribeck speed considered, as a fraction of the trace's top speed (a
+#: Stribeck speed near the top speed is Coulomb friction by another name).
+W_STRIBECK_FRACTION = 0.03
+#: Share of the trace needed moving in each direction for direction-dependent friction.
+MIN_DIRECTION_SHARE = 0.05
 #: Lowest order of cogging / commutation ripple in a three-phase motor.
 ORDER_MIN = 6
 #: Rotor revolutions needed at a slow enough speed for an angle pattern.
@@ -64,7 +67,12 @@ EXPERIMENTS = {
                         "(Coulomb friction is a constant torque in one direction)",
     "current_offset": "vary the current level, e.g. acceleration steps or a multisine "
                       "speed command (a constant torque is absorbed by Kt/J on a ramp)",
-    "stribeck_friction": "add slow motion: speed steps of 0.5-10 rad/s or slow reversals",
+    "stribeck_friction": "add slow motion: speed steps at 0.2-3 % of the top speed or "
+                         "slow reversals",
+    "direction_friction": "move in both directions for a similar time (reversing speed "
+                          "command at several speeds)",
+    "position_friction": "reverse the motion at several positions over the travel (a "
+                         "friction that varies with position needs both directions there)",
     "cogging": "add a slow sweep (below ~fs/20 / 6 rev/s, several revolutions)",
     "torque_ripple": "add slow revolutions under load (e.g. slow reversals with "
                      "acceleration), so the current is well above its noise",
@@ -176,7 +184,9 @@ def assess(sig: Signals, floor: NoiseFloor, win: Windows, horizon: int,
     basis = np.column_stack([i_s, w])
     n_rev = _reversals(w, w_mov)
     u_const, p_const = _unique_share(sig, win, basis, np.ones(n))
-    u_coul, p_coul = _unique_share(sig, win, basis, np.tanh(w / 0.3))
+    w_top_all = max(float(np.percentile(np.abs(w), 99.5)), 1e-300)
+    sgn = np.tanh(w / (1e-3 * w_top_all))      # the Coulomb regressor at its middle width
+    u_coul, p_coul = _unique_share(sig, win, basis, sgn)
 
     def seen(u, p):
         return u >= U_MIN and p >= MIN_SPREAD
@@ -194,10 +204,25 @@ def assess(sig: Signals, floor: NoiseFloor, win: Windows, horizon: int,
         + ("" if n_rev else "; one direction only: the same regressor as a current offset"))
 
     moving = np.abs(w) > 3 * s_w
-    low = float(np.mean(moving & (np.abs(w) <= W_STRIBECK_MAX)))
+    w_strib = W_STRIBECK_FRACTION * w_top_all
+    low = float(np.mean(moving & (np.abs(w) <= w_strib)))
     put("stribeck_friction", low >= MIN_LOW_SHARE,
-        f"{low:.1%} of the trace at 0 < |w| <= {W_STRIBECK_MAX:g} rad/s "
-        f"(needs {MIN_LOW_SHARE:.0%})")
+        f"{low:.1%} of the trace at 0 < |w| <= {w_strib:.3g} (units/s; "
+        f"{W_STRIBECK_FRACTION:.0%} of the top speed; needs {MIN_LOW_SHARE:.0%})")
+
+    fwd, back = float(np.mean(w > w_mov)), float(np.mean(w < -w_mov))
+    basis_c = np.column_stack([i_s, w, sgn])
+    u_dir, p_dir = _unique_share(sig, win, basis_c, np.abs(w))
+    put("direction_friction", min(fwd, back) >= MIN_DIRECTION_SHARE and seen(u_dir, p_dir),
+        f"{fwd:.0%} of the trace forward, {back:.0%} backward (needs "
+        f"{MIN_DIRECTION_SHARE:.0%} each); direction-dependent viscous torque "
+        + unique(u_dir, p_dir))
+    x = th - th.min()
+    x = 2.0 * x / (np.ptp(x) or 1.0) - 1.0
+    u_pos, p_pos = _unique_share(sig, win, basis_c, sgn * x)
+    put("position_friction", n_rev >= 1 and seen(u_pos, p_pos),
+        f"{n_rev} velocity reversals; friction varying along the travel "
+        + unique(u_pos, p_pos))
 
     # angle covered where the order-6 pattern is at most fs/20 (>= 20 samples/period)
     dth = np.abs(np.diff(th))

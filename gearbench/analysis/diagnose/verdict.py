@@ -42,6 +42,17 @@ EXPERIMENTS: dict[frozenset, str] = {
     frozenset({"stribeck_friction", "current_offset"}):
         "add velocity reversals and slow speed steps: an offset is independent of speed "
         "and direction",
+    frozenset({"direction_friction", "current_offset"}):
+        "dwell at standstill with the drive enabled: an offset acts at zero speed too, "
+        "direction-dependent friction only while moving",
+    frozenset({"direction_friction", "coulomb_friction"}):
+        "run the same speeds in both directions: Coulomb friction is the same both ways",
+    frozenset({"position_friction", "coulomb_friction"}):
+        "reverse at several positions over the travel: friction that varies with "
+        "position differs between them",
+    frozenset({"position_friction", "cogging"}):
+        "repeat the slow sweep in both directions: position-dependent friction flips "
+        "with the direction, cogging does not",
     frozenset({"cogging", "torque_ripple"}):
         "repeat a slow sweep at two load or acceleration levels: ripple scales with "
         "current, cogging does not",
