@@ -30,6 +30,46 @@ def dev_data():
     require_dev_data()
 
 
+def require_dev_data() -> None:
+    """Skip (fail in CI, where ``../shared`` is always beside the clone) when the dev
+    data sets are absent."""
+    from gearbench.bench._data import DEV_DIR
+
+    if not (DEV_DIR / "truth.json").is_file():
+        message = f"dev data not found at {DEV_DIR} (../shared/datasets/dev beside the checkout)"
+        if in_ci():
+            pytest.fail(message + " (CI provides ../shared; in CI this test must not be skipped)")
+        pytest.skip(message)
+
+
+@pytest.fixture(scope="session")      # before any module fixture that reads the data
+def dev_data():
+    """Use as ``pytest.mark.usefixtures("dev_data")`` on tests that read the dev data."""
+    require_dev_data()
+
+
+def assert_claimed_accuracy(result: dict, plant: dict, motors=("in", "out")) -> None:
+    """A run's Kt and every efficiency point against the simulated plant's own truth (at
+    the commanded operating points, ``gearbench.sim.truth.simulation_truth``), at the
+    accuracy the README claims (``gearbench.bench.robustness.TARGETS``)."""
+    from gearbench.bench.robustness import TARGETS
+    from gearbench.sim.truth import simulation_truth
+
+    truth = simulation_truth(plant, result["efficiency"])
+    errors = []
+    for m in motors:
+        err = 100 * (result["motors"][m]["Kt"] / truth["motors"][m]["Kt"] - 1)
+        if abs(err) > TARGETS["kt_pct"]:
+            errors.append(f"motor {m}: Kt {err:+.3f} % (claimed <= {TARGETS['kt_pct']} %)")
+    for p, t in zip(result["efficiency"], truth["efficiency"]):
+        for kind, target in (("incremental", TARGETS["inc_pp"]), ("absolute", TARGETS["abs_pp"])):
+            err = 100 * (p[f"eta_{kind}"] - t[f"eta_{kind}"])
+            if abs(err) > target:
+                errors.append(f"{p['in_command']:g} rad/s, {p['out_command']:.4g} A: {kind} η "
+                              f"{err:+.3f} pp (claimed <= {target} pp)")
+    assert not errors, "; ".join(errors)
+
+
 def require_tool(name: str, install_hint: str) -> str:
     """Path of an external program, or skip (fail in CI) with a one-line reason.
 

@@ -7,10 +7,12 @@ is exactly what importlib.metadata reads for an installed distribution.
 """
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
 import yaml
+from conftest import assert_claimed_accuracy
 
 from gearbench.api import AutoOperator, RunResult, open_bench, run_profile
 from gearbench.drives import registry
@@ -70,11 +72,11 @@ def test_profile_runs_through_the_plugin(loopback_installed, tmp_path):
         kt_out = bench.calibrate("out")
         result = bench.finish()
     # the plugin's simulated plant answered: Kt identified from its drives' data
-    assert kt_in.kt_nm_per_a == pytest.approx(0.0527, rel=0.03)
-    assert kt_out.kt_nm_per_a == pytest.approx(0.0512, rel=0.03)
     assert result.passed and result.status == "passed"
-    assert RunResult.from_dict(__import__("json").loads((tmp_path / "run" / "result.json").read_text())) \
-        .motors["in"].kt_nm_per_a == kt_in.kt_nm_per_a
+    on_disk = json.loads((tmp_path / "run" / "result.json").read_text())
+    assert RunResult.from_dict(on_disk).motors["in"].kt_nm_per_a == kt_in.kt_nm_per_a
+    assert on_disk["motors"]["out"]["Kt"] == kt_out.kt_nm_per_a
+    assert_claimed_accuracy(on_disk, PLANT)       # against the plugin plant's own Kt
 
 
 def test_plugin_run_fails_an_impossible_limit(loopback_installed, tmp_path):

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from conftest import assert_claimed_accuracy
 
 openhtf = pytest.importorskip("openhtf")   # the optional extra
 
@@ -82,13 +83,15 @@ def test_json_holds_every_measurement_with_unit_validator_and_outcome(passing):
     assert meas["in_kt"]["validators"] == [f"{0.85 * 0.0527!r} <= x <= {1.15 * 0.0527!r}"]
     assert meas["ratio"]["validators"] == ["7.84 <= x <= 8.16"]
     assert meas[points[0]]["validators"] == ["0.55 <= x <= 0.85"]
-    assert 0.0 < meas["in_kt"]["measured_value"] < 0.1
-    assert abs(meas["ratio"]["measured_value"] - 8.0) < 0.16
     # the OpenHTF verdicts agree with gearbench's own result.json
     result_dir = next((Path(record["metadata"]["gearbench_profile"]).parent / "runs").glob("SN-PASS-*"))
     result = json.loads((result_dir / "result.json").read_text())
     assert result["status"] == "passed" and result["serial"] == "SN-PASS"
     assert meas["in_kt"]["measured_value"] == pytest.approx(result["motors"]["in"]["Kt"])
+    # Kt, ratio and every η against the simulated plant's truth, at the claimed accuracy
+    plant = yaml.safe_load(Path(record["metadata"]["gearbench_profile"]).read_text())["simulation"]
+    assert_claimed_accuracy(result, plant)
+    assert meas["ratio"]["measured_value"] == pytest.approx(result["simulation_truth"]["ratio"], rel=1e-3)
     assert "gearbench_result.json" in record["phases"][-1]["attachments"]
 
 
@@ -146,7 +149,7 @@ def test_operator_abort_ends_the_test_and_the_run(tmp_path, monkeypatch):
     """An abort at a mounting prompt: OpenHTF outcome ERROR, later phases not run, the
     gearbench run still finished (drives disabled, result.json status aborted)."""
     from gearbench.drives import registry
-    from gearbench.errors import BenchFault
+    from gearbench.errors import Aborted
 
     # in-process drive family from tests/plugin_example: no child process needed
     monkeypatch.syspath_prepend(str(Path(__file__).resolve().parent / "plugin_example"))
@@ -160,7 +163,7 @@ def test_operator_abort_ends_the_test_and_the_run(tmp_path, monkeypatch):
 
     class Refuses:
         def confirm(self, prompt):
-            raise BenchFault("operator abort at prompt")
+            raise Aborted("operator abort at prompt")
 
     class RefusingBench(BenchPlug):
         auto_placeholder = True
