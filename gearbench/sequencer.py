@@ -151,7 +151,6 @@ class Sequencer:
                             dict(coupling="none", disk_kgm2={})))
             actions.append(("analyse", "calibrate", dict(motor=m, disk=disk.inertia_kgm2,
                             disk_std=disk.inertia_std_kgm2,
-                            disk_std=disk.inertia_std_kgm2,
                             unloaded=f"calibrate-{m}-unloaded",
                             loaded=f"calibrate-{m}-{disk.name}")))
         elif isinstance(step, LoadStep):

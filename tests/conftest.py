@@ -30,24 +30,6 @@ def dev_data():
     require_dev_data()
 
 
-def require_dev_data() -> None:
-    """Skip (fail in CI, where ``../shared`` is always beside the clone) when the dev
-    data sets are absent."""
-    from gearbench.bench._data import DEV_DIR
-
-    if not (DEV_DIR / "truth.json").is_file():
-        message = f"dev data not found at {DEV_DIR} (../shared/datasets/dev beside the checkout)"
-        if in_ci():
-            pytest.fail(message + " (CI provides ../shared; in CI this test must not be skipped)")
-        pytest.skip(message)
-
-
-@pytest.fixture(scope="session")      # before any module fixture that reads the data
-def dev_data():
-    """Use as ``pytest.mark.usefixtures("dev_data")`` on tests that read the dev data."""
-    require_dev_data()
-
-
 def assert_claimed_accuracy(result: dict, plant: dict, motors=("in", "out")) -> None:
     """A run's Kt and every efficiency point against the simulated plant's own truth (at
     the commanded operating points, ``gearbench.sim.truth.simulation_truth``), at the
