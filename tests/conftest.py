@@ -66,3 +66,19 @@ def require_tool(name: str, install_hint: str) -> str:
             pytest.fail(message + " (.ci/run installs it; in CI this test must not be skipped)")
         pytest.skip(message)
     return exe
+
+
+@pytest.fixture(scope="session")
+def cvt_sim_run(tmp_path_factory):
+    """One full ``gearbench run cvt --sim --report --rrd`` (about a minute), shared by the
+    tests that look at its report and its live view."""
+    import subprocess
+    import sys
+
+    out = tmp_path_factory.mktemp("station") / "cvt-run"
+    p = subprocess.run([sys.executable, "-m", "gearbench", "run", "cvt", "--sim", "--yes", "--quiet",
+                        "--serial", "SIM-REPORT-1", "--out", str(out), "--rrd", str(out / "run.rrd"),
+                        "--report"], capture_output=True, text=True, timeout=900,
+                       cwd=tmp_path_factory.getbasetemp())
+    assert p.returncode == 0, p.stderr[-3000:]
+    return out

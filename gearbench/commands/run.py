@@ -29,6 +29,8 @@ def add_arguments(p) -> None:
                    help="identification method (default: bias-corrected; paper: as published)")
     p.add_argument("--seed", type=int, default=None, help="--sim: plant noise seed (default: profile's)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.add_argument("--report", action="store_true",
+                   help="also write the per-unit report.html into the output folder (also for a failed unit)")
     p.add_argument("--central", metavar="URL",
                    help="also push the finished run to this central database postgresql://... "
                         "(default: $GEARBENCH_CENTRAL or central: in the station config); "
@@ -64,9 +66,21 @@ def run(args) -> int:
                          db=db, yes=args.yes or args.sim, rrd=args.rrd, live=args.live,
                          connect=args.connect, method=args.method, seed=args.seed,
                          quiet=args.quiet, subscribers=subscribers)
+    if args.report:
+        _report(out)
     if args.golden:
         return _golden(db, out, result)
     return int(result["exit_code"])
+
+
+def _report(out: Path) -> None:
+    """report.html beside result.json; a report problem never changes the unit's verdict."""
+    from ..unit_report import write_report
+
+    try:
+        print(f"gearbench run: report {write_report(out)}", file=sys.stderr)
+    except GearbenchError as exc:
+        print(f"gearbench run: warning: no report: {exc}", file=sys.stderr)
 
 
 def _golden(db: Path, out: Path, result: dict) -> int:

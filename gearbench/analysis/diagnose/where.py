@@ -118,9 +118,16 @@ def breakdown(sig: Signals, nom: Model, err_score, score_starts, floor: simerror
             "speed_angle_rms": _map2(np.abs(w), np.mod(th, 2 * np.pi), e2, 24, 36),
             "speed_current_rms": _map2(np.abs(w), i, e2, 24, 24),
             "floor_rad_s": np.sqrt(floor.mse),
+            # value ranges the map bins span (axes of the report's heat maps)
+            "speed_range_rad_s": _range(np.abs(w)), "angle_range_rad": _range(np.mod(th, 2 * np.pi)),
+            "current_range_a": _range(i),
             "sample_index": idx, "error_flat": err.ravel(), "time_s": sig.time_s[idx],
             "equation_error": r, "ee_time_s": sig.time_s[VELOCITY_WINDOW:-VELOCITY_WINDOW - 1]}
     return cells, maps
+
+
+def _range(x) -> tuple[float, float]:
+    return (float(np.min(x)), float(np.max(x))) if np.size(x) else (0.0, 1.0)
 
 
 def _map2(x, y, v, nx, ny):

@@ -1,0 +1,68 @@
+"""The per-unit report as a quality engineer sees it: report.html of a real simulated
+run, opened in headless Chromium — no console errors, every image loaded, the
+numbers of result.json on the page; a screenshot is kept."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+import pytest
+
+from browser import SCREENSHOTS, browser_factory  # noqa: F401  (fixture)
+from gearbench import __version__
+from gearbench.cli import main
+
+
+def test_report_renders_in_chromium(cvt_sim_run, browser_factory):  # noqa: F811
+    report = cvt_sim_run / "report.html"
+    assert report.is_file(), "gearbench run --report wrote no report.html"
+    html = report.read_text()
+    assert "http://" not in html and "https://" not in html and "<script" not in html  # self-contained
+    res = json.loads((cvt_sim_run / "result.json").read_text())
+
+    t0 = time.monotonic()
+    b = browser_factory(width=1200, height=1000)
+    b.navigate(report.as_uri())
+    b.pump(1.0)
+    images = b.evaluate("[...document.images].map(i => ({alt: i.alt, w: i.naturalWidth, "
+                        "h: i.naturalHeight, done: i.complete}))")
+    text = b.evaluate("document.body.innerText")
+    shot = b.screenshot(SCREENSHOTS / "report.png", full_page=True)
+    print(f"\nreport: {len(images)} images, browser {time.monotonic() - t0:.1f} s, screenshot {shot}")
+
+    assert b.errors == [], b.errors
+    alts = [i["alt"] for i in images]
+    assert all(i["done"] and i["w"] > 0 and i["h"] > 0 for i in images), images
+    assert "efficiency map" in alts
+    assert {"identification fit motor in", "identification fit motor out"} <= set(alts)
+    assert sum(a.startswith("trace ") for a in alts) == len(res["steps"])
+    for needle in (res["serial"], res["profile_sha256"], "PASSED", __version__,
+                   f"version {res['method_version']}", res["station"]["name"],
+                   f"{res['motors']['in']['Kt']:.5g}", f"{res['ratio']:.6g}",
+                   res["prompts"][0]["prompt"], "kt_in"):
+        assert str(needle) in text, needle
+    assert shot.stat().st_size > 50_000
+
+
+def test_report_pdf_and_bad_folder(cvt_sim_run, tmp_path, capsys):
+    from browser import chromium_path
+
+    chromium_path()   # skips (fails in CI) without chromium
+    out = tmp_path / "r.html"
+    assert main(["report", str(cvt_sim_run), "--out", str(out), "--pdf"]) == 0
+    assert out.read_text().startswith("<!DOCTYPE html>")
+    assert (tmp_path / "r.pdf").read_bytes()[:5] == b"%PDF-"
+    p = subprocess.run([sys.executable, "-m", "gearbench", "report", str(tmp_path / "nowhere")],
+                       capture_output=True, text=True)
+    assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1, p.stderr
+    assert "not a run folder" in p.stderr
+
+
+@pytest.mark.parametrize("missing", ["result.json"])
+def test_report_of_a_folder_without_result_is_one_line(tmp_path, missing):
+    (tmp_path / "run").mkdir()
+    p = subprocess.run([sys.executable, "-m", "gearbench", "report", str(tmp_path / "run")],
+                       capture_output=True, text=True)
+    assert p.returncode == 2 and missing in p.stderr and "Traceback" not in p.stderr
