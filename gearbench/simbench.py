@@ -1,6 +1,7 @@
 """``--sim``: the emulated bench in a child process, behind real protocol endpoints.
 
 The child is ``gearbench emulate`` (CANopen nodes over udp_multicast by default,
+over the profile's own bus when it is a host's virtual CAN ``socketcan`` ``vcan*``,
 or Modbus TCP on loopback when the profile's bus is Modbus). The sequencer then
 talks to it through the same drive stack it uses on a real tester. The operator's
 mounting is done by the child on request (fixture commands on its stdin).
@@ -48,6 +49,10 @@ class SimBench:
             maps = {str(m.drive) for m in self.profile.motors.values()}
             cmd += ["--modbus", f"127.0.0.1:{port}", "--modbus-map", sorted(maps)[0]]
             self.bus_options = dict(host="127.0.0.1", port=port, lockstep=True)
+        elif bus.interface == "socketcan" and (bus.channel or "").startswith("vcan"):
+            # a virtual CAN bus of this host's kernel (CI's vcan0): the emulated drives join it
+            cmd += ["--can", f"socketcan:{bus.channel}"]
+            self.bus_options = dict(interface="socketcan", channel=bus.channel, lockstep=True)
         else:
             # a private multicast port per run: parallel runs on one host never cross-talk
             group = bus.channel if bus.interface == "udp_multicast" and bus.channel else "239.74.163.2"

@@ -57,6 +57,19 @@ class _Producer:
             self._cv.wait_for(lambda: self.number > after, timeout_s)
             return self.number
 
+    def _on_sync(self, can_id, data, timestamp) -> None:   # notifier thread, in bus order
+        """Begin the slot of a SYNC seen on the bus: before its answers, whatever the host's timing."""
+        now = time.perf_counter()
+        if self.overflow and data:
+            step = (data[0] - self.counter_of(self.number)) % self.overflow if self.number else data[0]
+            number = self.number + (step or self.overflow)
+        else:
+            number = self.number + 1
+        if self.t0 is None:
+            self.t0 = now - number * self.period_s
+        self.late += number - self.number - 1
+        self._begun(number, data[0] if self.overflow and data else None, timestamp)
+
     def slot_end(self, number: int) -> float:
         """perf_counter() when SYNC ``number + 1`` is due: answers to ``number`` must be in by then."""
         return self.t0 + (number + 1) * self.period_s
@@ -84,18 +97,6 @@ class KernelSyncProducer(_Producer):
         self.task = self.network.bus.send_periodic(frames, self.period_s)
         return self
 
-    def _on_sync(self, can_id, data, timestamp) -> None:   # notifier thread, in bus order
-        now = time.perf_counter()
-        if self.overflow and data:
-            step = (data[0] - self.counter_of(self.number)) % self.overflow if self.number else data[0]
-            number = self.number + (step or self.overflow)
-        else:
-            number = self.number + 1
-        if self.t0 is None:
-            self.t0 = now - number * self.period_s
-        self.late += number - self.number - 1
-        self._begun(number, data[0] if self.overflow and data else None, timestamp)
-
     def stop(self) -> None:
         if self.task is not None:
             try:
@@ -113,10 +114,14 @@ class ThreadSyncProducer(_Producer):
     def __init__(self, network, period_s: float, counter_overflow: int | None, begin: Begin):
         super().__init__(period_s, counter_overflow, begin)
         self.network = network
+        # udp_multicast hears its own frames: slots then begin on the SYNC as received, in bus order
+        self.observe = type(network.bus).__name__ == "UdpMulticastBus" and counter_overflow is not None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
     def start(self) -> "ThreadSyncProducer":
+        if self.observe:
+            self.network.subscribe(SYNC_COB_ID, self._on_sync)
         self.t0 = time.perf_counter()
         self._thread = threading.Thread(target=self._run, name="sync-producer", daemon=True)
         self._thread.start()
@@ -131,13 +136,14 @@ class ThreadSyncProducer(_Producer):
             if late > self.period_s / 2:          # host stalled: skip the missed slots, keep the grid
                 missed = int(late / self.period_s + 0.5)
                 number += missed
-                self.late += missed
+                self.late += 0 if self.observe else missed   # observed: the counter jump counts it
                 due = self.t0 + number * self.period_s
             # sleep, never spin: a spinning thread holds the GIL the receive thread needs
             if self._stop.wait(max(0.0, due - time.perf_counter())):
                 break
             counter = self.counter_of(number)
-            self._begun(number, counter, time.time())    # before sending: no answer can precede it
+            if not self.observe:
+                self._begun(number, counter, time.time())    # before sending: no answer can precede it
             self.network.send_message(SYNC_COB_ID, b"" if counter is None else bytes([counter]))
 
     def stop(self) -> None:
@@ -145,6 +151,8 @@ class ThreadSyncProducer(_Producer):
         if self._thread is not None:
             self._thread.join(timeout=1.0)
             self._thread = None
+        if self.observe:
+            self.network.unsubscribe(SYNC_COB_ID, self._on_sync)
 
 
 def start_sync_producer(network, period_s: float, counter_overflow: int | None, begin: Begin,
