@@ -38,8 +38,12 @@ KT_J, D_J, TC_J, C_J, BIAS, LAG = "Kt/J", "D/J", "Tc/J", "C/J", "bias", "lag"
 
 MAX_CONDITION = 1e4          # of the column-normalised regressor matrix
 MIN_ACCEL_SNR = 20.0         # rms filtered acceleration / rms encoder-noise acceleration
-STANDSTILL_SPEED_RAD_S = 0.1  # slower than this for >= 3 samples: the rotor sticks
-REVERSAL_SPEED_RAD_S = 5.0   # a run "reverses" if >5 % of it is beyond ±this speed
+# No threshold is in the user's position unit (rad, deg, mm, m are all valid): speeds
+# come from the encoder step, the sample rate and the run's own speed range.
+STANDSTILL_COUNTS_PER_SAMPLE = 1 / 6   # slower than 1 count per 6 samples (>= 3 samples): sticks
+STANDSTILL_TOP_FRACTION = 3e-4  # without a visible encoder step: this share of the top speed
+REVERSAL_TOP_FRACTION = 0.02  # a run "reverses" if >5 % of it is beyond ±this share of top speed
+MIN_R2_SHARE = 0.5           # refuse a fit explaining < half of what the data's noise allows
 MAX_B2_REL_STD = 0.05        # refuse a fit whose b2 is known worse than 5 % (1 sigma)
 MAX_COGGING_ORDER = 64       # cogging periods per revolution scanned
 COGGING_CANDIDATES = 4       # orders tried in the regression after the screen
@@ -237,15 +241,15 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
         # torque by 2·Tc) friction balances whatever the drive gives: the motor equation
         # there is J θ'' = 0, so every torque regressor is zeroed on those samples and
         # the filtered equation stays exact without dropping data.
-        moving = 1.0 - dv.standstill(w_smooth, STANDSTILL_SPEED_RAD_S)
+        moving = 1.0 - dv.standstill(w_smooth, standstill_speed(th, w_smooth, dt))
         fs = dv.consistent_derivatives(
             th, {"current": i * moving}, dt, taps,
             matched={"sign": dv.coulomb_regressor(
                 th, dt, velocity=dv.refine_reversals(th, w_smooth)) * moving})
     n = len(fs["acceleration"])
 
-    reverses = bool(np.mean(w_smooth > REVERSAL_SPEED_RAD_S) > 0.05
-                    and np.mean(w_smooth < -REVERSAL_SPEED_RAD_S) > 0.05)
+    w_rev = REVERSAL_TOP_FRACTION * top_speed(w_smooth)
+    reverses = bool(np.mean(w_smooth > w_rev) > 0.05 and np.mean(w_smooth < -w_rev) > 0.05)
     use_bias = reverses if bias is None else bias
     if use_bias and not reverses:
         raise ExcitationError(f"{source}: a current offset and Coulomb friction cannot be told "
@@ -317,16 +321,21 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
     cog_amps = {int(k): float(np.hypot(values[names.index(f"cog{k}_sin")],
                                        values[names.index(f"cog{k}_cos")])) for k in cog_orders}
 
+    r2 = _r2(y, e)
     if check:
         accel_noise = _encoder_accel_noise(th, dt, taps)
         check_excitation(velocity=fs["velocity"], acceleration=y, accel_noise_rms=accel_noise,
                          condition=cond, b2=b2, b2_std=b2_std, rate_hz=rate, source=source)
+        # what a perfect model would leave: encoder noise + current noise through b2
+        floor_var = accel_noise ** 2 + b2 ** 2 * noise_var
+        check_fit_quality(r2=r2, floor_r2=1.0 - floor_var / max(float(np.var(y)), 1e-300),
+                          source=source)
 
     A = np.array([[0.0, 1.0], [-(values[names.index(C_J)] if spring else 0.0), -values[1]]])
     B = np.array([0.0, b2])
     return IdentificationResult(
         method="default", names=names, values=tuple(map(float, values)), covariance=cov,
-        dof=dof, dt_s=dt, n_samples=n, n_effective=n_eff, r2=_r2(y, e),
+        dof=dof, dt_s=dt, n_samples=n, n_effective=n_eff, r2=r2,
         rmse=float(np.sqrt(np.mean(e * e))), condition=cond, A=A, B=B,
         extras={"cutoff_hz": cutoff_hz, "filter_taps": len(taps),
                 "current_noise_a": float(np.sqrt(noise_var_raw)),
@@ -461,10 +470,14 @@ def check_excitation(*, velocity: np.ndarray, acceleration: np.ndarray, accel_no
     positive and known to better than ``MAX_B2_REL_STD``.
     """
     # Amplitude of a 2 Hz speed sine whose acceleration reaches the SNR target.
-    need = max(10.0, MIN_ACCEL_SNR * np.sqrt(2) * accel_noise_rms / (2 * np.pi * 2.0) ** 2)
-    fix = f"add speed steps or a multisine of at least {need:.2g} rad/s amplitude (1-10 Hz)"
+    # amplitude of a 2 Hz speed sine whose acceleration reaches the SNR target, and at
+    # least a tenth of the run's top speed (both in the trace's own position unit)
+    need = max(0.1 * top_speed(velocity),
+               MIN_ACCEL_SNR * np.sqrt(2) * accel_noise_rms / (2 * np.pi * 2.0) ** 2)
+    fix = (f"add speed steps or a multisine of at least {need:.2g} rad/s amplitude (1-10 Hz; "
+           f"in the trace's position unit per second)")
     acc_rms = float(np.std(acceleration))
-    if acc_rms < MIN_ACCEL_SNR * accel_noise_rms or np.ptp(velocity) < 1e-6:
+    if acc_rms < MIN_ACCEL_SNR * accel_noise_rms or np.ptp(velocity) == 0:
         raise ExcitationError(
             f"{source}: almost no acceleration content (rms {acc_rms:.3g} rad/s² vs encoder "
             f"noise {accel_noise_rms:.3g}); {fix}")
@@ -475,6 +488,35 @@ def check_excitation(*, velocity: np.ndarray, acceleration: np.ndarray, accel_no
     if not (b2 > 0) or b2_std > MAX_B2_REL_STD * abs(b2):
         raise ExcitationError(
             f"{source}: Kt/J is not identifiable from this run (b2 = {b2:.4g} ± {b2_std:.2g}); {fix}")
+
+
+def check_fit_quality(*, r2: float, floor_r2: float, source: str = "<array>") -> None:
+    """Refuse a fit that explains far less than the data's noise allows.
+
+    ``floor_r2`` is the r² a perfect model would reach, given the encoder and current
+    noise; a fit below ``MIN_R2_SHARE`` of it means the model does not describe this
+    axis (or a channel is mis-scaled / mis-assigned) — its numbers would be wrong."""
+    if not np.isfinite(r2) or r2 < MIN_R2_SHARE * max(floor_r2, 0.0):
+        raise ExcitationError(
+            f"{source}: the model explains little of the measured acceleration (r2 "
+            f"{r2:.3f}, while the data's noise allows {floor_r2:.3f}); check that "
+            f"current_a is the torque-producing current (or force) of this axis and "
+            f"position_rad its position, and run `gearbench diagnose` on the trace to see "
+            f"which effect the model lacks")
+
+
+def top_speed(velocity: np.ndarray) -> float:
+    """The run's top speed (99.5th percentile of |w|), in the trace's own units."""
+    return max(float(np.percentile(np.abs(velocity), 99.5)), 1e-300)
+
+
+def standstill_speed(position: np.ndarray, velocity: np.ndarray, dt_s: float) -> float:
+    """Speed below which the rotor counts as sticking: 1 encoder count per 6 samples
+    (the encoder step read from the data), else a small share of the top speed."""
+    q = encoder_resolution(position)
+    if q > 0:
+        return STANDSTILL_COUNTS_PER_SAMPLE * q / dt_s
+    return STANDSTILL_TOP_FRACTION * top_speed(velocity)
 
 
 # ------------------------------------------------------------------------- helpers
@@ -522,9 +564,14 @@ def speed_range(velocity_rad_s: np.ndarray) -> list[float]:
 def encoder_resolution(position_rad: np.ndarray) -> float:
     """Encoder step (rad) from the gaps between distinct angle increments; 0 if the
     angle does not look quantised."""
-    d = np.unique(np.round(np.diff(position_rad[:200_000]), 9))
+    steps = np.diff(np.asarray(position_rad[:200_000], float))
+    scale = float(np.max(np.abs(steps))) if len(steps) else 0.0
+    if scale == 0:
+        return 0.0
+    # relative rounding: the position's unit is the user's (rad, deg, mm, m)
+    d = np.unique(np.round(steps / scale, 9)) * scale
     gaps = np.diff(d)
-    gaps = gaps[gaps > 1e-9]
+    gaps = gaps[gaps > 1e-8 * scale]
     return float(gaps.min()) if len(gaps) else 0.0
 
 

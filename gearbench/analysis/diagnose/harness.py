@@ -35,6 +35,13 @@ INJECTIONS: dict[str, list[dict]] = {
                        {"current_offset_a": 0.08}],
     "time_delay": [{"delay_samples": 1}, {"delay_samples": 2}, {"delay_samples": 4}],
     "kt_saturation": [{"kt_sat_a": 3.0}, {"kt_sat_a": 1.5}, {"kt_sat_a": 0.8}],
+    # direction- / position-dependent friction ride on a Coulomb friction (they vary it)
+    "direction_friction": [{"Tc": 0.005, "Tc_asym": 0.001},
+                           {"Tc": 0.005, "Tc_asym": 0.002, "D_asym": 5e-7},
+                           {"Tc": 0.008, "Tc_asym": 0.004, "D_asym": 9e-7}],
+    "position_friction": [{"Tc": 0.005, "Tc_pos_amp": 0.2, "Tc_pos_order": 2},
+                          {"Tc": 0.005, "Tc_pos_amp": 0.5, "Tc_pos_order": 2},
+                          {"Tc": 0.008, "Tc_pos_amp": 0.8, "Tc_pos_order": 3}],
     "shaft_compliance": [{"shaft_stiffness": 2.0, "shaft_damping": 2e-4},
                          {"shaft_stiffness": 0.5, "shaft_damping": 1e-4},
                          {"shaft_stiffness": 0.15, "shaft_damping": 5e-5}],
@@ -86,11 +93,39 @@ def excitation(kind: str, seed: int = 0, duration_s: float = DURATION_S) -> np.n
 
 @dataclass(frozen=True)
 class Case:
-    effect: str | None          # None = clean control
+    effect: str | None          # None = clean control; "a+b" = a composite case
     level: str
     excitation: str
     seed: int
     changes: dict
+    #: position unit the diagnoser sees: "rad" (as simulated), "deg" or "m" (a linear
+    #: axis behind a 2.5 mm/rev screw) — the same physics in the user's unit
+    unit: str = "rad"
+
+    @property
+    def effects(self) -> tuple[str, ...]:
+        return tuple(self.effect.split("+")) if self.effect else ()
+
+
+#: Position unit -> factor from radians.
+UNITS = {"rad": 1.0, "deg": 180.0 / np.pi, "m": 0.0025 / (2 * np.pi)}
+
+#: Composite cases: effects injected together (moderate levels), reversing excitation.
+COMPOSITES: tuple[tuple[str, ...], ...] = (
+    ("coulomb_friction", "current_offset"),
+    ("coulomb_friction", "time_delay"),
+    ("current_offset", "kt_saturation"),
+    ("coulomb_friction", "current_offset", "time_delay"),
+    ("coulomb_friction", "time_delay", "kt_saturation"),
+)
+
+
+def composite_case(effects: tuple[str, ...], excitation: str = "reversing", seed: int = 0,
+                   unit: str = "rad") -> Case:
+    changes: dict = {}
+    for e in effects:
+        changes.update(INJECTIONS[e][LEVELS.index("moderate")])
+    return Case("+".join(effects), "moderate", excitation, seed, changes, unit)
 
 
 @dataclass(frozen=True)
@@ -111,6 +146,15 @@ class Outcome:
         """Right, or named among the effects this data cannot tell apart."""
         return self.isolated or (self.case.effect is not None and
                                  self.case.effect in self.diagnosis.verdict.confused_with)
+
+    @property
+    def chain(self) -> list[str]:
+        return [c["effect"] for c in self.diagnosis.chain]
+
+    @property
+    def in_chain(self) -> bool:
+        """Every injected effect is named somewhere in the chain."""
+        return bool(self.case.effects) and all(e in self.chain for e in self.case.effects)
 
     @property
     def testable(self) -> bool | None:
@@ -161,14 +205,17 @@ def blind_trace(case: Case) -> tuple[Trace, GivenModel | None]:
         motor = replace(motor, shaft_damping=contact_damping(motor, disk))
     cmd = excitation(case.excitation, case.seed)
     tr = simulate_motor(motor, cmd, mode="velocity", disk_kgm2=disk, seed=case.seed)
-    blind = Trace(tr.time_s, {k: tr[k] for k in ("position_rad", "current_a", "command")},
-                  {}, source=f"<injected {case.effect or 'clean'} {case.level} {case.excitation}>")
+    k = UNITS[case.unit]
+    blind = Trace(tr.time_s, {"position_rad": np.asarray(tr["position_rad"]) * k,
+                              "current_a": tr["current_a"], "command": np.asarray(tr["command"]) * k},
+                  {}, source=f"<injected {case.effect or 'clean'} {case.level} {case.excitation}"
+                             f" {case.unit}>")
     given = None
     if case.effect == "inertia_mismatch":
         given = GivenModel(motor.Kt / motor.J, motor.D / motor.J, 0.0, "<motor model>")
     return blind, given
 
 
-def run_case(case: Case) -> Outcome:
+def run_case(case: Case, chain: bool = True) -> Outcome:
     trace, given = blind_trace(case)
-    return Outcome(case, diagnose(trace, given))
+    return Outcome(case, diagnose(trace, given, chain=chain))

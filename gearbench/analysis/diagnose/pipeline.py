@@ -405,6 +405,22 @@ def _remaining(sig, st, mse_nom, floor, starts, H, steps, where_nom, ov, max_ste
             "where": hot[:8]}
 
 
+def nominal_gap(trace: Trace) -> float:
+    """Held-out simulation error of the paper's nominal model in excess of the noise
+    floor, rad/s (the size of the gap a trace's effects open; for the scorecard)."""
+    sig = prepare(trace)
+    sp = simerror.split(sig)
+    wins = [fit_windows(sig, f.fit_mask) for f in sp.folds]
+    order = np.argsort(sp.score_starts, kind="stable")
+    base = Base()
+    folds = [simerror.refine(sig, fit_model(sig, base.terms(), w)[0], f.fit_starts, sp.horizon)
+             for w, f in zip(wins, sp.folds)]
+    mse = _held_out(sig, sp, folds, order)
+    nom, _ = fit_model(sig, base.terms(), fit_windows(sig, np.ones(len(sig), bool)))
+    floor = simerror.noise_floor(sig, base.kt_over_j(nom), sp.horizon)
+    return vd.excess(float(np.mean(mse)), floor.mse)
+
+
 def _sigmas(nom: Model, model) -> dict:
     if model is not None:
         return {}
