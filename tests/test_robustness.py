@@ -6,12 +6,12 @@ import pytest
 
 from gearbench.analysis import derivatives as dv
 from gearbench.analysis.identify import identify_default
+from scipy import stats
+
+from gearbench.analysis.uncertainty import coverage_acceptance
 from gearbench.bench import robustness as R
 
-# Forward-multisine cases of seed 0 that the default met when this test was written:
-# a regression guard over plants far from the dev motors (Kt 0.03-0.15, 2k-20k counts,
-# 2-8 mA noise, 3-30 Hz speed loops, ratios 3-60).
-GUARD = (0, 5, 6, 10, 13, 20)
+ALPHA = 0.01       # chance that a correct method fails one of the binomial checks below
 
 
 def test_draws_are_deterministic_and_forward_runs_stay_forward():
@@ -22,18 +22,6 @@ def test_draws_are_deterministic_and_forward_runs_stay_forward():
         c = R.draw_case(k, 0)
         if not c.reversing:
             assert min(c.commands["in"].min(), c.commands["out"].min()) > 0
-
-
-@pytest.mark.parametrize("index", GUARD)
-def test_default_meets_targets_on_the_guard_cases_and_paper_does_not(index):
-    case = R.draw_case(index, 0)
-    out = R.run_case(case, methods=("paper", "default"))
-    d = out["default"]
-    assert not d.error, d.error
-    assert max(map(abs, d.kt_err_pct)) <= R.TARGETS["kt_pct"], case.describe()
-    assert max(map(abs, d.inc_err_pp)) <= R.TARGETS["inc_pp"], case.describe()
-    assert max(map(abs, d.abs_err_pp)) <= R.TARGETS["abs_pp"], case.describe()
-    assert not out["paper"].meets_targets()
 
 
 def test_coulomb_regressor_is_the_triangle_mean_of_the_sign_with_sub_sample_reversals():
@@ -107,10 +95,43 @@ def _summary(runs):
     return outs, R.summarise(outs, ("default",))["default"]
 
 
-def test_intervals_cover_the_truth_on_a_held_out_seed_and_stay_useful(seed1_runs):
+def test_default_meets_its_claims_on_every_plant_of_a_held_out_seed_and_paper_does_not(seed1_runs):
+    """All 40 plants of seed 1, none left out: the fraction meeting every target is
+    checked against the claim (``R.CLAIMS``) with a one-sided binomial bound, the
+    median errors against theirs; the paper's method, on the first 12, meets none."""
+    cases, sims = seed1_runs
     outs, s = _summary(seed1_runs)
     assert s["fail"] == 0
-    assert s["cover"]["kt"] >= 0.9 and s["cover"]["inc"] >= 0.9 and s["cover"]["abs"] >= 0.9, s["cover"]
+    n = len(outs)
+    meet = sum(o["default"].meets_targets() for o in outs)
+    floor = int(stats.binom.ppf(ALPHA, n, R.CLAIMS["meet_fraction"]))
+    assert meet >= floor, f"{meet}/{n} plants meet every target; a {R.CLAIMS['meet_fraction']:.0%} claim needs >= {floor}"
+    for key in ("kt", "inc", "abs"):
+        median = float(np.median(np.abs(s[key])))
+        assert median <= R.CLAIMS[f"{key}_median"], (key, median)
+    paper = [R.run_case(c, ("paper",), d)["paper"] for c, d in zip(cases[:12], sims[:12])]
+    assert sum(o.meets_targets() for o in paper) == 0
+
+
+def _cover_counts(outs):
+    return {q: (sum(c for o in outs for c in getattr(o["default"], f"{q}_cover")),
+                sum(1 for o in outs for _ in getattr(o["default"], f"{q}_cover")))
+            for q in ("kt", "inc", "abs")}
+
+
+def test_intervals_cover_95_percent_on_a_held_out_seed_and_stay_useful(seed1_runs):
+    """Coverage against the nominal 95 %: each quantity above its binomial lower bound
+    (too narrow), all intervals pooled inside the two-sided bound (too wide fails too).
+    Points of one plant share a calibration, so this treats them as independent — an
+    approximation that makes the bounds, if anything, too lenient."""
+    outs, s = _summary(seed1_runs)
+    counts = _cover_counts(outs)
+    for q, (hits, n) in counts.items():
+        low, _ = coverage_acceptance(n, alpha=ALPHA)
+        assert hits >= low, f"{q}: {hits}/{n} intervals hold the truth, needs >= {low}"
+    hits, n = (sum(v[i] for v in counts.values()) for i in (0, 1))
+    low, high = coverage_acceptance(n, alpha=ALPHA)
+    assert low <= hits <= high, f"pooled: {hits}/{n} intervals hold the truth, accepted {low}..{high}"
     # most absolute points extrapolate a motor's loss (the output motor turns n times slower
     # than its calibration runs); those must cover too
     assert s["n_abs_extrapolated"] > len(s["abs"]) / 2 and s["cover_abs_extrapolated"] >= 0.9
@@ -125,5 +146,11 @@ def test_without_the_model_error_terms_the_same_intervals_under_cover(seed1_runs
     import gearbench.analysis.torque_constant as tq
     monkeypatch.setattr(tq, "MODEL_B2_REL", 0.0)
     monkeypatch.setattr(cal, "LOSS_RUN_SPREAD", 0.0)
-    _, s = _summary(seed1_runs)
-    assert s["cover"]["kt"] < 0.9 and s["cover"]["abs"] < 0.9, s["cover"]
+    outs, _ = _summary(seed1_runs)
+    counts = _cover_counts(outs)
+    hits, n = counts["abs"]
+    assert hits < coverage_acceptance(n, alpha=ALPHA)[0], ("abs", hits, n)
+    # Kt: 80 intervals are too few to reject 95 % at this alpha (71/80 without the model
+    # term); the pooled count, dominated by the absolute points, must fall below its bound
+    hits, n = (sum(v[i] for v in counts.values()) for i in (0, 1))
+    assert hits < coverage_acceptance(n, alpha=ALPHA)[0], ("pooled", hits, n)

@@ -36,6 +36,11 @@ METHODS = ("paper-15ms", "paper", "default")
 TARGETS = {"kt_pct": 0.2, "inc_pp": 0.2, "abs_pp": 0.3}
 PERIOD_S = 1e-3
 BIASED_SIGMAS = 2.0          # |error| > 2 x its own standard uncertainty: biased, not noise
+# What the default method claims on random plants (README; tests/test_robustness.py
+# checks them on all 40 plants of seed 1, the fraction with a one-sided binomial bound):
+# every target met on at least half the plants, and median |error| per quantity
+# (kt %, inc pp, abs pp). Seed 1 measured 23/40 meet, medians 0.050 %, 0.090 pp, 0.077 pp.
+CLAIMS = {"meet_fraction": 0.5, "kt_median": 0.1, "inc_median": 0.15, "abs_median": 0.15}
 
 
 @dataclass(frozen=True)
