@@ -129,26 +129,97 @@ def test_velocity_setpoints_are_interpolated_so_the_current_matches_the_torque()
         MotorParams(setpoint_interpolation=2)
 
 
-EFFECTS = [
-    ("Tc", 0.02), ("Ts", 0.01), ("cog_amp", 0.01), ("ripple_amp", 0.1), ("kt_sat_a", 0.5),
-    ("C", 1e-3), ("current_lag_s", 5e-3), ("D", 2e-5), ("shaft_stiffness", 2.0),
-    ("backlash_rad", 0.05), ("counts_per_rev", 500), ("delay_samples", 2),
-    ("current_offset_a", 0.01), ("current_gain", 1.05), ("current_noise_a", 0.02),
-    ("current_resolution_a", 0.01),
+# Every switchable effect, each with the size the model says it must have (not merely
+# "the output changed"): (parameter, value, relative tolerance). Base: the default motor
+# without cogging; seed 5; steady windows, torque-mode steps or fits as noted.
+EFFECT_SIZES = [
+    ("Tc", 0.02, 0.005), ("Ts", 0.01, 0.005), ("D", 2e-5, 0.005), ("C", 1e-3, 0.005),
+    ("cog_amp", 0.01, 0.05), ("ripple_amp", 0.1, 0.05), ("kt_sat_a", 0.5, 0.02),
+    ("current_lag_s", 5e-3, 0.01), ("shaft_stiffness", 2.0, 0.03), ("backlash_rad", 0.05, 0.03),
+    ("counts_per_rev", 500, 0.0), ("delay_samples", 2, 0.0), ("current_offset_a", 0.01, 0.005),
+    ("current_gain", 1.05, 0.005), ("current_noise_a", 0.02, 0.05), ("current_resolution_a", 0.01, 0.05),
 ]
+BASE = MotorParams(cog_amp=0.0)
+DISK = 1e-5
 
 
-@pytest.mark.parametrize("name,value", EFFECTS)
-def test_each_effect_changes_the_output(name, value):
-    """Same seed and command; only the one effect differs → measured current differs."""
-    cmd = wf.trapezoid(wf.time_base(1.5), amplitude=60.0, ramp_s=0.2, hold_s=0.3,
-                       repeat_s=0.75) - 20.0
-    base = MotorParams(cog_amp=0.0)
-    changed = MotorParams(**{**base.__dict__, name: value})
-    a = simulate_motor(base, cmd, disk_kgm2=1e-5, seed=5)
-    b = simulate_motor(changed, cmd, disk_kgm2=1e-5, seed=5)
-    diff = np.abs(a["current_a"] - b["current_a"])
-    assert diff.mean() > 1e-3, f"{name}={value} did not change the current"
+def _with(**kw) -> MotorParams:
+    return MotorParams(**{**BASE.__dict__, **kw})
+
+
+def _hold(m, speed, seconds=2.0, **kw):
+    return simulate_motor(m, np.full(int(seconds / T), float(speed)), seed=5, include_truth=True, **kw)
+
+
+def _push(m, amps, n, **kw):
+    return simulate_motor(m, np.full(n, float(amps)), mode="torque", seed=5, include_truth=True, **kw)
+
+
+def _effect_size(name, value):
+    """(measured, expected) size of one effect."""
+    kt, m = BASE.Kt, _with(**{name: value})
+    steady = lambda tr: _mean(tr["current_a"], 1.0, 2.0)                       # noqa: E731
+    if name in ("Tc", "D", "current_offset_a", "current_gain", "C"):
+        a, b = _hold(BASE, 40.0), _hold(m, 40.0)
+        want = {"Tc": (value - BASE.Tc) / kt, "D": (value - BASE.D) * 40.0 / kt, "current_offset_a": value,
+                "current_gain": (value - 1.0) * steady(a),
+                "C": value * _mean(b["position_rad"], 1.0, 2.0) / kt}[name]     # spring C θ at the mean angle
+        return steady(b) - steady(a), want
+    if name == "Ts":                          # Stribeck: Ts·exp(−(ω/ws)²) at ω = ws
+        return steady(_hold(m, BASE.ws)) - steady(_hold(BASE, BASE.ws)), value * math.exp(-1.0) / kt
+    if name in ("cog_amp", "ripple_amp"):     # slow (2 rad/s, inside the speed loop): current
+        tr = _hold(m, 2.0, 4.0)               # cancels the torque: i ≈ (T + cog·sin 6θ)/(Kt(1 + r sin 6θ))
+        th, i = tr["position_rad"][1000:], tr["current_a"][1000:]
+        coef = np.linalg.lstsq(np.column_stack([np.ones_like(th), np.sin(6 * th), np.cos(6 * th)]), i,
+                               rcond=None)[0]
+        load = (BASE.D * 2.0 + BASE.Tc) / kt
+        return float(coef[1]), (value / kt if name == "cog_amp" else -value * load)
+    if name == "kt_sat_a":                    # from rest at 0.5 A: torque Kt·i/(1 + (i/i_sat)²)
+        a, b = _push(BASE, 0.5, 100), _push(m, 0.5, 100)
+        ratio = b["true_velocity_rad_s"][50] / a["true_velocity_rad_s"][50]
+        return ratio, (kt * 0.5 / (1 + (0.5 / value) ** 2) - BASE.Tc) / (kt * 0.5 - BASE.Tc)
+    if name == "current_lag_s":               # first order: 63 % of a step after one time constant
+        return float(_push(m, 0.3, 20)["true_current_a"][int(round(value / T))]), 0.3 * (1 - math.exp(-1))
+    if name == "shaft_stiffness":             # two-mass resonance sqrt(k (J + j)/(J j))
+        w = _push(m, 0.3, 600, disk_kgm2=DISK)["true_velocity_rad_s"][100:]
+        k = np.arange(len(w))
+        w = (w - np.polyval(np.polyfit(k, w, 2), k)) * np.hanning(len(w))
+        f = np.fft.rfftfreq(len(w), T)[np.argmax(np.abs(np.fft.rfft(w)))]
+        return float(f), math.sqrt(value * (BASE.J + DISK) / (BASE.J * DISK)) / (2 * math.pi)
+    if name == "backlash_rad":                # inside the gap the rotor turns without the disk
+        a, b = _push(BASE, 0.3, 10, disk_kgm2=DISK), _push(m, 0.3, 10, disk_kgm2=DISK)
+        return b["true_velocity_rad_s"][5] / a["true_velocity_rad_s"][5], (BASE.J + DISK) / BASE.J
+    if name == "counts_per_rev":              # position on the encoder's grid, never between
+        pos = _hold(m, 40.0, 0.5)["position_rad"] / (2 * math.pi / value)
+        return float(np.max(np.abs(pos - np.round(pos)))), 0.0
+    if name == "delay_samples":               # the same samples, exactly value samples later
+        quiet = _with(current_noise_a=0.0)    # (the noise is drawn per reported sample)
+        a = _hold(quiet, 40.0, 0.5)["current_a"]
+        b = _hold(_with(current_noise_a=0.0, delay_samples=value), 40.0, 0.5)["current_a"]
+        return float(np.max(np.abs(b[value:] - a[:-value]))), 0.0
+    if name == "current_noise_a":             # same draws, scaled: std of the difference
+        a, b = _hold(BASE, 40.0), _hold(m, 40.0)
+        return float(np.std(b["current_a"][500:] - a["current_a"][500:])), value - BASE.current_noise_a
+    if name == "current_resolution_a":        # rounding error of a quantum q: q/√12
+        a, b = _hold(BASE, 40.0), _hold(m, 40.0)
+        return float(np.std(b["current_a"][500:] - a["current_a"][500:])), value / math.sqrt(12)
+    raise AssertionError(name)
+
+
+@pytest.mark.parametrize("name,value,rel", EFFECT_SIZES)
+def test_each_effect_has_the_size_the_model_gives(name, value, rel):
+    got, want = _effect_size(name, value)
+    if want == 0.0:
+        assert got <= 1e-9, f"{name}={value}: {got}"
+    else:
+        assert got == pytest.approx(want, rel=rel), f"{name}={value}: {got:.6g}, model {want:.6g}"
+
+
+def test_every_switchable_effect_is_sized():
+    switchable = {"Tc", "Ts", "D", "C", "cog_amp", "ripple_amp", "kt_sat_a", "current_lag_s",
+                  "shaft_stiffness", "backlash_rad", "counts_per_rev", "delay_samples",
+                  "current_offset_a", "current_gain", "current_noise_a", "current_resolution_a"}
+    assert {e[0] for e in EFFECT_SIZES} == switchable
 
 
 def test_compliant_disk_same_steady_state_different_transient():
