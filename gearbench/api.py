@@ -324,6 +324,8 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
 
     if not hasattr(profile, "steps"):
         profile = load_profile(profile)
+    from .drives.devicecheck import require_devices
+    require_devices(profile)   # every drive description checked, all problems at once, before anything moves
     if sim and not profile.simulation:
         raise GearbenchError(f"{profile.path}: --sim needs a 'simulation:' section describing "
                              f"the plant; add one (see profiles/cvt.yaml)")

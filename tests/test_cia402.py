@@ -188,7 +188,7 @@ def test_malformed_eds_names_file_and_field(tmp_path):
     text = open(DEFAULT_EDS).read()
     missing = tmp_path / "no-statusword.eds"
     missing.write_text(text.replace("[6041]", "[6F41]"))
-    with pytest.raises(DriveError, match=r"no-statusword.eds: object 0x6041 \(statusword\) missing"):
+    with pytest.raises(DriveError, match=r"no-statusword.eds: 0x6041: statusword missing"):
         load_eds(str(missing), 1)
     broken = tmp_path / "broken.eds"
     broken.write_text(text.replace("DataType=0x0006\nAccessType=rww", "DataType=zz\nAccessType=rww", 1))

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 NAME = "validate"
@@ -15,8 +16,20 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     from ..profile import load_profile
 
+    from ..drives.devicecheck import check_profile
+
     profile = load_profile(args.profile)
-    print("\n".join(summary_lines(profile, args.profile)))
+    devices = check_profile(profile)   # every device description: all problems at once
+    lines = summary_lines(profile, args.profile)
+    if devices.errors:
+        lines[0] = f"{args.profile}: REFUSED - {len(devices.errors)} problem{'s' * (len(devices.errors) > 1)} " \
+                   f"with the drives (nothing moved)"
+    lines += [f"drives     {n}" for n in devices.notes]
+    lines += [f"warning    {w}" for w in devices.warnings]
+    print("\n".join(lines))
+    if devices.errors:
+        print("\n".join(f"error      {e}" for e in devices.errors), file=sys.stderr)
+        return 2
     return 0
 
 

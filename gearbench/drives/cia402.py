@@ -1,26 +1,36 @@
 """CANopen CiA 402 servo drives (master side), with ``canopen`` + ``python-can``.
 
-Start-up (``start``), per drive, in NMT PRE-OPERATIONAL by SDO:
+Start-up (``start``), per drive, in NMT PRE-OPERATIONAL by SDO. Each drive is its
+vendor's EDS/DCF as shipped joined with its drive description in ``drivers/``
+(``gearbench.drives.description``): which objects carry what, in which unit.
 
-- scaling read from the drive and checked against the profile: 0x608F encoder
-  increments per revolution, 0x6075 rated current (mA); limits written from the
-  profile: 0x6073 max current (per-mille), 0x607F max profile velocity (inc/s);
-- PDO mapping (all other PDOs disabled)::
+- units read from the drive, never assumed: encoder increments per revolution
+  (0x608F or the described object), velocity unit (0x60A9 or described), rated
+  current (0x6075 or described), current actual (0x6078 per-mille of rated, or the
+  described object and unit); each checked against the profile, factor groups
+  checked 1:1; a disagreement refuses the drive before it is enabled;
+- modes from 0x6502 as the drive reports it: cyclic synchronous velocity/torque
+  (9/10, interpolation period 0x60C2 = SYNC period) where present, else profile
+  modes 3/4 with their ramps (0x6083/0x6084/0x6087) written so they never bind;
+- limits written from the profile and read back (current limit, 0x607F), 0x6080 checked;
+- PDO mapping with each object's own size (all other PDOs disabled, TPDO inhibit time 0)::
 
-    TPDO1 0x180+id  type 1   statusword 0x6041 | position actual 0x6064 | SYNC counter 0x2001
-    TPDO2 0x280+id  type 1   velocity actual 0x606C | current actual 0x6078 | SYNC counter 0x2001
+    TPDO1 0x180+id  type 1   statusword 0x6041 | position actual 0x6064 [| SYNC echo]
+    TPDO2 0x280+id  type 1   velocity actual 0x606C | current actual [| SYNC echo]
     RPDO1 0x200+id  type 255 controlword 0x6040 | modes of operation 0x6060   (applied at once)
     RPDO2 0x300+id  type 1   target velocity 0x60FF | target torque 0x6071     (latched at SYNC)
 
-  0x2001 (in ``drivers/cia402-servo.eds``) echoes the SYNC counter byte, so every
-  frame is matched to its SYNC even when frames are late or lost; drives without it
-  get the standard mapping without the counter. Both drives latch setpoints on the
+  A SYNC counter echo is mapped only where the description names one (the
+  reference drive's 0x2001; in vendors' files 0x2001 is something else) and only
+  when the SYNC carries a counter byte, which it does only if every drive on the
+  bus has 0x1019 (CiA 301; 0x1019 is set to 240 then, else 0). Without an echo,
+  time is the master's own SYNC count x period. Both drives latch setpoints on the
   same SYNC (RPDO2 synchronous); state-machine commands are events (RPDO1 async) and
   their result is confirmed by an SDO read of the statusword.
-- heartbeat producer 0x1017 and SYNC counter overflow 0x1019; then NMT OPERATIONAL.
+- heartbeat producer 0x1017; then NMT OPERATIONAL.
 
-Units: see ``gearbench.drives.scaling`` (counts, inc/s, per-mille of rated current;
-torque setpoints are current setpoints, "current mode").
+Units at the interface: SI (``gearbench.drives.scaling.AxisUnits``); torque
+setpoints are motor currents, sent as 0x6071 per the described torque relation.
 
 Sampling (``_sample``): one SYNC with counter, wait for both TPDOs of every drive for
 that SYNC; ``index`` = SYNC count since ``start``, ``time_s`` = index x period. A
@@ -43,25 +53,17 @@ from ..errors import BenchFault, DriveError
 from ..shipped import shipped_driver
 from .base import AxisConfig, Drive, DriveNetwork, Mode, Sample
 from .buses import open_bus, parse_bus
-from .scaling import DriveScaling, unwrap_int32
+from .description import (DriveModel, ObjRef, axis_units, describe_velocity_code, modes_from_bits,
+                          resolve_or_raise, unit_objects)
+from .scaling import AxisUnits, unwrap_int32
 
 DEFAULT_EDS = str(shipped_driver("cia402-servo.eds"))
-REQUIRED_OBJECTS = {0x1000: "device type", 0x1017: "producer heartbeat time", 0x1400: "RPDO1 communication",
-                    0x1401: "RPDO2 communication", 0x1600: "RPDO1 mapping", 0x1601: "RPDO2 mapping",
-                    0x1800: "TPDO1 communication", 0x1801: "TPDO2 communication", 0x1A00: "TPDO1 mapping",
-                    0x1A01: "TPDO2 mapping", 0x6040: "controlword", 0x6041: "statusword",
-                    0x6060: "modes of operation", 0x6061: "modes of operation display",
-                    0x6064: "position actual value", 0x606C: "velocity actual value",
-                    0x6071: "target torque", 0x6075: "motor rated current", 0x6078: "current actual value",
-                    0x608F: "position encoder resolution", 0x60FF: "target velocity"}
-SYNC_COUNTER_OBJ = 0x2001
 SYNC_OVERFLOW = 240
 STATES = {  # statusword mask, value (CiA 402)
     "SWITCH ON DISABLED": (0x4F, 0x40), "READY TO SWITCH ON": (0x6F, 0x21), "SWITCHED ON": (0x6F, 0x23),
     "OPERATION ENABLED": (0x6F, 0x27), "QUICK STOP ACTIVE": (0x6F, 0x07), "FAULT": (0x4F, 0x08),
     "FAULT REACTION ACTIVE": (0x4F, 0x0F), "NOT READY TO SWITCH ON": (0x4F, 0x00)}
 CW_DISABLE_VOLTAGE, CW_QUICK_STOP, CW_SHUTDOWN, CW_SWITCH_ON, CW_ENABLE, CW_FAULT_RESET = 0, 2, 6, 7, 15, 0x80
-MODE_CODES = {(Mode.VELOCITY, False): 3, (Mode.TORQUE, False): 4, (Mode.VELOCITY, True): 9, (Mode.TORQUE, True): 10}
 
 
 def state_of(statusword: int) -> str:
@@ -72,37 +74,37 @@ def state_of(statusword: int) -> str:
 
 
 def load_eds(path: str, node_id: int) -> canopen.ObjectDictionary:
-    """Object dictionary from an EDS; DriveError naming the file and the field."""
-    if not Path(path).is_file():
-        raise DriveError(f"{path}: EDS file not found; fix the axis 'description' path")
-    try:
-        od = canopen.import_od(path, node_id)
-    except Exception as exc:   # configparser/ValueError/KeyError: all mean a malformed file
-        raise DriveError(f"{path}: malformed EDS ({type(exc).__name__}: {exc}); "
-                         f"check it with a CANopen EDS editor") from exc
-    for index, name in REQUIRED_OBJECTS.items():
-        if index not in od:
-            raise DriveError(f"{path}: object 0x{index:04X} ({name}) missing; a CiA 402 servo EDS needs it")
-    device_type = od[0x1000].default
-    if device_type is None or device_type & 0xFFFF != 402:
-        raise DriveError(f"{path}: [1000] DefaultValue {device_type!r} is not a CiA 402 device type "
-                         f"(low 16 bits must be 402 = 0x0192)")
-    return od
+    """Object dictionary of a drive gearbench can use; DriveError listing every problem."""
+    return load_model(path, node_id).od
+
+
+def load_model(path: str, node_id: int) -> DriveModel:
+    """EDS (as the vendor ships it) + its drive description; DriveError listing every problem."""
+    return resolve_or_raise(path, node_id)
+
+
+def _close(a: float, b: float, rel: float = 1e-3) -> bool:
+    return abs(a - b) <= rel * max(abs(a), abs(b), 1e-12)
 
 
 class CiA402Drive(Drive):
     """One CiA 402 servo on a ``CiA402Network``; SI in, SI out."""
 
-    def __init__(self, network: "CiA402Network", node: canopen.RemoteNode, config: AxisConfig):
+    def __init__(self, network: "CiA402Network", node: canopen.RemoteNode, config: AxisConfig,
+                 model: DriveModel):
         super().__init__(config)
-        self.net, self.node = network, node
-        self.scaling = DriveScaling(config.counts_per_rev, config.rated_current_a)
+        self.net, self.node, self.model = network, node, model
+        self.units: AxisUnits | None = None        # from what the drive reports, set by configure()
+        self.modes: dict[str, int | None] = {}     # "velocity"/"torque" -> CiA 402 mode code
+        self.verified = False                      # units and limits read back as described
         self.mode: Mode | None = None
         self._mode_code = 0
         self._controlword = 0
-        self._has_counter = SYNC_COUNTER_OBJ in node.object_dictionary
+        self._has_counter = False   # configure(): a described echo object AND a counter byte on the bus
+        self._control_format = struct.Struct("<Hb")   # RPDO1 controlword + modes of operation (CiA 402 types)
         self._position_counts: int | None = None
         self.last_heartbeat: float | None = None
+        self._heartbeat_overdue = False
         self.nmt_state: int | None = None
         self.emcy: list[EmcyError] = []
 
@@ -135,46 +137,150 @@ class CiA402Drive(Drive):
 
     # ----------------------------------------------------------------- start-up
     def configure(self, heartbeat_ms: int) -> None:
-        """PRE-OPERATIONAL configuration by SDO (see the module docstring)."""
+        """PRE-OPERATIONAL configuration by SDO: identity, units, modes, limits, ramps, PDOs.
+
+        Every unit is read from the drive (objects named by the EDS or its description)
+        and checked against the profile; limits are written and read back. Any
+        disagreement raises DriveError before the drive is enabled.
+        """
+        m, c, od = self.model, self.config, self.node.object_dictionary
+        self.verified = False
         device_type = self.sdo_read(0x1000)
         if device_type & 0xFFFF != 402:
             raise DriveError(f"{self.where}: device type 0x{device_type:08X} is not a CiA 402 drive")
-        cpr = self.sdo_read(0x608F, 1) / max(1, self.sdo_read(0x608F, 2))
-        rated_a = self.sdo_read(0x6075) / 1000.0
-        c = self.config
-        if abs(cpr - c.counts_per_rev) > 1e-9:
-            raise DriveError(f"{self.where}: drive reports {cpr:g} counts/rev (0x608F) but the profile says "
-                             f"counts_per_rev: {c.counts_per_rev}; fix the profile or the drive")
-        if abs(rated_a - c.rated_current_a) > 1e-3 * c.rated_current_a:
-            raise DriveError(f"{self.where}: drive reports rated current {rated_a:g} A (0x6075) but the profile "
-                             f"says rated_current_a: {c.rated_current_a}; fix the profile or the drive")
-        self.scaling = DriveScaling(round(cpr), rated_a)
-        od = self.node.object_dictionary
-        if 0x6073 in od:
-            self.sdo_write(0x6073, 0, min(0xFFFF, abs(self.scaling.current_permille(c.current_limit_a))))
-        if 0x607F in od:
-            self.sdo_write(0x607F, 0, abs(self.scaling.velocity_counts_s(c.speed_limit_rad_s)))
-        counter = [(SYNC_COUNTER_OBJ, 8)] if self._has_counter else []
-        nid = self.node.id
-        self._map(0x1800, 0x1A00, 0, 0x180 + nid, 1, [(0x6041, 16), (0x6064, 32)] + counter)
-        self._map(0x1800, 0x1A00, 1, 0x280 + nid, 1, [(0x606C, 32), (0x6078, 16)] + counter)
-        self._map(0x1400, 0x1600, 0, 0x200 + nid, 255, [(0x6040, 16), (0x6060, 8)])
-        self._map(0x1400, 0x1600, 1, 0x300 + nid, 1, [(0x60FF, 32), (0x6071, 16)])
+        if 0x1018 in od and m.vendor_id is not None:
+            vendor = self.sdo_read(0x1018, 1)
+            if vendor != m.vendor_id:
+                raise DriveError(f"{self.where}: drive reports vendor id 0x{vendor:08X} (0x1018:01) but "
+                                 f"{m.eds} is {m.name} (0x{m.vendor_id:08X}); use the EDS of this drive")
+        if m.velocity_set is not None and isinstance(m.velocity_unit, ObjRef):
+            self.sdo_write(m.velocity_unit.index, m.velocity_unit.subindex, m.velocity_set)
+        values = {ref: self.sdo_read(ref.index, ref.subindex) for ref in unit_objects(m)}
+        units, rated_a = axis_units(m, values, self.where)
+        if m.velocity_set is not None and values[m.velocity_unit] != m.velocity_set:
+            raise DriveError(f"{self.where}: velocity unit {m.velocity_unit} reads "
+                             f"{describe_velocity_code(values[m.velocity_unit])} after writing "
+                             f"{describe_velocity_code(m.velocity_set)}; the drive did not take it")
+        for ref, want in m.expect.items():
+            got = self.sdo_read(ref.index, ref.subindex)
+            if isinstance(want, tuple):     # ("equal", other): a factor pair that must be 1:1
+                want = self.sdo_read(want[1].index, want[1].subindex)
+            if got != want:
+                raise DriveError(f"{self.where}: {ref} reads {got}, expected {want} ({m.name}); gearbench reads "
+                                 f"positions in encoder increments: set the factor group to 1:1")
+        cpr_ref = "0x608F" if m.counts_per_rev.index == 0x608F else str(m.counts_per_rev)
+        if abs(units.counts_per_rev - c.counts_per_rev) > 1e-9:
+            raise DriveError(f"{self.where}: drive reports {units.counts_per_rev:g} counts/rev ({cpr_ref}) but the "
+                             f"profile says counts_per_rev: {c.counts_per_rev}; fix the profile or the drive")
+        if not _close(rated_a, c.rated_current_a):
+            raise DriveError(f"{self.where}: drive reports rated current {rated_a:g} A ({m.rated_current}) but the "
+                             f"profile says rated_current_a: {c.rated_current_a}; fix the profile or the drive")
+        self._select_modes()
+        self._write_limits(units, rated_a)
+        self._write_ramps(units, rated_a)
+        self.units = units
+        self._configure_pdos()
+        if 0x1019 in od:   # counter byte only when every drive on the bus takes one (CiA 301)
+            self.sdo_write(0x1019, 0, SYNC_OVERFLOW if self.net.sync_counter_byte else 0)
+        self.sdo_write(0x1017, 0, heartbeat_ms)
+        self.verified = True
+
+    def _select_modes(self) -> None:
+        """Modes from 0x6502 as the drive reports it (or the description): cyclic 9/10 preferred."""
+        m, od = self.model, self.node.object_dictionary
+        supported = m.supported_modes
+        if 0x6502 in od:
+            reported = modes_from_bits(self.sdo_read(0x6502))
+            if supported is not None and m.description is not None and \
+                    m.description.fact("supported_modes", "modes") is not None and set(reported) != set(supported):
+                raise DriveError(f"{self.where}: 0x6502 reports modes {list(reported)} but {m.description.path} "
+                                 f"says {list(supported)}; fix the description or check the firmware")
+            supported = reported
+        force_profile = self.net.options.get("cyclic") is False
+        pick = {k: m.mode_for(k, tuple(x for x in supported or () if not (force_profile and x >= 9)))
+                for k in ("velocity", "torque")}
+        self.modes = pick
+        if any(code in (9, 10) for code in pick.values()) and 0x60C2 in od:
+            # interpolation period = SYNC period, in 10^(0x60C2:02) s
+            exponent = self.sdo_read(0x60C2, 2)
+            exponent = exponent - 256 if exponent > 127 else exponent
+            value = round(self.net.period_s / 10.0 ** exponent)
+            if not 1 <= value <= 255 or abs(value * 10.0 ** exponent - self.net.period_s) > 1e-9:
+                raise DriveError(f"{self.where}: SYNC period {self.net.period_s:g} s cannot be written to 0x60C2 "
+                                 f"(unit 1e{exponent} s); choose a period the drive can interpolate")
+            self.sdo_write(0x60C2, 1, value)
+
+    def _write_limits(self, units: AxisUnits, rated_a: float) -> None:
+        """Profile limits written to the drive, then read back: a drive that clamps them is refused."""
+        m, c = self.model, self.config
+        writes = []
+        if m.current_limit is not None:
+            per = {"mA": 1e-3, "A": 1.0, "permille_rated": rated_a / 1000.0}[m.current_limit_unit]
+            raw = round(c.current_limit_a / per)
+            if m.bits(m.current_limit) == 16:
+                raw = min(raw, 0xFFFF)
+            writes.append((m.current_limit, raw, "current limit"))
+        if m.speed_limit is not None:
+            writes.append((m.speed_limit, abs(units.velocity_raw(c.speed_limit_rad_s)), "speed limit"))
+        for ref, raw, what in writes:
+            self.sdo_write(ref.index, ref.subindex, raw)
+            got = self.sdo_read(ref.index, ref.subindex)
+            if got != raw:
+                raise DriveError(f"{self.where}: {what} {ref} reads {got} after writing {raw}; the drive clamps "
+                                 f"or refuses the profile's value: lower it or fix the drive's limits")
+        if 0x6080 in self.node.object_dictionary:   # max motor speed, velocity units
+            top = self.sdo_read(0x6080)
+            if units.velocity_rad_s(top) < c.speed_limit_rad_s * (1 - 1e-3):
+                raise DriveError(f"{self.where}: max motor speed 0x6080 = {top} ({units.velocity_rad_s(top):.1f} "
+                                 f"rad/s) is below the profile's speed_limit_rad_s {c.speed_limit_rad_s:g}; "
+                                 f"lower the profile's limit or raise the drive's")
+
+    def _write_ramps(self, units: AxisUnits, rated_a: float) -> None:
+        """Profile modes (3/4) ramp toward each setpoint with the drive's ramps: gearbench sets them
+        so that a full-range step fits in one SYNC period, i.e. they never shape the waveform."""
+        m, c, period = self.model, self.config, self.net.period_s
+        if self.modes.get("velocity") == 3:
+            accel = c.speed_limit_rad_s / period           # rad/s^2
+            for key in ("acceleration", "deceleration"):
+                ref = m.ramps.get(key)
+                if ref is not None:
+                    self._write_checked(ref, min(0xFFFFFFFF, round(accel / units.velocity_rad_s_per_unit)), key)
+        if self.modes.get("torque") == 4 and "torque_slope" in m.ramps:
+            slope = c.current_limit_a / rated_a * 1000.0 / period   # per-mille of rated torque per s
+            self._write_checked(m.ramps["torque_slope"], min(0xFFFFFFFF, round(slope)), "torque slope")
+
+    def _write_checked(self, ref: ObjRef, raw: int, what: str) -> None:
+        self.sdo_write(ref.index, ref.subindex, raw)
+        got = self.sdo_read(ref.index, ref.subindex)
+        if got != raw:
+            raise DriveError(f"{self.where}: {what} {ref} reads {got} after writing {raw}; the drive clamps it")
+
+    def _configure_pdos(self) -> None:
+        m, od, nid = self.model, self.node.object_dictionary, self.node.id
+        self._has_counter = m.sync_echo is not None and self.net.sync_counter_byte
+        t1, t2 = m.tpdo_entries(self._has_counter)
+        r1, r2 = m.rpdo_entries()
+        for comm, mapping, n, cob, trans, entries in ((0x1800, 0x1A00, 0, 0x180, 1, t1), (0x1800, 0x1A00, 1, 0x280, 1, t2),
+                                                      (0x1400, 0x1600, 0, 0x200, 255, r1),
+                                                      (0x1400, 0x1600, 1, 0x300, 1, r2)):
+            self._map(comm, mapping, n, cob + nid, trans, [(ref, m.bits(ref)) for ref in entries])
         for n in (2, 3):
             for comm, base in ((0x1800, 0x180), (0x1400, 0x200)):
                 if comm + n in od:
                     self.sdo_write(comm + n, 1, (1 << 31) | (base + 0x100 * n + nid))
-        if 0x1019 in od:
-            self.sdo_write(0x1019, 0, SYNC_OVERFLOW)
-        self.sdo_write(0x1017, 0, heartbeat_ms)
-        self.tpdo_formats = {0x180 + nid: "<Hi" + ("B" if counter else ""),
-                             0x280 + nid: "<ih" + ("B" if counter else "")}
+        self.tpdo_formats = {0x180 + nid: "<" + "".join(m.fmt(r) for r in t1),
+                             0x280 + nid: "<" + "".join(m.fmt(r) for r in t2)}
+        self._rpdo_format = struct.Struct("<" + "".join(m.fmt(r) for r in r2))
+        self._control_format = struct.Struct("<" + "".join(m.fmt(r) for r in r1))
 
     def _map(self, comm: int, mapping: int, n: int, cob_id: int, trans_type: int, entries) -> None:
         self.sdo_write(comm + n, 1, (1 << 31) | cob_id)        # invalid while remapping (CiA 301)
+        comm_obj = self.node.object_dictionary[comm + n]
+        if mapping < 0x1A00 and 3 in getattr(comm_obj, "subindices", {}):
+            self.sdo_write(comm + n, 3, 0)     # no inhibit time: a SYNC TPDO must answer every SYNC
         self.sdo_write(mapping + n, 0, 0)
-        for sub, (index, bits) in enumerate(entries, start=1):
-            self.sdo_write(mapping + n, sub, index << 16 | bits)
+        for sub, (ref, bits) in enumerate(entries, start=1):
+            self.sdo_write(mapping + n, sub, ref.index << 16 | ref.subindex << 8 | bits)
         self.sdo_write(mapping + n, 0, len(entries))
         self.sdo_write(comm + n, 2, trans_type)
         self.sdo_write(comm + n, 1, cob_id)
@@ -182,10 +288,13 @@ class CiA402Drive(Drive):
     # ----------------------------------------------------------------- RPDOs
     def _send_control(self, controlword: int) -> None:
         self._controlword = controlword
-        self.net.send(0x200 + self.node.id, struct.pack("<Hb", controlword, self._mode_code))
+        self.net.send(0x200 + self.node.id, self._control_format.pack(controlword, self._mode_code))
 
-    def _send_targets(self, velocity_counts_s: int, torque_permille: int) -> None:
-        self.net.send(0x300 + self.node.id, struct.pack("<ih", velocity_counts_s, torque_permille))
+    def _send_targets(self, velocity_raw: int, torque_raw: int) -> None:
+        """RPDO2 (target velocity, target torque) in the drive's verified units."""
+        if not self.verified:
+            raise DriveError(f"{self.where}: no setpoint before the drive's units are verified (start())")
+        self.net.send(0x300 + self.node.id, self._rpdo_format.pack(velocity_raw, torque_raw))
 
     def statusword(self) -> int:
         return self.sdo_read(0x6041)
@@ -202,7 +311,17 @@ class CiA402Drive(Drive):
     def enable(self, mode: Mode) -> None:
         mode = Mode(mode)
         self.mode = mode
-        self._mode_code = MODE_CODES[(mode, bool(self.net.options.get("cyclic", False)))]
+        if not self.verified:
+            raise DriveError(f"{self.where}: enable before start(): units and limits not verified")
+        code = self.modes.get(mode.value)
+        if code is None:
+            raise DriveError(f"{self.where}: {self.model.name} has no {mode.value} mode gearbench can use "
+                             f"(0x6502); " + ("a drive that cannot brake cannot be the output motor"
+                                              if mode is Mode.TORQUE else "it cannot turn at a commanded speed"))
+        if mode is Mode.TORQUE and self.units.torque_a_per_unit is None:
+            raise DriveError(f"{self.where}: target torque 0x6071 to motor current relation not stated for "
+                             f"{self.model.name}; describe it (torque.relation) in drivers/")
+        self._mode_code = code
         self._send_targets(0, 0)
         state = state_of(self.statusword())
         if state in ("FAULT", "FAULT REACTION ACTIVE"):
@@ -228,9 +347,9 @@ class CiA402Drive(Drive):
 
     def set_setpoint(self, value: float) -> None:
         if self.mode is Mode.VELOCITY:
-            self._send_targets(self.scaling.velocity_counts_s(value), 0)
-        elif self.mode is Mode.TORQUE:    # current mode: per-mille of rated current
-            self._send_targets(0, self.scaling.current_permille(value))
+            self._send_targets(self.units.velocity_raw(value), 0)
+        elif self.mode is Mode.TORQUE:    # a current (A), as target torque in the drive's verified unit
+            self._send_targets(0, self.units.torque_raw(value))
         else:
             raise DriveError(f"{self.where}: set_setpoint before enable(mode)")
 
@@ -238,7 +357,8 @@ class CiA402Drive(Drive):
         self._send_control(CW_QUICK_STOP)
 
     def disable(self) -> None:
-        self._send_targets(0, 0)
+        if self.verified:
+            self._send_targets(0, 0)
         self._send_control(CW_DISABLE_VOLTAGE)
         self.mode = None
         state = self._wait_state(("SWITCH ON DISABLED", "FAULT"), self.net.state_timeout_s)
@@ -265,7 +385,7 @@ class CiA402Drive(Drive):
         velocity, current = tpdo2[0], tpdo2[1]
         counts = position if self._position_counts is None else unwrap_int32(self._position_counts, position)
         self._position_counts = counts
-        s = self.scaling
+        s = self.units
         return Sample(index=index, time_s=time_s, position_rad=s.position_rad(counts),
                       velocity_rad_s=s.velocity_rad_s(velocity), current_a=s.current_a(current),
                       status=statusword, fault=bool(statusword & 0x08))
@@ -277,15 +397,16 @@ class CiA402Network(DriveNetwork):
     Options (profile ``bus:`` section): ``bus`` ("udp_multicast:239.74.163.2:43113",
     "socketcan:can0", "virtual:bench"), ``heartbeat_ms`` (100), ``timeout_s`` (0.5:
     a drive silent this long is a fault), ``frame_grace_s`` (0.02: once a SYNC's first
-    TPDO arrived, its other TPDOs are lost if not in by then), ``sdo_timeout_s`` (0.3), ``cyclic`` (False: profile velocity/torque
-    modes 3/4; True: cyclic synchronous 9/10), ``bus_kwargs`` (extra python-can args).
+    TPDO arrived, its other TPDOs are lost if not in by then), ``sdo_timeout_s`` (0.3), ``cyclic`` (None: cyclic
+    synchronous 9/10 where the drive has them, else profile modes 3/4 with ramps set by
+    gearbench; False: profile modes only), ``bus_kwargs`` (extra python-can args).
     """
 
     family = "cia402"
 
     def __init__(self, bus: str = "udp_multicast:239.74.163.2", *, heartbeat_ms: int = 100,
                  timeout_s: float = 0.5, state_timeout_s: float = 0.5, frame_grace_s: float = 0.02,
-                 sdo_timeout_s: float = 0.3, cyclic: bool = False, lockstep: bool = False,
+                 sdo_timeout_s: float = 0.3, cyclic: bool | None = None, lockstep: bool = False,
                  bus_kwargs: dict | None = None, **options):
         super().__init__(bus=bus, cyclic=cyclic, **options)
         # Real drives latch on SYNC, so SYNC must come every period on the wall clock for
@@ -326,11 +447,11 @@ class CiA402Network(DriveNetwork):
             raise DriveError("CiA402Network.add_drive before open()")
         if config.name in self.drives:
             raise DriveError(f"axis '{config.name}' added twice; axis names must be unique")
-        od = load_eds(config.description or DEFAULT_EDS, config.address)
-        node = canopen.RemoteNode(config.address, od)
+        model = load_model(config.description or DEFAULT_EDS, config.address)
+        node = canopen.RemoteNode(config.address, model.od)
         node.sdo.RESPONSE_TIMEOUT = self.sdo_timeout_s
         self.network.add_node(node)
-        drive = CiA402Drive(self, node, config)
+        drive = CiA402Drive(self, node, config, model)
         self.drives[config.name] = drive
         self.network.subscribe(0x700 + node.id, self._on_heartbeat_of(drive))
         self.network.subscribe(0x80 + node.id, self._on_emcy_of(drive))
@@ -342,6 +463,9 @@ class CiA402Network(DriveNetwork):
         self.period_s = period_s
         for d in self.drives.values():
             d.node.nmt.state = "PRE-OPERATIONAL"
+        # CiA 301: a SYNC carries a counter byte only if every consumer expects one (0x1019 > 1);
+        # a drive without 0x1019 may answer a wrong-length SYNC with EMCY 0x8240
+        self.sync_counter_byte = all(0x1019 in d.node.object_dictionary for d in self.drives.values())
         for d in self.drives.values():
             d.configure(self.heartbeat_ms)
             for cob_id, fmt in d.tpdo_formats.items():
@@ -421,7 +545,7 @@ class CiA402Network(DriveNetwork):
             counter = (self.sync_count - 1) % SYNC_OVERFLOW + 1
             with self._cv:
                 self._expect, self._got = counter, {}
-            self.network.send_message(0x80, bytes([counter]))
+            self.network.send_message(0x80, bytes([counter]) if self.sync_counter_byte else b"")
             with self._cv:
                 # the drives answer a SYNC together: wait long for the first frame (a busy host is not a
                 # lost frame), then briefly for the rest of that SYNC before calling it lost
