@@ -45,6 +45,18 @@ def test_calibrate_json_and_text(capsys, tmp_path):
     code, out, _ = run(capsys, "calibrate", "--unloaded", UA, "--loaded", LA, "--inertia", DISK,
                        "--method", "paper")
     assert code == 0 and "method       paper" in out and "Kt" in out
+    assert "disk inertia taken as exact" in out           # said, not silently left out
+    # a ±2 % datasheet disk: u_rel(Kt)² gains (0.02/√3)², stored as std and dof
+    code, out, _ = run(capsys, "calibrate", "--unloaded", UA, "--loaded", LA, "--inertia", DISK,
+                       "--inertia-tolerance", "0.02", "--inertia-source", "datasheet", "--json")
+    t = json.loads(out)
+    assert code == 0 and t["Kt"] == d["Kt"]
+    assert (t["Kt_std"] / t["Kt"]) ** 2 == pytest.approx((d["Kt_std"] / d["Kt"]) ** 2 + 0.02 ** 2 / 3, rel=1e-9)
+    assert t["Kt_dof"] > d["Kt_dof"] and t["fit"]["Kt_std_disk"] == pytest.approx(t["Kt"] * 0.02 / 3 ** 0.5)
+    assert t["Kt_ci95"][1] - t["Kt_ci95"][0] > 5 * (d["Kt_ci95"][1] - d["Kt_ci95"][0])
+    code, _, err = run(capsys, "calibrate", "--unloaded", UA, "--loaded", LA, "--inertia", DISK,
+                       "--inertia-tolerance", "2")
+    assert code == 2 and "--inertia-tolerance must be a relative tolerance" in err
 
 
 def test_identify_json(capsys):

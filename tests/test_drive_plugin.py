@@ -77,6 +77,11 @@ def test_profile_runs_through_the_plugin(loopback_installed, tmp_path):
     assert RunResult.from_dict(on_disk).motors["in"].kt_nm_per_a == kt_in.kt_nm_per_a
     assert on_disk["motors"]["out"]["Kt"] == kt_out.kt_nm_per_a
     assert_claimed_accuracy(on_disk, PLANT)       # against the plugin plant's own Kt
+    # the profile's disk (±0.5 % measured, u = 0.25 %) is in Kt's stored uncertainty
+    for m in ("in", "out"):
+        got = on_disk["motors"][m]
+        assert got["fit"]["Kt_std_disk"] == pytest.approx(got["Kt"] * 0.0025, rel=1e-9)
+        assert got["Kt_std"] >= got["fit"]["Kt_std_disk"] and got["Kt_dof"] >= 1
 
 
 def test_plugin_run_fails_an_impossible_limit(loopback_installed, tmp_path):
