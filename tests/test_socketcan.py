@@ -165,7 +165,7 @@ def test_state_machine_and_emcy_fault_over_socketcan(emulator, tmp_path):
 
 def test_sync_from_the_kernel_broadcast_manager(emulator, tmp_path):
     """Paced mode on socketcan: SYNC comes from the kernel (BCM), not from Python; it keeps
-    its period while this process sleeps, and samples are numbered by SYNC."""
+    its period while this process sleeps, and no sample the drives answered in time is lost."""
     period_s = 0.1      # slow enough for the emulator to answer inside a slot in an emulated guest
     with Candump(tmp_path) as dump, open_net(lockstep=False) as net:
         din = net.add_drive(AxisConfig("in", 1, EDS))
@@ -183,7 +183,8 @@ def test_sync_from_the_kernel_broadcast_manager(emulator, tmp_path):
     idx = [r["in"].index for r in rows]
     assert all(b > a for a, b in zip(idx, idx[1:]))
     assert all(r["in"].time_s == pytest.approx(r["in"].index * period_s) for r in rows)
-    assert idx[len(before) + 1] - idx[len(before)] >= 1.0 / period_s * 0.8   # the sleep shows as a gap
+    # the SYNCs answered in full while Python slept are kept (the bus order decides, not the host): no gap
+    assert idx == list(range(idx[0], idx[0] + len(idx))) and net.lost_samples == 0
     syncs = [t for t, cob, _ in dump.frames() if cob == 0x080]
     during = [t for t in syncs if t_sleep + 0.05 < t < t_wake - 0.05]
     assert len(during) >= 0.9 / period_s * 0.8, f"{len(during)} SYNCs while Python slept"
