@@ -552,14 +552,13 @@ def role_problems(m: DriveModel, kinds: set[str], motor: str) -> list[Problem]:
     if "torque" in kinds:
         why = []
         if m.supported_modes is not None and m.mode_for("torque", m.supported_modes) is None:
-            why.append(("0x6502", "no torque mode (4 profile torque or 10 cyclic sync torque)"))
+            why.append(("0x6502", "the drive has no torque mode (4 profile torque or 10 cyclic sync torque)"))
         if 0x6071 not in m.od:
-            why.append(("0x6071", "no target torque object"))
+            why.append(("0x6071", "the drive has no target torque object"))
         elif m.torque_relation is None:
             why.append(("0x6071", "the relation of target torque to motor current is not stated"))
         for obj, text in why:
-            out.append(Problem(where, obj, f"motor '{motor}' must brake in torque (current) control but the "
-                               f"drive has {text}", "a drive that cannot brake cannot be the output motor; "
+            out.append(Problem(where, obj, f"motor '{motor}' must brake in torque (current) control but {text}", "a drive that cannot brake cannot be the output motor; "
                                "use a torque-capable drive or describe it in drivers/"))
     return out
 
