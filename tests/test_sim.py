@@ -345,6 +345,27 @@ def test_cvt_ratio_is_settable():
         BenchWorld(PlantParams()).set_ratio(5.0)
 
 
+def test_simulation_truth_is_the_plant_at_the_commanded_point_whatever_was_measured():
+    """result.json's simulation_truth: each point at its speed setpoint and output current
+    command (bench_operating_point), never at a measured speed or estimated torque, so a
+    wrong estimate cannot drag its own reference along."""
+    from gearbench.sim.truth import simulation_truth
+
+    plant = PlantParams(ratio=8.0, eta_mesh=0.8, drag_torque_nm=0.01)
+    point = {"in_command": 150.0, "out_command": -1.2, "speed_in_rad_s": 149.7, "torque_out_nm": 0.061,
+             "eta_incremental": 0.79, "eta_absolute": 0.7}
+    (got,) = simulation_truth(plant, [point])["efficiency"]
+    op = bench_operating_point(plant, 150.0, -1.2)
+    assert got["eta_absolute"] == op["eta_absolute"] and got["torque_out_nm"] == op["torque_out_nm"]
+    assert got["eta_incremental"] == 0.8 and got["speed_in_rad_s"] == 150.0
+    skewed = {**point, "speed_in_rad_s": 120.0, "torque_out_nm": 0.09, "eta_absolute": 0.5}
+    assert simulation_truth(plant, [skewed])["efficiency"] == [got]
+    # the truth moves with the command: 10 % more braking current, a different absolute η
+    (more,) = simulation_truth(plant, [{**point, "out_command": -1.32}])["efficiency"]
+    assert more["torque_out_nm"] == pytest.approx(
+        op["torque_out_nm"] + 0.12 * plant.motor_out.Kt, rel=1e-9)
+
+
 def test_efficiency_truth_definitions():
     plant = PlantParams(ratio=10.0, eta_mesh=0.9, drag_torque_nm=0.02)
     light = efficiency_truth(plant, 200.0, 0.05)
