@@ -35,7 +35,138 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", help="write per-case results to this file")
     ap.add_argument("--broadband", action="store_true",
                     help="add the broadband (chirp to 80 Hz) excitation to the case set")
+    ap.add_argument("--no-single", action="store_true",
+                    help="skip the single-effect cases (composite, units and bench only)")
+    ap.add_argument("--no-bench", action="store_true", help="skip the reducer-bench cases")
+    ap.add_argument("--no-units", action="store_true", help="skip the units-variant cases")
     args = ap.parse_args(argv)
+    report: dict = {}
+    if not args.no_single:
+        report["single"] = _single(args, harness, NAMES)
+    report["composite"] = _composite(args, harness)
+    if not args.no_units:
+        report["units"] = _units(args, harness)
+    if not args.no_bench:
+        report["bench"] = _bench(args)
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(report, fh, indent=1, default=str)
+    return 0
+
+
+def _composite(args, harness) -> list[dict]:
+    """Two and three effects injected together: is each named in the chain, in the
+    order of the gap each opens alone, and does the remainder reach the floor?"""
+    from ..analysis.diagnose.pipeline import nominal_gap
+
+    seeds = tuple(range(args.seeds))
+    rows = []
+    t0 = time.perf_counter()
+    for effects in harness.COMPOSITES:
+        for seed in seeds:
+            case = harness.composite_case(effects, seed=seed)
+            out = harness.run_case(case)
+            solo = {e: nominal_gap(harness.blind_trace(harness.composite_case((e,), seed=seed))[0])
+                    for e in effects}
+            truth_order = sorted(effects, key=lambda e: -solo[e])
+            found = [e for e in out.chain if e in effects]
+            rem = out.diagnosis.remaining
+            rows.append({"effects": list(effects), "seed": seed, "chain": out.chain,
+                         "found": {e: e in out.chain for e in effects},
+                         "shrink": [round(c["shrink_heldout"], 3) for c in out.diagnosis.chain],
+                         "cumulative": [round(c["cumulative_shrink"], 3) for c in out.diagnosis.chain],
+                         "order_ok": found == [e for e in truth_order if e in found],
+                         "solo_gap_rad_s": solo, "extra": [e for e in out.chain if e not in effects],
+                         "remaining_gap_ratio": rem.get("gap_ratio"),
+                         "at_floor": rem.get("at_noise_floor"),
+                         "unknown_effect": rem.get("unknown_effect")})
+            print(f"\r{len(rows)} composite cases", end="", file=sys.stderr, flush=True)
+    print(file=sys.stderr)
+    n_eff = sum(len(r["effects"]) for r in rows)
+    hit = sum(sum(r["found"].values()) for r in rows)
+    print(f"\nComposite cases (moderate levels, reversing multisine) — {len(rows)} cases, "
+          f"{time.perf_counter() - t0:.0f} s")
+    print(f"{'injected':48s}{'chain (held-out shrink per step)':56s}{'order':>6s}{'left':>7s}")
+    for r in rows:
+        ch = ", ".join(f"{_abbrev(e)} {s:.0%}" for e, s in zip(r["chain"], r["shrink"]))
+        print(f"{'+'.join(r['effects']):48s}{ch:56s}{('ok' if r['order_ok'] else 'NO'):>6s}"
+              f"{r['remaining_gap_ratio']:6.1f}x" + (" floor" if r["at_floor"] else
+                                                      " unknown" if r["unknown_effect"] else ""))
+    print(f"Composite recall: {hit}/{n_eff} injected effects named in the chain "
+          f"({hit / max(n_eff, 1):.0%}); all named in {sum(all(r['found'].values()) for r in rows)}"
+          f"/{len(rows)} cases; order of size right in {sum(r['order_ok'] for r in rows)}/{len(rows)}; "
+          f"extra effects named: {sum(len(r['extra']) for r in rows)}; remainder at the noise floor "
+          f"in {sum(bool(r['at_floor']) for r in rows)}/{len(rows)}")
+    return rows
+
+
+#: Cases re-run in other position units (the same physics): clean, one effect, composite.
+UNIT_CASES = ((None, "reversing"), (("coulomb_friction",), "reversing"),
+              (("direction_friction",), "reversing"), (("time_delay",), "multisine"),
+              (("coulomb_friction", "current_offset"), "reversing"))
+
+
+def _units(args, harness) -> list[dict]:
+    """The same traces in rad, deg and m: same chain and shrink (or the same refusal)."""
+    from ..errors import GearbenchError
+
+    rows = []
+    t0 = time.perf_counter()
+    for effects, ex in UNIT_CASES:
+        res = {}
+        for unit in harness.UNITS:
+            case = (harness.composite_case(effects, ex, 0, unit) if effects else
+                    harness.Case(None, "-", ex, 0, {}, unit))
+            try:
+                out = harness.run_case(case)
+                res[unit] = {"chain": out.chain, "verdict": out.called,
+                             "shrink": [round(c["shrink_heldout"], 3) for c in out.diagnosis.chain]}
+            except GearbenchError as exc:
+                res[unit] = {"refused": str(exc)}
+        same = all(r.get("chain") == res["rad"].get("chain") and
+                   ("refused" in r) == ("refused" in res["rad"]) for r in res.values())
+        close = same and all(np.allclose(r.get("shrink", []), res["rad"].get("shrink", []), atol=0.05)
+                             for r in res.values())
+        rows.append({"effects": list(effects or ()), "excitation": ex, "by_unit": res,
+                     "same_chain": same, "same_shrink": close})
+    print(f"\nUnits consistency (rad / deg / m of the same trace) — {time.perf_counter() - t0:.0f} s")
+    for r in rows:
+        name = "+".join(r["effects"]) or "clean"
+        print(f"{name:40s}" + "  ".join(f"{u}: {', '.join(map(_abbrev, v.get('chain', []))) or ('refused' if 'refused' in v else 'none')}"
+                                         for u, v in r["by_unit"].items())
+              + f"   same chain {'yes' if r['same_chain'] else 'NO'}, shrink within 0.05 "
+                f"{'yes' if r['same_shrink'] else 'NO'}")
+    print(f"Units consistency: {sum(r['same_chain'] for r in rows)}/{len(rows)} same chain, "
+          f"{sum(r['same_shrink'] for r in rows)}/{len(rows)} same shrink")
+    return rows
+
+
+def _bench(args) -> list[dict]:
+    """Reducer effects injected into the simulated bench, diagnosed blind."""
+    from ..analysis.diagnose.bench import BENCH_INJECTIONS, bench_case_trace, diagnose_bench
+
+    rows = []
+    t0 = time.perf_counter()
+    for seed in range(max(args.seeds, 2)):
+        for eff in (None, *BENCH_INJECTIONS):
+            d = diagnose_bench(bench_case_trace(eff, seed))
+            rows.append({"effect": eff, "seed": seed, "chain": [c["effect"] for c in d.chain],
+                         "shrink": [round(c["shrink_heldout"], 3) for c in d.chain]})
+    print(f"\nReducer bench effects (simulated bench, blind) — {len(rows)} cases, "
+          f"{time.perf_counter() - t0:.0f} s")
+    for eff in (None, *BENCH_INJECTIONS):
+        rs = [r for r in rows if r["effect"] == eff]
+        first = sum(bool(r["chain"]) and r["chain"][0] == eff for r in rs)
+        named = sum(eff in r["chain"] for r in rs) if eff else sum(not r["chain"] for r in rs)
+        sh = [s for r in rs for e, s in zip(r["chain"], r["shrink"]) if e == eff]
+        print(f"{(eff or 'clean'):24s}" + (f"named first {first}/{len(rs)}, in chain {named}/{len(rs)}, "
+                                            f"shrink {np.median(sh) if sh else float('nan'):.2f}"
+                                            if eff else f"empty chain {named}/{len(rs)}")
+              + "   chains: " + "; ".join(",".join(r["chain"]) or "-" for r in rs))
+    return rows
+
+
+def _single(args, harness, NAMES) -> list[dict]:
 
     seeds = tuple(range(args.seeds))
     if args.quick:
@@ -126,14 +257,22 @@ def main(argv: list[str] | None = None) -> int:
             per_ex[o.case.excitation].append(o.isolated)
     print("Isolation (moderate+high) by excitation: "
           + ", ".join(f"{k} {np.mean(v):.0%}" for k, v in per_ex.items()))
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump([{"effect": o.case.effect, "level": o.case.level,
-                        "excitation": o.case.excitation, "seed": o.case.seed,
-                        "called": o.called, "confused_with": o.diagnosis.verdict.confused_with,
-                        "true_shrink": o.true_shrink, "testable": o.testable} for o in outs],
-                      fh, indent=1)
-    return 0
+    # the chain on single-effect traces: the injected effect named, anything more?
+    inj = [o for o in outs if o.case.effect]
+    named = sum(o.in_chain for o in inj)
+    extra = [o for o in inj if len(o.chain) > 1]
+    floor = sum(bool(o.diagnosis.remaining.get("at_noise_floor")) for o in inj if o.in_chain)
+    chain_fa = [o for o in clean if o.chain]
+    print(f"Chain on single-effect cases: injected effect named in {named}/{len(inj)}; "
+          f"more than one effect named in {len(extra)}/{len(inj)}; remainder at the floor in "
+          f"{floor}/{named} where named; clean controls with a non-empty chain: "
+          f"{len(chain_fa)}/{len(clean)}")
+    return [{"effect": o.case.effect, "level": o.case.level,
+             "excitation": o.case.excitation, "seed": o.case.seed,
+             "called": o.called, "confused_with": o.diagnosis.verdict.confused_with,
+             "chain": o.chain, "remaining": {k: v for k, v in o.diagnosis.remaining.items()
+                                             if k != "where"},
+             "true_shrink": o.true_shrink, "testable": o.testable} for o in outs]
 
 
 if __name__ == "__main__":  # pragma: no cover

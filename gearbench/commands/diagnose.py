@@ -16,8 +16,11 @@ HELP = "diagnose the sim-to-real gap of a single-motor trace (where, which effec
 
 
 def add_arguments(p) -> None:
-    p.add_argument("trace", metavar="TRACE", help="single-motor trace (.csv or .parquet) with "
-                   "time_s, position_rad, current_a")
+    p.add_argument("trace", metavar="TRACE", nargs="?", help="single-motor trace (.csv or "
+                   ".parquet) with time_s, position_rad, current_a")
+    p.add_argument("--bench", metavar="BENCH_TRACE",
+                   help="diagnose a two-motor reducer bench trace instead (in_/out_ position "
+                        "and current): where the simulated reducer and the bench disagree")
     p.add_argument("--model", metavar="MODEL.json",
                    help='nominal model {"Kt":..,"J":..,"D":..} instead of identifying it on the trace')
     p.add_argument("--json", action="store_true", help="print one JSON object")
@@ -40,6 +43,10 @@ def _jsonable(o):
 def run(args) -> int:
     from ..analysis.diagnose import diagnose, load_model
 
+    if args.bench:
+        return _run_bench(args)
+    if not args.trace:
+        raise TraceError("give a TRACE to diagnose (or --bench BENCH_TRACE for a reducer bench)")
     p = Path(args.trace)
     if p.is_dir():
         raise TraceError(f"{p}: is a folder, not a trace file; pass a .csv or .parquet file")
@@ -55,6 +62,39 @@ def run(args) -> int:
         print(json.dumps(out, indent=1))
     else:
         print(summary(out, str(p)))
+    return 0
+
+
+def _run_bench(args) -> int:
+    from ..analysis.diagnose.bench import diagnose_bench
+
+    p = Path(args.bench)
+    if p.is_dir():
+        raise TraceError(f"{p}: is a folder, not a trace file; pass a .csv or .parquet file")
+    d = _jsonable(diagnose_bench(Trace.read(p)).as_dict())
+    if args.json:
+        print(json.dumps(d, indent=1))
+        return 0
+    lines = [f"{p}: simulated reducer (constant efficiency, ideal ratio "
+             f"{d['nominal']['noise']['ratio_estimate']:.4g}, Coulomb + viscous drag) vs bench"]
+    for rel in ("kinematics", "torque"):
+        n = d["nominal"][rel]
+        lines.append(f"  {rel}: held-out rms {n['rms']:.3g} vs noise floor {n['noise_floor']:.3g} "
+                     f"({n['gap_ratio']:.2f}x)")
+    if d["chain"]:
+        lines.append("chain (held-out):")
+        for k, c in enumerate(d["chain"], 1):
+            lines.append(f"  {k}. {c['effect']:22s} ({c['relation']}) shrink {c['shrink_heldout']:.0%}"
+                         f", cumulative {c['cumulative_shrink']:.0%}; "
+                         + ", ".join(f"{a}={v:.4g}" if isinstance(v, float) else f"{a}={v}"
+                                     for a, v in c["params"].items()))
+    else:
+        lines.append("chain: no reducer effect significant on held-out data")
+    for rel, r in d["remaining"].items():
+        lines.append(f"remaining ({rel}): {r['gap_ratio']:.2f}x the noise floor"
+                     + (" — at the floor" if r["at_noise_floor"] else
+                        " — UNKNOWN EFFECT" if r["unknown_effect"] else ""))
+    print("\n".join(lines))
     return 0
 
 

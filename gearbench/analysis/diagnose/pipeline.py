@@ -292,7 +292,8 @@ def diagnose(trace: Trace, model: GivenModel | None = None, *, chain: bool = Tru
     st = _State([base, base], base, nom_folds, mse_nom, nom)
     tests = testability.assess(sig, floor, win_all, H, model is not None)
     ranked, refits, refined_folds = _evaluate(sig, sp, wins, win_all, st, floor, v_rms, ov,
-                                              order, model, err_nom)
+                                              order, model, err_nom,
+                                              exclude=("direction_friction",))
     ranked = _gate(ranked, tests)
     gap_open = float(np.mean(mse_nom)) > (1.0 + vd.MATERIAL) * floor.mse
     verdict = vd.verdict(ranked, gap_open, {k: t.experiment for k, t in tests.items()
@@ -371,8 +372,10 @@ def _excluded(base: Base, steps, model) -> tuple[str, ...]:
     """Candidates the chain no longer tries: those chosen, a Coulomb term already
     inside direction-dependent friction, inertia when the nominal absorbs it."""
     out = [s["effect"] for s in steps]
-    if any(e.name == "direction_friction" and hp.get("with_coulomb") for e, hp in base.chosen):
-        out.append("coulomb_friction")
+    # direction dependence refines a Coulomb model already chosen: offered first, its
+    # |sign| part (a constant while moving) would stand in for Coulomb + a current offset
+    if "coulomb_friction" not in base.chosen_names:
+        out.append("direction_friction")
     if model is None:
         out.append("inertia_mismatch")
     return tuple(out)

@@ -1,0 +1,375 @@
+"""The reducer too: where a measured two-motor bench trace and the simulated reducer
+(constant efficiency, ideal ratio, Coulomb + viscous drag) disagree, which reducer effect
+explains it, and how far adding it closes the gap on held-out data (issue 13).
+
+Two relations the simulated reducer fixes, each linear in its parameters:
+
+* kinematics — the output angle is the input angle over an ideal ratio:
+  ``th_out = c + th_in / n``;
+* torque balance at the input shaft — the input current carries the load reflected
+  at constant efficiency, a Coulomb drag and the inertia:
+  ``i_in = p (-i_out) + d sign(w_in) + v w_in + m a_in + c``.
+
+Candidates add columns: ``ratio_ripple`` (sin/cos of k th_in, k scanned: CVT links,
+eccentric gears), ``torsional_compliance`` (twist proportional to the transmitted
+torque), ``backlash`` (lost motion that flips with the torque's sign),
+``speed_losses`` (churning drag, w_in |w_in|), ``load_losses`` (mesh efficiency that
+changes with load, i_out |i_out|) and ``speed_load_losses`` (efficiency falling with
+speed, w_in i_out).  All signals go through one moving average (the relation stays
+exact for its linear terms; angles stay raw) and both relations are scored like the motor diagnosis:
+two-fold cross-fitting over alternating blocks, per-block held-out MSE against the
+data's own noise floor, forward selection with the same significance test
+(verdict.score).  Thresholds come from the data (encoder steps, current noise,
+speed and current ranges), never from the user's units.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...errors import TraceError
+from ...trace import Trace
+from . import verdict as vd
+from .simerror import _hf_noise, lattice_step
+
+BENCH_COLUMNS = ("in_position_rad", "in_current_a", "out_position_rad", "out_current_a")
+#: Moving-average length, seconds (removes white noise; the same on every signal).
+SMOOTH_S = 0.025
+#: Held-out blocks alternate between two folds; each block is this long, seconds.
+BLOCK_S = 0.25
+#: Orders of the input angle scanned for ratio ripple (per input revolution).
+RIPPLE_ORDERS = 12
+MAX_CHAIN = 4
+#: Share of the trace a column must vary over (its unique part) to be testable.
+U_MIN = 0.05
+
+KINEMATICS, TORQUE = "kinematics", "torque"
+EXPERIMENTS = {
+    frozenset({"torsional_compliance", "backlash"}):
+        "load in both directions at small torque: backlash shows a dead band at each "
+        "torque reversal, a compliant shaft stays linear through zero",
+    frozenset({"speed_losses", "speed_load_losses"}):
+        "repeat the speed sweep at no load and at full load: drag does not depend on "
+        "the load, a speed-dependent efficiency does",
+    frozenset({"load_losses", "speed_load_losses"}):
+        "repeat the load steps at two input speeds: a load-dependent efficiency is the "
+        "same at both",
+}
+
+
+@dataclass(frozen=True)
+class _Sig:
+    t: np.ndarray
+    th_in: np.ndarray
+    th_out: np.ndarray
+    w_in: np.ndarray
+    a_in: np.ndarray
+    i_in: np.ndarray
+    i_out: np.ndarray
+    blocks: np.ndarray          # block index per sample
+    floor: dict                 # relation -> per-sample noise MSE after smoothing
+    noise: dict
+
+
+def _smooth(x: np.ndarray, L: int) -> np.ndarray:
+    return np.convolve(x, np.ones(L) / L, mode="same")
+
+
+def prepare_bench(trace: Trace) -> _Sig:
+    trace.validate(BENCH_COLUMNS, min_samples=400)
+    dt = trace.dt_s
+    th_in = np.asarray(trace["in_position_rad"], float)
+    th_out = np.asarray(trace["out_position_rad"], float)
+    i_in = np.asarray(trace["in_current_a"], float)
+    i_out = np.asarray(trace["out_current_a"], float)
+    if np.ptp(th_in) == 0 or np.ptp(th_out) == 0:
+        raise TraceError(f"{trace.source}: a shaft never turns (in_position_rad or "
+                         f"out_position_rad constant); record a run with motion")
+    L = max(3, int(round(SMOOTH_S / dt)))
+    h2 = 1.0 / L                                   # sum of the moving average's squares
+    s_iin, s_iout = _hf_noise(i_in, 7, 2), _hf_noise(i_out, 7, 2)
+    q_in, q_out = lattice_step(th_in) or 0.0, lattice_step(th_out) or 0.0
+    s_th_in = max(_hf_noise(th_in, 9, 3), q_in / np.sqrt(12))
+    s_th_out = max(_hf_noise(th_out, 9, 3), q_out / np.sqrt(12))
+    w = np.gradient(_smooth(th_in, L), dt)
+    a = np.gradient(_smooth(w, L), dt)
+    cut = slice(2 * L, len(th_in) - 2 * L)       # the smoothing's edges
+    n_ratio = np.ptp(th_in) / np.ptp(th_out)
+    # angles are not smoothed (a ratio ripple of order k at speed w would average out)
+    floor = {KINEMATICS: s_th_out ** 2 + (s_th_in / n_ratio) ** 2,
+             TORQUE: s_iin ** 2 * h2}
+    per = max(L * 4, int(round(BLOCK_S / dt)))
+    blocks = np.arange(len(th_in))[cut] // per
+    return _Sig(trace.time_s[cut], th_in[cut], th_out[cut], w[cut],
+                a[cut], _smooth(i_in, L)[cut], _smooth(i_out, L)[cut], blocks, floor,
+                {"in_current_a": s_iin, "out_current_a": s_iout, "in_angle": s_th_in,
+                 "out_angle": s_th_out, "ratio_estimate": float(n_ratio)})
+
+
+# ---------------------------------------------------------------- relations
+def _nominal(s: _Sig, rel: str) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    one = np.ones_like(s.t)
+    if rel == KINEMATICS:
+        return s.th_out, np.column_stack([one, s.th_in]), ["offset", "inv_ratio"]
+    w_top = max(float(np.percentile(np.abs(s.w_in), 99.5)), 1e-300)
+    sgn = np.tanh(s.w_in / (0.01 * w_top))
+    # the simulated reducer's own losses: constant efficiency, Coulomb and viscous drag
+    # (PlantParams drag_torque_nm, drag_viscous; the motors' viscous friction is the
+    # same column)
+    # constant efficiency acts with the power flow: eta braking, 1/eta driving — one
+    # load ratio per direction of the output torque
+    brake = s.i_out * s.w_in < 0
+    return (s.i_in, np.column_stack([one, -s.i_out * brake, -s.i_out * ~brake, sgn, s.w_in,
+                                     s.a_in]),
+            ["offset_a", "load_ratio_braking", "load_ratio_driving", "drag_a",
+             "viscous_a_per_speed", "inertia_a_s2"])
+
+
+class _Cand:
+    name, relation = "", ""
+
+    def grid(self, s: _Sig) -> list[dict]:
+        return [{}]
+
+    def cols(self, s: _Sig, hp: dict) -> np.ndarray:
+        raise NotImplementedError
+
+    def describe(self, coef: np.ndarray, s: _Sig, hp: dict) -> dict:
+        return {**hp, "coef": [float(c) for c in coef]}
+
+
+class RatioRipple(_Cand):
+    name, relation = "ratio_ripple", KINEMATICS
+
+    def grid(self, s):
+        return [{"order": k} for k in range(1, RIPPLE_ORDERS + 1)]
+
+    def cols(self, s, hp):
+        k = hp["order"]
+        return np.column_stack([np.sin(k * s.th_in), np.cos(k * s.th_in)])
+
+    def describe(self, coef, s, hp):
+        amp = float(np.hypot(*coef))
+        # output angle ripple amp -> ratio ripple amplitude k*amp*n (fraction of 1/n)
+        return {"order_per_input_rev": hp["order"], "angle_amplitude": amp,
+                "ratio_ripple_fraction": amp * hp["order"] * s.noise["ratio_estimate"]}
+
+
+class Compliance(_Cand):
+    name, relation = "torsional_compliance", KINEMATICS
+
+    def cols(self, s, hp):
+        return s.i_out[:, None]
+
+    def describe(self, coef, s, hp):
+        return {"twist_per_out_current": float(coef[0])}
+
+
+class Backlash(_Cand):
+    name, relation = "backlash", KINEMATICS
+
+    def grid(self, s):
+        top = max(float(np.percentile(np.abs(s.i_out), 99)), 1e-300)
+        return [{"width_a": f * top} for f in (0.01, 0.05, 0.2)]
+
+    def cols(self, s, hp):
+        return np.tanh(s.i_out / hp["width_a"])[:, None]
+
+    def describe(self, coef, s, hp):
+        return {"gap_out_angle": float(2 * abs(coef[0])), **hp}
+
+
+class SpeedLosses(_Cand):
+    """Churning: drag growing with the square of speed (the simulated reducer's drag
+    is Coulomb + viscous, linear in speed)."""
+
+    name, relation = "speed_losses", TORQUE
+
+    def cols(self, s, hp):
+        return (s.w_in * np.abs(s.w_in))[:, None]
+
+    def describe(self, coef, s, hp):
+        return {"churning_a_per_speed2": float(coef[0])}
+
+
+class LoadLosses(_Cand):
+    name, relation = "load_losses", TORQUE
+
+    def cols(self, s, hp):
+        return (s.i_out * np.abs(s.i_out))[:, None]
+
+    def describe(self, coef, s, hp):
+        return {"quadratic_load_a_per_a2": float(-coef[0])}
+
+
+class SpeedLoadLosses(_Cand):
+    name, relation = "speed_load_losses", TORQUE
+
+    def cols(self, s, hp):
+        return (-s.w_in * s.i_out)[:, None]
+
+    def describe(self, coef, s, hp):
+        return {"load_ratio_change_per_in_speed": float(coef[0])}
+
+
+CANDIDATES = (RatioRipple(), Compliance(), Backlash(), SpeedLosses(), LoadLosses(),
+              SpeedLoadLosses())
+
+
+# ---------------------------------------------------------------- scoring
+def _block_mse(r: np.ndarray, blocks: np.ndarray) -> np.ndarray:
+    b = blocks - blocks.min()
+    cnt = np.bincount(b)
+    return (np.bincount(b, r * r) / np.maximum(cnt, 1))[cnt > 0]
+
+
+def _held_out(y, X, blocks) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals of two-fold cross-fitting (odd blocks by the even fit, and back);
+    returns (held-out residual, all-data coefficients)."""
+    r = np.empty_like(y)
+    scale = np.sqrt((X ** 2).sum(0))
+    scale[scale == 0] = 1
+    for parity in (0, 1):
+        fit = blocks % 2 == parity
+        c = np.linalg.lstsq(X[fit] / scale, y[fit], rcond=None)[0] / scale
+        r[~fit] = y[~fit] - X[~fit] @ c
+    c = np.linalg.lstsq(X / scale, y, rcond=None)[0] / scale
+    return r, c
+
+
+def _unique_share(X: np.ndarray, E: np.ndarray) -> float:
+    Q, _ = np.linalg.qr(X / np.maximum(np.linalg.norm(X, axis=0), 1e-300))
+    R = E - Q @ (Q.T @ E)
+    return float(np.linalg.norm(R) / max(np.linalg.norm(E), 1e-300))
+
+
+@dataclass(frozen=True)
+class BenchDiagnosis:
+    nominal: dict
+    candidates: list
+    chain: list
+    remaining: dict
+
+    def as_dict(self) -> dict:
+        return {"nominal": self.nominal, "candidates": self.candidates, "chain": self.chain,
+                "remaining": self.remaining,
+                "verdict": {"effect": self.chain[0]["effect"] if self.chain else None}}
+
+
+def diagnose_bench(trace: Trace, max_chain: int = MAX_CHAIN) -> BenchDiagnosis:
+    """Forward selection over both relations; see the module docstring."""
+    s = prepare_bench(trace)
+    state = {}
+    nominal = {}
+    for rel in (KINEMATICS, TORQUE):
+        y, X, names = _nominal(s, rel)
+        r, c = _held_out(y, X, s.blocks)
+        mse = _block_mse(r, s.blocks)
+        state[rel] = {"X": X, "mse": mse, "mse0": mse}
+        f = s.floor[rel]
+        nominal[rel] = {"params": dict(zip(names, map(float, c))),
+                        "rms": float(np.sqrt(np.mean(mse))), "noise_floor": float(np.sqrt(f)),
+                        "gap_ratio": float(np.sqrt(np.mean(mse) / f))}
+    nominal["noise"] = s.noise
+    chain, first = [], None
+    chosen: set[str] = set()
+    for step in range(max_chain):
+        scores = []
+        for cand in CANDIDATES:
+            if cand.name in chosen:
+                continue
+            st, f = state[cand.relation], s.floor[cand.relation]
+            y = _nominal(s, cand.relation)[0]
+            best = None
+            for hp in cand.grid(s):
+                E = cand.cols(s, hp)
+                X = np.column_stack([st["X"], E])
+                r, c = _held_out(y, X, s.blocks)
+                mse = _block_mse(r, s.blocks)
+                if best is None or mse.mean() < best[0].mean():
+                    best = (mse, hp, E, c)
+            mse, hp, E, c = best
+            sc = vd.score(cand.name, cand.describe(c[-E.shape[1]:], s, hp), st["mse"], mse,
+                          E.shape[1] + (len(cand.grid(s)) > 1), f, 1.0)
+            u = _unique_share(st["X"], E)
+            testable = u >= U_MIN
+            sc = vd.Score(**{**sc.__dict__, "significant": bool(sc.significant and testable),
+                             "testable": testable,
+                             "why": f"{u:.0%} of the candidate's columns unique against the "
+                                    f"model's (needs {U_MIN:.0%})"})
+            scores.append((sc, E))
+        ranked = sorted(scores, key=lambda p: (not p[0].significant, p[0].delta_bic))
+        if first is None:
+            first = [dict(p[0].as_dict(), relation=next(c.relation for c in CANDIDATES
+                                                         if c.name == p[0].effect))
+                     for p in ranked]
+        if not ranked or not ranked[0][0].significant:
+            break
+        sc, E = ranked[0]
+        rel = next(c.relation for c in CANDIDATES if c.name == sc.effect)
+        st = state[rel]
+        gap0 = vd.excess(float(np.mean(st["mse0"])), s.floor[rel])
+        st["X"] = np.column_stack([st["X"], E])
+        st["mse"] = sc.mse_h
+        gap = vd.excess(float(np.mean(sc.mse_h)), s.floor[rel])
+        alike = [p[0].effect for p in ranked[1:] if p[0].significant and
+                 vd.paired_t(p[0].mse_h, sc.mse_h) < vd.T_CONFUSED and
+                 frozenset({p[0].effect, sc.effect}) in EXPERIMENTS]
+        chain.append({"effect": sc.effect, "relation": rel, "params": sc.params,
+                      "shrink_heldout": float(sc.shrink),
+                      "cumulative_shrink": float(1 - gap / gap0) if gap0 > 0 else 0.0,
+                      "significant": True, "delta_bic": float(sc.delta_bic),
+                      "gap_ratio_after": float(np.sqrt(np.mean(sc.mse_h) / s.floor[rel])),
+                      "confused_with": alike,
+                      "experiment": "; ".join(EXPERIMENTS[frozenset({a, sc.effect})]
+                                              for a in alike) or None})
+        chosen.add(sc.effect)
+    remaining = {}
+    for rel in (KINEMATICS, TORQUE):
+        st, f = state[rel], s.floor[rel]
+        g0 = vd.excess(float(np.mean(st["mse0"])), f)
+        g = vd.excess(float(np.mean(st["mse"])), f)
+        at_floor = float(np.mean(st["mse"])) <= (1 + vd.MATERIAL) * f
+        t = vd.paired_t(st["mse"], np.full_like(st["mse"], f))
+        remaining[rel] = {"share_of_gap": float(g / g0) if g0 > 0 else 0.0,
+                          "gap_ratio": float(np.sqrt(np.mean(st["mse"]) / f)),
+                          "at_noise_floor": bool(at_floor),
+                          "unknown_effect": bool(not at_floor and t > vd.T_CRIT
+                                                 and len(chain) < max_chain)}
+    return BenchDiagnosis(nominal, first or [], chain, remaining)
+
+
+# ---------------------------------------------------------------- injection harness
+#: Reducer effects injected into the simulated bench (PlantParams changes, moderate).
+#: load_losses and speed_losses (churning, ~w^2) have no simulator counterpart (the
+#: simulated mesh efficiency is constant or falls with speed; its drag is linear) and are
+#: not injected.
+BENCH_INJECTIONS = {
+    "speed_load_losses": {"cvt": {"eta_max": 0.9, "eta_slope_per_rad_s": 5e-4, "eta_min": 0.3,
+                                  "pulsation_amp": 0.0}},
+    "ratio_ripple": {"cvt": {"eta_max": 0.9, "eta_slope_per_rad_s": 0.0, "eta_min": 0.9,
+                             "pulsation_amp": 0.05, "pulsation_order": 4}},
+    "backlash": {"backlash_rad": 0.02},
+    "torsional_compliance": {"backlash_rad": 1e-6, "mesh_stiffness": 2.0},
+}
+
+
+def bench_case_trace(effect: str | None, seed: int = 0, duration_s: float = 12.0) -> Trace:
+    """A blind bench trace: input speed swept (multisine around 150 rad/s), output
+    current oscillating through zero (braking and driving: torque reversals)."""
+    from ...sim import CvtParams, MotorParams, PlantParams, simulate_bench
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(int(duration_s * 1000)) * 1e-3
+    f = rng.uniform(0.2, 0.6, 2)
+    cin = 150 + 40 * np.sin(2 * np.pi * f[0] * t) + 20 * np.sin(2 * np.pi * 1.7 * f[0] * t + 1)
+    cout = -0.5 + 0.9 * np.sin(2 * np.pi * f[1] * t + rng.uniform(0, 6))
+    motor = MotorParams(cog_amp=0.0)
+    changes = dict(BENCH_INJECTIONS.get(effect or "", {}))
+    if "cvt" in changes:
+        changes["cvt"] = CvtParams(**changes["cvt"])
+    plant = PlantParams(motor_in=motor, motor_out=motor, seed=seed, **changes)
+    tr = simulate_bench(plant, cin, cout, seed=seed)
+    return Trace(tr.time_s, {k: tr[k] for k in BENCH_COLUMNS}, {},
+                 source=f"<bench {effect or 'clean'} seed {seed}>")
