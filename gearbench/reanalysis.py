@@ -24,6 +24,10 @@ from .records import Subscriber
 _VERSION: str | None = None
 
 
+class ArchiveError(GearbenchError):
+    """The archived run cannot be read (missing or damaged file): no verdict at all."""
+
+
 def analysis_version() -> str:
     """The package version plus a hash of the analysis source: a new number whenever
     the code that turns traces into results changes."""
@@ -118,6 +122,8 @@ def reanalyse_result(result: dict, traces: Callable[[str], "object"], profile, m
         if not all(lim["passed"] for lim in limits):
             status, exit_code = "failed", 1
             reason = ", ".join(lim["name"] for lim in limits if not lim["passed"])
+    except ArchiveError:
+        raise
     except GearbenchError as exc:     # the analysis refuses the data, as it would have on the bench
         status, exit_code, reason = "fault", 3, str(exc)
     new = dict(result)
@@ -185,13 +191,16 @@ def _reanalyse_files(fs, root: str, run_dir: str, old: dict, method: str, profil
             name = f"trace-{_safe(step)}.parquet"
             src = f"{root}/{name}"
             if not fs.exists(src):
-                raise GearbenchError(f"{run_dir}: trace {name} missing (the run recorded "
-                                     f"{', '.join(old.get('steps') or {}) or 'no steps'})")
-            if local:
-                return Trace.read_parquet(src)
-            dst = Path(tmp.name) / name
-            fs.get(src, str(dst))
-            return Trace.read_parquet(dst)
+                raise ArchiveError(f"{run_dir}: trace {name} missing (the run recorded "
+                                   f"{', '.join(old.get('steps') or {}) or 'no steps'})")
+            dst = src
+            if not local:
+                dst = Path(tmp.name) / name
+                fs.get(src, str(dst))
+            try:
+                return Trace.read_parquet(dst)
+            except GearbenchError as exc:
+                raise ArchiveError(f"{run_dir}: {exc}") from None
 
         new = reanalyse_result(old, traces, prof, method)
     finally:
@@ -217,7 +226,8 @@ def _write_new(fs, path: str, result: dict) -> None:
 
 # ------------------------------------------------------------------ many runs
 class _Bar:
-    def __init__(self, total: int, stream=sys.stderr, enabled: bool = True):
+    def __init__(self, total: int, stream=None, enabled: bool = True):
+        stream = stream or sys.stderr
         self.total, self.done, self.failed, self.stream, self.enabled = total, 0, 0, stream, enabled
         self.t0 = time.monotonic()
         self.tty = getattr(stream, "isatty", lambda: False)()
@@ -266,7 +276,7 @@ def open_client(scheduler: str = "local", workers: int | None = None):
 
 def reanalyse_many(run_dirs: Iterable[str], *, method: str = "default", profile: str | None = None,
                    scheduler: str = "local", workers: int | None = None, progress: bool = True,
-                   stream=sys.stderr, client=None) -> list[dict]:
+                   stream=None, client=None) -> list[dict]:
     """One task per run on Dask (``scheduler='serial'``: in this process, no Dask).
     Summaries in the order of ``run_dirs``."""
     dirs = [str(d) for d in run_dirs]

@@ -226,7 +226,7 @@ class CentralPush(Subscriber):
     """After a run is stored in the station database, push the outbox (this run and
     anything left from an outage) in a background thread; never fails the run."""
 
-    def __init__(self, db_path: str | Path, url: str, *, quiet: bool = False, stream=sys.stderr):
+    def __init__(self, db_path: str | Path, url: str, *, quiet: bool = False, stream=None):
         self.db_path, self.url, self.quiet, self.out = Path(db_path), url, quiet, stream
         self.thread: threading.Thread | None = None
         self.report: PushReport | None = None
@@ -255,4 +255,4 @@ class CentralPush(Subscriber):
         else:
             msg = f"central: {rep.pushed} run(s) pushed to {rep.target}" if rep.pushed else ""
         if msg and not (self.quiet and rep is not None and rep.ok):
-            print(msg, file=self.out)
+            print(msg, file=self.out or sys.stderr)

@@ -23,7 +23,7 @@ def add_arguments(p) -> None:
     p.add_argument("--central", metavar="URL",
                    help="record the re-analyses in this central database (and take the runs from it "
                         "when no RUN_DIR is given)")
-    for f in ("serial", "station", "since", "until"):
+    for f in ("serial", "station", "since", "until", "verdict"):
         p.add_argument(f"--{f}", dest=f"q_{f}", help=f"with --central and no RUN_DIR: only runs of this {f}")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true", help="print the summaries as JSON")
@@ -34,7 +34,8 @@ def _from_central(args) -> list[str]:
 
     with open_results(args.central) as db:
         runs = db.runs(RunQuery(serial=args.q_serial, station=args.q_station, since=args.q_since,
-                                until=args.q_until, newest_first=False))
+                                until=args.q_until, verdict=args.q_verdict,
+                                newest_first=False))
     return [r["trace_uri"] for r in runs if r["trace_uri"]]
 
 
