@@ -300,3 +300,34 @@ def test_run_sim_end_to_end_on_the_vendor_dictionary(tmp_path, name):
     assert result["status"] == "passed", result.get("reason")
     assert result["lost_samples"] == 0
     assert_claimed_accuracy(result, profile.simulation)
+
+
+def test_missing_vendor_eds_says_to_bring_the_vendors_file(tmp_path):
+    r = validate(profile_for(tmp_path, "drivers/EPOS4 Module 50-5.eds", "drivers/EPOS4 Module 50-5.eds"))
+    assert r.returncode == 2 and "not found" in r.stderr
+    assert "put the file your drive's vendor ships" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_register_map_problems_are_listed_all_at_once(tmp_path):
+    """validate checks a Modbus map whole: bad type, word order, a gap in the sample
+    block and an enable sequence that never sets the mode, in one report."""
+    from gearbench.drives.map_check import check_register_map
+
+    text = (REPO / "drivers" / "generic-modbus-servo.yaml").read_text()
+    text = text.replace("word_order: big", "word_order: middle")
+    text = text.replace("control:         {address: 0,  type: uint16", "control:         {address: 0,  type: word16")
+    text = text.replace("velocity:        {address: 15,", "velocity:        {address: 16,")
+    text = text.replace("  - {register: mode, value: mode}\n", "")
+    bad = tmp_path / "bad-map.yaml"
+    bad.write_text(text)
+    problems = check_register_map(bad)
+    for needle in ("word_order", "registers.control.type", "registers.velocity.address: 16 leaves a gap",
+                   "never writes the mode"):
+        assert any(needle in p for p in problems), f"{needle} not in {problems}"
+    assert all(str(bad) in p for p in problems)
+    assert check_register_map(REPO / "drivers" / "generic-modbus-servo.yaml") == []
+    profile = (REPO / "profiles" / "cvt-modbus.yaml").read_text().replace(
+        "drivers/generic-modbus-servo.yaml", str(bad))
+    (tmp_path / "p.yaml").write_text(profile)
+    r = validate(tmp_path / "p.yaml")
+    assert r.returncode == 2 and r.stderr.count("error ") >= 4

@@ -279,9 +279,12 @@ def _resolve_drive(c: _Checker, value: str, path, base_dir: Path) -> str:
     found, looked = find_drive(value, base_dir)
     if found is not None:
         return str(found)
+    vendor = ("; gearbench does not ship vendors' EDS/DCF files: put the file your drive's vendor ships "
+              "(unchanged) there" if Path(value).suffix.lower() in (".eds", ".dcf")
+              and Path(value).name != "cia402-servo.eds" else "")
     c.fail(path, f"drive description '{value}' not found (looked in {', '.join(map(str, looked))})",
            "fix the path, relative to the profile's folder or the station (e.g. drivers/cia402-servo.eds), "
-           "or put the file in the station's drivers/ folder")
+           "or put the file in the station's drivers/ folder" + vendor)
 
 
 _DRIVE_SUFFIXES = {"cia402": (".eds", ".dcf"), "modbus": (".yaml", ".yml")}
