@@ -82,8 +82,11 @@ def efficiency_map_png(points: Iterable[dict], limits: Sequence[dict] = ()) -> b
             for p, yy in zip(row, y):
                 ci = p.get(f"{key}_ci95")
                 if isinstance(ci, (list, tuple)) and len(ci) == 2 and None not in ci:
-                    lo.append(yy - 100 * ci[0])
-                    hi.append(100 * ci[1] - yy)
+                    lo.append(max(yy - 100 * ci[0], 0.0))
+                    hi.append(max(100 * ci[1] - yy, 0.0))
+                elif _finite(ci) is not None:      # a half-width
+                    lo.append(100 * abs(ci))
+                    hi.append(100 * abs(ci))
                 else:
                     lo.append(0.0)
                     hi.append(0.0)

@@ -60,11 +60,11 @@ def _img(png: bytes, alt: str) -> str:
     return f'<img alt="{_e(alt)}" src="data:image/png;base64,{base64.b64encode(png).decode()}">'
 
 
-def _table(header: list[str], rows: list[list[str]], num_cols: tuple[int, ...] = ()) -> str:
-    head = "".join(f"<th>{_e(h)}</th>" for h in header)
+def _table(header: list[str] | None, rows: list[list[str]], num_cols: tuple[int, ...] = ()) -> str:
+    head = f"<tr>{''.join(f'<th>{_e(h)}</th>' for h in header)}</tr>" if header else ""
     body = "".join("<tr>" + "".join(f'<td class="num">{c}</td>' if j in num_cols else f"<td>{c}</td>"
                                     for j, c in enumerate(r)) + "</tr>" for r in rows)
-    return f"<table><tr>{head}</tr>{body}</table>"
+    return f"<table>{head}{body}</table>"
 
 
 def load_run(run_dir: str | Path) -> dict:
@@ -207,7 +207,7 @@ def _header(result: dict, run_dir: Path) -> str:
         ("start (UTC)", result.get("started_utc")),
         ("end (UTC)", result.get("finished_utc")),
         ("bench time / wall time", f"{_f(result.get('bench_time_s'), '.1f')} s / {_f(result.get('wall_time_s'), '.1f')} s"),
-        ("gearbench (run)", result.get("gearbench_version", "– (older than 0.1.0)")),
+        ("gearbench (run)", result.get("gearbench_version", "– (not recorded)")),
         ("analysis method", f"{result.get('method', '')} version {result.get('method_version', '–')}"),
         ("run id", result.get("run_id")),
         ("run folder", str(run_dir)),
@@ -218,7 +218,7 @@ def _header(result: dict, run_dir: Path) -> str:
     reason = f" — {_e(result.get('reason'))}" if result.get("reason") else ""
     head = (f"<h1>Efficiency test report · {_e(result.get('serial'))}</h1>"
             f"<p><span class='verdict {_e(status)}'>{_e(verdict)}</span>{reason}</p>"
-            + _table(["", ""], [[_e(k), _e(v)] for k, v in rows]))
+            + _table(None, [[f"<b>{_e(k)}</b>", _e(v)] for k, v in rows]))
     prompts = result.get("prompts") or []
     if prompts:
         who = {"AutoOperator": "answered automatically (--yes / simulated bench)",

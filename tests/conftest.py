@@ -1,6 +1,7 @@
 """Shared test helpers."""
 from __future__ import annotations
 
+import json
 import os
 import shutil
 
@@ -75,10 +76,18 @@ def cvt_sim_run(tmp_path_factory):
     import subprocess
     import sys
 
-    out = tmp_path_factory.mktemp("station") / "cvt-run"
-    p = subprocess.run([sys.executable, "-m", "gearbench", "run", "cvt", "--sim", "--yes", "--quiet",
-                        "--serial", "SIM-REPORT-1", "--out", str(out), "--rrd", str(out / "run.rrd"),
-                        "--report"], capture_output=True, text=True, timeout=900,
-                       cwd=tmp_path_factory.getbasetemp())
+    # These tests look at the outputs, not at the bench: a bench fault (exit 3, e.g. the
+    # emulator starved of CPU on a loaded host until the heartbeat watchdog trips) is
+    # retried once with a new folder; its own tests are in test_run / test_cia402.
+    for attempt in (1, 2):
+        out = tmp_path_factory.mktemp("station") / "cvt-run"
+        p = subprocess.run([sys.executable, "-m", "gearbench", "run", "cvt", "--sim", "--yes", "--quiet",
+                            "--serial", "SIM-REPORT-1", "--out", str(out), "--rrd", str(out / "run.rrd"),
+                            "--report"], capture_output=True, text=True, timeout=900,
+                           cwd=tmp_path_factory.getbasetemp())
+        if p.returncode != 3:
+            break
+        print(f"cvt_sim_run: attempt {attempt} ended in a bench fault: "
+              f"{json.loads((out / 'result.json').read_text()).get('reason', '')[:300]}")
     assert p.returncode == 0, p.stderr[-3000:]
     return out

@@ -14,6 +14,7 @@ import rerun as rr
 
 from gearbench.cli import main
 from gearbench.live import RerunView, open_live_view
+from gearbench.live.blueprint import EFFICIENCY_TITLE
 from gearbench.live.replay import replay_records
 from gearbench.records import (Calibration, EfficiencyPoint, LimitResult, Message, Progress,
                                RecordStream, RunStart, RunStop, SampleBatch, StepStart, StepStop)
@@ -130,11 +131,11 @@ def test_every_sample_and_result_reach_the_rrd(tmp_path):
     pts = entities["/results/efficiency/points"]
     assert sorted(v[0] for v in column(pts, "eta_incremental")) == \
         sorted(p["eta_incremental"] for p in POINTS)
-    bars = [p for p in entities if p.startswith("/results/efficiency/map/")]
-    assert len(bars) == 2                                   # one bar series per input speed
-    rows = column(entities["/results/efficiency/map/in_40_rad_s"], "BarChart:values")
-    final = max((r[0]["buffer"] for r in rows), key=len)   # the map grows point by point
-    assert final == pytest.approx([87.0, 86.0, 85.0])       # eta_inc % at 0.5, 1, 1.5 N·m
+    # the map is a figure (efficiency vs output torque, a line per input speed): first
+    # point, then at most every MAP_REDRAW_S, and once more with the limits at the end
+    blobs = [bytes(r[0]) for r in column(entities["/results/efficiency/map"], "EncodedImage:blob")]
+    assert len(blobs) >= 2 and all(b[:8] == b"\x89PNG\r\n\x1a\n" for b in blobs)
+    assert view.panels[-4:] == ["Results", EFFICIENCY_TITLE, "Diagnosis residuals", "Steps and operator"]
 
     assert column(entities["/results/limits/Kt_in"], "passed") == [[True]]
     assert column(entities["/results/limits/eta_min"], "passed") == [[False]]
@@ -147,6 +148,20 @@ def test_every_sample_and_result_reach_the_rrd(tmp_path):
     assert any(line.startswith("step efficiency ok: 1900 samples, 3 lost") for line in log)
     assert any(line.startswith("operating point") for line in log)
     assert len(column(entities["/diagnosis/friction_model"], "Scalars:scalars")) == 50
+
+
+def test_panels_only_for_data_there_is(tmp_path):
+    """A calibration-only run: one panel per motor quantity, no empty map or residuals."""
+    view = open_live_view(rrd=tmp_path / "r.rrd")
+    view(RunStart("r2", "SN-43", "motors-only", "p.yaml", "abc", "2026-11-01T00:00:00Z",
+                  True, MOTORS, 1e-3, str(tmp_path)))
+    view(Calibration("in", CAL["in"]))
+    view(RunStop("passed", 0, ""))
+    view.close()
+    assert EFFICIENCY_TITLE not in view.panels and "Diagnosis residuals" not in view.panels
+    for m in MOTORS:
+        assert [p.split(": ")[1].split(" ")[0] for p in view.panels if p.startswith(f"motor {m}:")] == \
+            ["current", "velocity", "command", "position"]
 
 
 def write_result_folder(folder, steps):

@@ -66,3 +66,17 @@ def test_report_of_a_folder_without_result_is_one_line(tmp_path, missing):
     p = subprocess.run([sys.executable, "-m", "gearbench", "report", str(tmp_path / "run")],
                        capture_output=True, text=True)
     assert p.returncode == 2 and missing in p.stderr and "Traceback" not in p.stderr
+
+
+def test_view_opens_the_report_where_there_is_a_display(cvt_sim_run, monkeypatch):
+    from gearbench.commands import view
+
+    opened = []
+    monkeypatch.setattr("webbrowser.open", lambda url: opened.append(url) or True)
+    monkeypatch.setenv("DISPLAY", ":99")
+    view._open_report(cvt_sim_run)
+    assert opened == [(cvt_sim_run / "report.html").resolve().as_uri()]
+    monkeypatch.delenv("DISPLAY")
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    view._open_report(cvt_sim_run)
+    assert len(opened) == 1 or not sys.platform.startswith("linux")

@@ -17,6 +17,8 @@ def add_arguments(p) -> None:
                    help="open a Rerun viewer (default when neither --rrd nor --connect is given)")
     p.add_argument("--connect", help="send to a Rerun viewer at this URL "
                                      "(e.g. rerun+http://127.0.0.1:9876/proxy)")
+    p.add_argument("--no-report", action="store_true",
+                   help="do not open the run's report.html in the browser (opened when a display exists)")
 
 
 def run(args) -> int:
@@ -41,7 +43,30 @@ def run(args) -> int:
     where = ", ".join(x for x in (args.rrd and f"wrote {args.rrd}",
                                   args.connect and f"sent to {args.connect}") if x) or "sent to viewer"
     print(f"gearbench view: {n} samples replayed from {args.result_dir}; {where}")
+    if live and not args.no_report:
+        _open_report(args.result_dir)
     return 0
+
+
+def _open_report(run_dir) -> None:
+    """The run's report.html (made now if missing) in the browser, where there is a display."""
+    import os
+    import webbrowser
+
+    from ..unit_report import write_report
+
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        return   # no display: the viewer notice already said so
+    try:
+        from pathlib import Path
+
+        report = Path(run_dir) / "report.html"
+        if not report.exists():
+            report = write_report(run_dir)
+        if webbrowser.open(report.resolve().as_uri()):
+            print(f"gearbench view: opened {report}")
+    except (GearbenchError, OSError, webbrowser.Error) as exc:
+        print(f"gearbench view: report not opened ({exc})", file=sys.stderr)
 
 
 def _feed(records, view) -> int:

@@ -10,7 +10,7 @@ Events and results (logged at the bench time of the last sample seen)::
     /results/summary                       TextDocument (markdown): parameters, map, limits, verdict
     /results/motors/<motor>                AnyValues: Kt, Kt_ci95_low, Kt_ci95_high, J, D, Tc
     /results/efficiency/points             AnyValues, one row per operating point
-    /results/efficiency/map/in_<speed>_rad_s  BarChart: eta_incremental [%] vs torque_out_nm
+    /results/efficiency/map                EncodedImage (PNG): efficiency vs output torque per input speed
     /results/limits/<name>                 AnyValues: value, low, high, passed
     /diagnosis/<name>                      Scalars: residuals (``RerunView.log_residuals``)
 """

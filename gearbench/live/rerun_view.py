@@ -29,19 +29,18 @@ import rerun as rr
 from ..records import (Calibration, EfficiencyPoint, LimitResult, Message, Progress,
                        RunStart, RunStop, SampleBatch, StepStart, StepStop, Subscriber)
 from . import paths as P
-from .blueprint import default_blueprint
+from .blueprint import default_blueprint, panel_names
 
 DEFAULT_VIEWER_URL = "rerun+http://127.0.0.1:9876/proxy"
 
-# Per quantity: legend name and colour; position is hidden by default because it
-# ramps to thousands of radians and would flatten the other traces (one click in
-# the legend shows it).
+# Per quantity: legend name and colour (each quantity has its own panel, see blueprint).
 _QUANTITY_STYLE = {
     "current_a": ("current [A]", (228, 26, 28), True),
     "velocity_rad_s": ("velocity [rad/s]", (55, 126, 184), True),
     "command": ("command", (120, 120, 120), True),
-    "position_rad": ("position [rad]", (77, 175, 74), False),
+    "position_rad": ("position [rad]", (77, 175, 74), True),
 }
+MAP_REDRAW_S = 5.0   # wall seconds between efficiency-map redraws (a matplotlib figure each)
 _LEVEL = {"info": rr.TextLogLevel.INFO, "prompt": rr.TextLogLevel.WARN,
           "warning": rr.TextLogLevel.WARN, "error": rr.TextLogLevel.ERROR}
 
@@ -72,12 +71,16 @@ class RerunView(Subscriber):
         self._last_time_s = 0.0
         self._last_sample = 0
         self._closed = False
+        self.panels: list[str] = []          # the layout's panels as last sent
+        self._raw_points: dict[int, dict] = {}
+        self._has_map = self._has_residuals = False
+        self._map_drawn_at: float | None = None
 
     # ---------------------------------------------------------------- records
     def on_run_start(self, r: RunStart) -> None:
         self.run = r
         self.motors = tuple(r.motors)
-        self.rec.send_blueprint(default_blueprint(self.motors, live=self.live))
+        self._layout()
         self._at_last_sample()
         self._text(f"run {r.run_id}: serial {r.serial}, profile {r.profile_name}"
                    f"{' (simulated bench)' if r.sim else ''}")
@@ -140,6 +143,7 @@ class RerunView(Subscriber):
         self._at_last_sample()
         point = {k: _num(v) for k, v in r.point.items() if _num(v) is not None}
         self.points.append(point)
+        self._raw_points[id(point)] = dict(r.point)     # with its intervals, for the map
         flat = {}
         for key, value in r.point.items():
             if key.endswith("_ci95"):
@@ -149,7 +153,7 @@ class RerunView(Subscriber):
                 flat[key] = _num(value)
         self.rec.log(P.EFFICIENCY_POINTS,
                      rr.AnyValues(**{k: v for k, v in flat.items() if v is not None}))
-        self._map()
+        self._map(final=False)
         self._text("efficiency " + _point_line(point))
         self._summary()
 
@@ -169,6 +173,7 @@ class RerunView(Subscriber):
         self.ratio = _num(r.result.get("ratio")) if isinstance(r.result, dict) else None
         self.bench_time_s = _num(r.result.get("bench_time_s")) if isinstance(r.result, dict) else None
         self._at_last_sample()
+        self._map(final=True)   # with the limits, which are known only now
         reason = f": {r.reason}" if r.reason else ""
         self._text(f"run {r.status.upper()} (exit {r.exit_code}){reason}",
                    "info" if r.status == "passed" else "error")
@@ -182,6 +187,9 @@ class RerunView(Subscriber):
         v = np.asarray(values, dtype=float)
         if t.size == 0:
             return
+        if not self._has_residuals:
+            self._has_residuals = True
+            self._layout()
         ns = np.rint(t * 1e9).astype(np.int64).astype("timedelta64[ns]")
         rr.send_columns(f"{P.DIAGNOSIS}/{P.part(name)}",
                         indexes=[rr.TimeColumn(P.TIMELINE, duration=ns)],
@@ -230,23 +238,33 @@ class RerunView(Subscriber):
                  for s, p in zip(speed, pts)}
         return speeds, torques, cells
 
-    def _map(self) -> None:
-        """Efficiency map as grouped bars: eta_incremental [%] over output torque,
-        one bar series per input speed, side by side around each torque."""
-        speeds, torques, cells = self.efficiency_grid()
-        if not speeds:
+    def _layout(self) -> None:
+        """(Re)send the layout: panels only for what has data so far."""
+        flags = dict(efficiency=self._has_map, diagnosis=self._has_residuals)
+        self.rec.send_blueprint(default_blueprint(self.motors or ("in", "out"), live=self.live, **flags))
+        self.panels = panel_names(self.motors or ("in", "out"), **flags)
+
+    def _map(self, *, final: bool) -> None:
+        """The efficiency map as the report draws it: efficiency versus output torque,
+        one line per input speed, 95 % intervals, the limits (once checked). A
+        matplotlib figure logged as an image: a Rerun plot's x axis is a timeline."""
+        import time
+
+        pts = [p for p in self.points if p.get("torque_out_nm") is not None]
+        if not pts:
             return
-        spacing = float(np.min(np.diff(torques))) if len(torques) > 1 else max(abs(torques[0]), 1e-3)
-        width = 0.8 * spacing / len(speeds)
-        for i, speed in enumerate(speeds):
-            bars = [(torques[j], 100.0 * cells[i, j]["eta_incremental"]) for j in range(len(torques))
-                    if (i, j) in cells and _num(cells[i, j].get("eta_incremental")) is not None]
-            if not bars:
-                continue
-            offset = (i - (len(speeds) - 1) / 2.0) * width
-            self.rec.log(f"{P.EFFICIENCY_MAP}/{P.part(f'in_{speed:.4g}_rad_s')}",
-                         rr.BarChart([e for _, e in bars], abscissa=[t + offset for t, _ in bars],
-                                     widths=[width] * len(bars)))
+        now = time.monotonic()
+        if not final and self._map_drawn_at is not None and now - self._map_drawn_at < MAP_REDRAW_S:
+            return
+        from ..plots import efficiency_map_png
+
+        limits = [{"quantity": lim.quantity, "low": lim.low, "high": lim.high} for lim in self.limits]
+        png = efficiency_map_png([self._raw_points[id(p)] for p in pts], limits)
+        self._map_drawn_at = now
+        self.rec.log(P.EFFICIENCY_MAP, rr.EncodedImage(contents=png, media_type="image/png"))
+        if not self._has_map:
+            self._has_map = True
+            self._layout()
 
     def _summary(self) -> None:
         self.rec.log(P.SUMMARY, rr.TextDocument(self.summary_markdown(),
@@ -335,7 +353,8 @@ def open_live_view(*, live: bool = False, connect: str | None = None,
         rec.set_sinks(*sinks)
         view = RerunView(rec, live=len(sinks) > (1 if rrd else 0))
         if motors:
-            rec.send_blueprint(default_blueprint(tuple(motors), live=view.live))
+            view.motors = tuple(motors)
+            view._layout()
         return view
     except Exception as exc:  # a display problem must never stop a test run
         print(f"gearbench: live view off: {type(exc).__name__}: {exc}".splitlines()[0], file=err)

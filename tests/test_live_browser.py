@@ -1,0 +1,107 @@
+"""The live view as a person sees it: the .rrd of a real simulated run, served by
+``rerun --serve-web`` and rendered by Rerun's web viewer in headless Chromium
+(software WebGL, SwiftShader). The screenshot is kept and checked by its pixels:
+the motor current is drawn on its own axis (its trace spans the panel, not a flat
+line at zero under a 300 rad/s velocity), and the efficiency map (lines per input
+speed in the report's colours) is on screen.
+
+WebAssembly start-up and software rendering take about a minute on 2 idle cores
+and much longer on a loaded host; the test waits up to ``LIVE_VIEW_TIMEOUT_S``.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+import urllib.parse
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from browser import SCREENSHOTS, browser_factory  # noqa: F401  (fixture)
+from gearbench.plots import SPEED_COLOURS
+
+LIVE_VIEW_TIMEOUT_S = float(os.environ.get("GEARBENCH_LIVE_VIEW_TIMEOUT_S", 900))
+CURRENT_RGB = (228, 26, 28)          # gearbench.live.rerun_view: current series colour
+WIDTH, HEIGHT = 1280, 800
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _rgb(hex_colour: str) -> tuple[int, int, int]:
+    return tuple(int(hex_colour[i:i + 2], 16) for i in (1, 3, 5))
+
+
+def _mask(img: np.ndarray, rgb, tol: int = 40) -> np.ndarray:
+    return np.all(np.abs(img[..., :3].astype(int) - np.array(rgb)) <= tol, axis=-1)
+
+
+def what_is_drawn(png: Path) -> dict:
+    """Pixel facts of a screenshot of the default layout (see gearbench.live.blueprint:
+    two motor columns of 2/6.4 of the width each, results + map on the right)."""
+    import matplotlib.image
+
+    img = (matplotlib.image.imread(png) * 255).astype(np.uint8)
+    h, w = img.shape[:2]
+    # motor 'in', current panel: first column, first quarter of the panels' height
+    panel = img[int(0.05 * h):int(0.22 * h), :int(0.30 * w)]
+    rows = np.flatnonzero(_mask(panel, CURRENT_RGB).any(axis=1))
+    spread = (rows.max() - rows.min()) / panel.shape[0] if rows.size else 0.0
+    right = img[int(0.40 * h):int(0.80 * h), int(0.70 * w):]
+    speeds = [int(_mask(right, _rgb(c), tol=30).sum()) for c in SPEED_COLOURS[:3]]
+    return {"current_spread": float(spread), "map_line_pixels": speeds}
+
+
+@pytest.mark.slow   # ~60 s of WebAssembly start-up and software rendering on 2 cores
+def test_live_view_in_rerun_web_viewer(cvt_sim_run, browser_factory, tmp_path):  # noqa: F811
+    rerun = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
+    web, grpc = _free_port(), _free_port()
+    server = subprocess.Popen([rerun, "--serve-web", "--bind", "127.0.0.1", "--web-viewer-port", str(web),
+                               "--port", str(grpc), str(cvt_sim_run / "run.rrd")],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                              env={**os.environ, "RERUN_ANALYTICS": "0"}, cwd=tmp_path)
+    shot = SCREENSHOTS / "live-view.png"
+    t0 = time.monotonic()
+    try:
+        while True:
+            try:
+                urllib.request.urlopen(f"http://127.0.0.1:{web}/", timeout=2).read()
+                break
+            except OSError:
+                assert server.poll() is None, "rerun --serve-web exited"
+                assert time.monotonic() - t0 < 60, "rerun web viewer did not come up in 60 s"
+                time.sleep(0.5)
+        url = (f"http://127.0.0.1:{web}/?url="
+               + urllib.parse.quote(f"rerun+http://127.0.0.1:{grpc}/proxy", safe=""))
+        b = browser_factory(width=WIDTH, height=HEIGHT, webgl=True)
+        b.navigate(url, timeout_s=120)
+        facts, previous = {}, None
+        while time.monotonic() - t0 < LIVE_VIEW_TIMEOUT_S:
+            b.pump(10)
+            b.screenshot(shot)
+            facts = what_is_drawn(shot)
+            data = shot.read_bytes()
+            done = facts["current_spread"] > 0.3 and min(facts["map_line_pixels"]) > 30
+            if done and data == previous:     # everything loaded and the picture settled
+                break
+            previous = data
+        print(f"\nlive view: {time.monotonic() - t0:.0f} s to a settled picture, {facts}, screenshot {shot}")
+    finally:
+        server.terminate()
+        try:
+            server.wait(10)
+        except subprocess.TimeoutExpired:
+            server.kill()
+    # the current spans its own panel (a flat line would be a few pixels high)
+    assert facts["current_spread"] > 0.3, (facts, shot)
+    # the efficiency map shows a line per input speed (the report's colours)
+    assert min(facts["map_line_pixels"]) > 30, (facts, shot)
