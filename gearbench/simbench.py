@@ -21,7 +21,9 @@ from dataclasses import replace
 
 from .errors import BenchFault, DriveError
 
-READY_TIMEOUT_S = 60.0   # first start compiles the physics kernel (numba), later starts are fast
+# first start compiles the physics kernel (numba), later starts are fast; an emulated CI guest needs more
+READY_TIMEOUT_S = float(os.environ.get("GEARBENCH_SIM_START_TIMEOUT_S", 60.0))
+EMULATOR_NICE = -10      # the emulator stands in for drive hardware, which a busy PC does not slow down
 
 
 def free_tcp_port() -> int:

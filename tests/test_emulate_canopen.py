@@ -52,6 +52,10 @@ def test_independent_basenode402_client_turns_the_motor(emulator):
     net.connect(interface=bus.interface, channel=bus.channel, **bus.kwargs)   # python-can only
     try:
         node = BaseNode402(1, EDS)
+        # these only bound waits; a software-emulated CI guest (.ci/vcan) runs Python ~20x slower
+        for name, seconds in (("TIMEOUT_CHECK_TPDO", 2.0), ("TIMEOUT_SWITCH_STATE_SINGLE", 4.0),
+                              ("TIMEOUT_SWITCH_STATE_FINAL", 8.0), ("TIMEOUT_SWITCH_OP_MODE", 5.0)):
+            setattr(node, name, seconds)
         net.add_node(node)
         node.nmt.state = "PRE-OPERATIONAL"
         node.tpdo.read()
