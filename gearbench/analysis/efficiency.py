@@ -19,8 +19,9 @@ Per point
 Uncertainty: first-order propagation of the window means' standard errors (block
 means, so ripple and coloured noise count; block count − 1 degrees of freedom), the Kt
 standard uncertainties (with their model-error and disk parts and their degrees of
-freedom), the (D, Tc) covariances (the calibration's degrees of freedom) (with the calibration runs' disagreement as model
-error, see ``calibration.calibrate_from_fits``) and the ratio. The loss D ω + Tc is
+freedom), the (D, Tc) covariances (with the calibration runs' disagreement as model
+error, see ``calibration.calibrate_from_fits``; the calibration's degrees of freedom)
+and the ratio. The loss D ω + Tc is
 linear in (D, Tc), so its propagated variance grows with the distance of the operating
 speed from the calibration runs' speeds: extrapolation widens the absolute interval by
 itself. Each point stores its standard uncertainties and Welch–Satterthwaite degrees
