@@ -95,6 +95,13 @@ def real_run(pg, tmp_path_factory):
     return out, json.loads((out / "result.json").read_text())
 
 
+@pytest.fixture(scope="module")
+def template():
+    """A real run's result.json (motors-only on the simulated bench), the shape that
+    synthetic runs of many stations copy."""
+    return json.loads((REPO / "tests" / "data" / "result-motors-only.json").read_text())
+
+
 def central_count(url, sql="SELECT count(*) FROM runs", args=None):
     with psycopg.connect(url) as c:
         return c.execute(sql, args).fetchone()[0]
@@ -163,8 +170,8 @@ def test_golden_unit_baseline_then_compared(real_run):
 
 
 # ------------------------------------------- two stations, an outage, retries
-def test_two_stations_survive_an_outage_without_loss_or_duplication(pg, real_run, tmp_path, monkeypatch, cli):
-    _, res = real_run
+def test_two_stations_survive_an_outage_without_loss_or_duplication(pg, template, tmp_path, monkeypatch, cli):
+    res = template
     dbs = {s: tmp_path / s / "station.sqlite" for s in ("st-L1", "st-L2")}
     runs = {s: [] for s in dbs}
     for s, db in dbs.items():
@@ -215,6 +222,11 @@ def test_two_stations_survive_an_outage_without_loss_or_duplication(pg, real_run
     assert central_count(pg.url, ours.format("motor_calibrations"), ("st-L%",)) == 46 * 2
     again = cli("sync", "--db", dbs["st-L2"], "--to", pg.url)
     assert again.returncode == 0 and "0 run(s) pushed" in again.stdout and "0 pending" in again.stdout
+    # another station's run with an id already taken is refused loudly, never dropped silently
+    monkeypatch.setenv("GEARBENCH_STATION", "st-L3")
+    store_run(tmp_path / "st-L3" / "station.sqlite", synthetic(res, "st-L1-off-3", "SN-X", "2026-11-12T00:00:00Z"))
+    p = cli("sync", "--db", tmp_path / "st-L3" / "station.sqlite", "--to", pg.url)
+    assert p.returncode == 1 and "already used centrally by station st-L1" in p.stdout and "1 pending" in p.stdout
 
     # the same query API on both: by serial across stations, by verdict, station, time range
     q = RunQuery(serial="SN-1", verdict="passed", since="2026-11-02", until="2026-11-10T05:00:00Z")
@@ -317,10 +329,10 @@ def test_reanalyze_on_separate_dask_scheduler_and_worker_processes(pg, real_run,
 
 
 # --------------------------------------------------------------------- SPC
-def test_spc_flags_a_drifting_station_motor_on_both_databases(pg, real_run, tmp_path, monkeypatch, cli):
+def test_spc_flags_a_drifting_station_motor_on_both_databases(pg, template, tmp_path, monkeypatch, cli):
     import numpy as np
 
-    _, res = real_run
+    res = template
     dbs = {}
     for station, drift_from in (("st-ok", None), ("st-drift", 35)):
         monkeypatch.setenv("GEARBENCH_STATION", station)

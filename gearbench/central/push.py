@@ -35,6 +35,10 @@ PUSH_WAIT_S = 6.0           # at most this long at the end of a run for the back
 BATCH_RUNS = 50             # runs per transaction
 
 
+class RunIdCollision(Exception):
+    """Two different runs with one id: refused, reported, left pending in the outbox."""
+
+
 @dataclass
 class PushReport:
     target: str
@@ -98,6 +102,14 @@ def _insert_run(cur, station: str, result: dict, out_dir: str, store: str | None
          result.get("samples"), result.get("lost_samples"), golden, out_dir, base,
          json.dumps(result, default=str)))
     if cur.fetchone() is None:
+        # there already: the same run pushed before (a retry), or another run with the same
+        # id, which must not vanish silently
+        cur.execute("SELECT station_id, serial, started_utc = %s::timestamptz FROM runs WHERE run_id = %s",
+                    (_ts(result.get("started_utc")), rid))
+        there = cur.fetchone()
+        if there and (there[0] != station or there[1] != (result.get("serial") or "") or there[2] is False):
+            raise RunIdCollision(f"run id {rid} is already used centrally by station {there[0]}, "
+                                 f"serial {there[1]}")
         return False
     cur.executemany(
         "INSERT INTO limits VALUES (%s,%s,%s,%s,%s,%s,%s,%s)",
@@ -173,7 +185,7 @@ def push_pending(db_path: str | Path, url: str, *, batch: int = BATCH_RUNS,
             except psycopg.OperationalError as exc:      # the network went away mid-way
                 rep.error = f"central database {target}: connection lost ({str(exc).strip()})"
                 break
-            except psycopg.Error:
+            except (psycopg.Error, RunIdCollision):
                 # one bad run must not hold the queue: retry the batch run by run
                 done = []
                 for row in chunk:
@@ -182,7 +194,7 @@ def push_pending(db_path: str | Path, url: str, *, batch: int = BATCH_RUNS,
                     except psycopg.OperationalError as exc:
                         rep.error = f"central database {target}: connection lost ({str(exc).strip()})"
                         break
-                    except psycopg.Error as exc:
+                    except (psycopg.Error, RunIdCollision) as exc:
                         rep.failed_runs[row[0]] = str(exc).strip().splitlines()[0]
                 if rep.error:
                     _mark(con, done, target)
