@@ -3,10 +3,11 @@ import json
 
 import numpy as np
 import pytest
+from scipy import stats
 
 from gearbench.analysis.calibration import MotorCalibration, calibrate_motor
 from gearbench.analysis.efficiency import efficiency, steady_windows
-from gearbench.analysis.uncertainty import coverage_acceptance, coverage_factor
+from gearbench.analysis.uncertainty import coverage_acceptance
 from gearbench.bench._data import DEV_DIR
 from gearbench.errors import ExcitationError, TraceError
 from gearbench.trace import Trace
@@ -81,7 +82,8 @@ def test_interval_is_student_t_on_the_stored_std_and_adds_kt_uncertainty_in_quad
     assert d["eta_incremental_std"] == p.eta_incremental_std > 0
     assert 2 <= p.eta_incremental_dof < 100             # block means: a few dof per window
     lo, hi = p.eta_incremental_ci95
-    assert (hi - lo) / 2 == pytest.approx(coverage_factor(p.eta_incremental_dof) * p.eta_incremental_std,
+    # Student-t on the stored dof (t₀.₉₇₅ from scipy here, not from the code under test)
+    assert (hi - lo) / 2 == pytest.approx(stats.t.ppf(0.975, p.eta_incremental_dof) * p.eta_incremental_std,
                                           rel=1e-9)
     u_rel = 0.002                                     # η ∝ 1/Kt_in: u_rel(η) gains u_rel(Kt_in)
     wide_in = MotorCalibration(0.05, (0.0498, 0.0502), 2e-5, 2e-6, 0.008, "hand", Kt_std=0.05 * u_rel,

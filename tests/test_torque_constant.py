@@ -75,10 +75,10 @@ def test_disk_tolerance_adds_its_relative_uncertainty_to_kt_one_to_one():
         (exact.torque_constant_std / KT) ** 2 + (u_j / DISK) ** 2, rel=1e-12)
     assert res.dof > exact.dof
     assert res.rotor_inertia_std > exact.rotor_inertia_std
-    # the stored interval is Student-t on the stored std and dof
-    from gearbench.analysis.uncertainty import coverage_factor
+    # the stored interval is Student-t on the stored std and dof (t from scipy, not the code)
+    from scipy import stats
     lo, hi = res.torque_constant_ci95
-    assert (hi - lo) / 2 == pytest.approx(coverage_factor(res.dof) * res.torque_constant_std, rel=1e-12)
+    assert (hi - lo) / 2 == pytest.approx(stats.t.ppf(0.975, res.dof) * res.torque_constant_std, rel=1e-12)
     with pytest.raises(GearbenchError, match="standard uncertainty"):
         torque_constant(fu, fl, DISK, disk_inertia_std=-1e-7)
 
@@ -115,6 +115,18 @@ def test_kt_interval_covers_95_percent_when_the_disk_differs_within_its_toleranc
         lo, hi = torque_constant(fu, fl, DISK, model_b2_rel=0.0).torque_constant_ci95
         misses += not lo <= KT <= hi
     assert n - misses < low
+
+
+def test_one_coverage_convention_student_t_95():
+    """The convention in docs/profile-format.md: k = t₀.₉₇₅(dof), 1.96 only for infinite dof."""
+    from gearbench.analysis.uncertainty import DOF_MAX, coverage_factor, effective_dof, interval
+    assert coverage_factor(4) == pytest.approx(2.7764, abs=1e-4)          # t table
+    assert coverage_factor(30) == pytest.approx(2.0423, abs=1e-4)
+    assert coverage_factor(DOF_MAX) == pytest.approx(1.95996, abs=1e-5)
+    assert interval(1.0, 0.1, 4) == pytest.approx((1 - 0.27764, 1 + 0.27764), abs=1e-5)
+    # Welch–Satterthwaite: two equal parts with 10 dof → 20; a known part raises it
+    assert effective_dof([1.0, 1.0], [10, 10]) == pytest.approx(20.0)
+    assert effective_dof([1.0, 1.0], [10, DOF_MAX]) == pytest.approx(40.0)
 
 
 def test_swapped_runs_say_swap():
