@@ -56,6 +56,7 @@ def test_independent_basenode402_client_turns_the_motor(emulator):
         for name, seconds in (("TIMEOUT_CHECK_TPDO", 2.0), ("TIMEOUT_SWITCH_STATE_SINGLE", 4.0),
                               ("TIMEOUT_SWITCH_STATE_FINAL", 8.0), ("TIMEOUT_SWITCH_OP_MODE", 5.0)):
             setattr(node, name, seconds)
+        node.sdo.RESPONSE_TIMEOUT = 2.0
         net.add_node(node)
         node.nmt.state = "PRE-OPERATIONAL"
         node.tpdo.read()
