@@ -29,7 +29,7 @@ from typing import Callable, Iterable
 
 from .drives.base import AxisConfig, DriveNetwork
 from .drives.registry import network_class
-from .errors import BenchFault, GearbenchError
+from .errors import Aborted, BenchFault, GearbenchError
 from .profile import load_profile
 from .records import RecordStream
 from .sequencer import AutoOperator
@@ -48,7 +48,7 @@ class TerminalOperator:
         except EOFError:
             answer = "a"
         if answer.strip().lower().startswith("a"):
-            raise BenchFault("operator abort at prompt")
+            raise Aborted("operator abort at prompt")
 
 
 # ------------------------------------------------------------------ typed results
@@ -330,10 +330,12 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
         raise GearbenchError(f"{profile.path}: --sim needs a 'simulation:' section describing "
                              f"the plant; add one (see profiles/cvt.yaml)")
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    _check_writable(out)
     db_path = Path(db) if db else out.resolve().parent / "station.sqlite"
-    stream = RecordStream([ParquetRecorder(out), ResultWriter(out), StationDatabase(db_path),
-                           ProgressDisplay(sys.stderr, quiet=quiet), *subscribers])
+    # required outputs: a unit cannot pass without them (the result writer last, so it sees
+    # a failure of the others); best-effort: the progress display, the live view, callers' extras
+    stream = RecordStream([ProgressDisplay(sys.stderr, quiet=quiet), *subscribers],
+                          required=[ParquetRecorder(out), StationDatabase(db_path), ResultWriter(out)])
     if operator is None:
         operator = AutoOperator() if sim else TerminalOperator()
     sim_plant = dict(profile.simulation) if sim else None
@@ -355,6 +357,10 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
             fixture, bus = fixture or simbench, simbench.bus_spec()
         net = open_network(bus, profile)
         stack.callback(net.close)
+        if sim and callable(getattr(net, "watch_process", None)):
+            net.watch_process(simbench.proc.pid)   # the emulated drives share this host's CPUs
+        # against real drives a writer that falls behind is a fault; in lockstep nothing can be missed
+        stream.realtime = not getattr(net, "lockstep", False)
         if fixture is None and callable(getattr(net, "mount", None)):
             fixture = net
         seq = Sequencer(profile, net, emit=stream.emit, operator=operator, fixture=fixture,
@@ -374,6 +380,18 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
         bench.finish()
     if stream.errors:
         print("gearbench: warning: output problems: " + "; ".join(stream.errors), file=sys.stderr)
+
+
+def _check_writable(out: Path) -> None:
+    """Refuse an output folder that cannot be written before anything moves (exit 2)."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".gearbench-write-test"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise GearbenchError(f"{out}: cannot write the run's output folder ({exc.strerror or exc}); "
+                             f"choose another --out or fix its permissions/free space") from None
 
 
 def run_profile(profile_path, *, sim: bool = False, out_dir="results/run", serial: str = "",

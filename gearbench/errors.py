@@ -29,3 +29,7 @@ class BenchFault(GearbenchError):
     """A fault or abort during a run: drives were stopped, samples kept."""
 
     exit_code = 3
+
+
+class Aborted(BenchFault):
+    """The operator (Ctrl-C, 'a' at a prompt) or the system (SIGTERM) stopped the run."""

@@ -12,6 +12,8 @@ Order within a run::
 """
 from __future__ import annotations
 
+import queue
+import threading
 from dataclasses import dataclass, field
 from typing import Callable, Iterable
 
@@ -145,33 +147,159 @@ class Subscriber:
         """Release files/connections; called once, also after faults."""
 
 
+class OutputFailure(Exception):
+    """A required output (traces, result, station database) failed: the run cannot pass."""
+
+
+class _Lane:
+    """One writer thread with a bounded queue, delivering records to its subscribers in order."""
+
+    def __init__(self, name: str, subscribers: list, maxsize: int, required: bool, on_error):
+        self.subscribers = subscribers
+        self.required = required
+        self.queue: queue.Queue = queue.Queue(maxsize)
+        self.dropped = 0
+        self._on_error = on_error
+        self._thread = threading.Thread(target=self._run, name=f"records-{name}", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            record = self.queue.get()
+            try:
+                if record is None:
+                    return
+                for sub in list(self.subscribers):
+                    try:
+                        sub(record)
+                    except Exception as exc:
+                        self.subscribers.remove(sub)
+                        self._on_error(sub, exc, self.required, record)
+            finally:
+                self.queue.task_done()
+
+    def put(self, record, *, block: bool) -> bool:
+        try:
+            self.queue.put(record, block=block)
+            return True
+        except queue.Full:
+            return False
+
+    def join(self) -> None:
+        self.queue.join()
+
+    def stop(self) -> None:
+        self.queue.put(None)
+        self._thread.join(timeout=30)
+
+
 class RecordStream:
-    """Fan-out of records to subscribers; a subscriber's failure is reported once
-    and the subscriber is dropped, so an output problem never stops the drives
-    uncontrolled (the sequencer still reaches its safe stop)."""
+    """Fan-out of records to subscribers, off the acquisition thread.
 
-    def __init__(self, subscribers: Iterable[Callable[[Record], None]] = ()):
-        self.subscribers: list[Callable[[Record], None]] = list(subscribers)
+    ``emit`` only puts the record on a queue (the acquisition loop does acquisition
+    only); writer threads deliver it, in order. Two lanes (the bluesky way: the run
+    engine never waits for a slow callback, but it knows when one failed):
+
+    - **required** subscribers (trace recorder, result writer, station database): a
+      failure is an ``OutputFailure`` — the next ``emit`` raises it (the sequencer
+      turns it into a bench fault: drives stopped, exit 3), and a ``RunStop`` that
+      arrives after it carries status ``fault``, so no unit passes without its
+      traces. A queue that fills (the writer cannot keep up) is a failure too when
+      ``realtime`` is set; otherwise (lockstep, nothing to miss) emit waits.
+    - **best-effort** subscribers (live view, progress display, callers' extras): a
+      failure is reported once in ``errors`` and the subscriber dropped; when their
+      queue is full, sample batches and progress for them are dropped (counted).
+    """
+
+    REQUIRED_QUEUE = 4000     # records (a SampleBatch is 200 samples: ~13 min at 1 kHz)
+    BEST_EFFORT_QUEUE = 200
+    DROPPABLE = ("sample_batch", "progress")
+
+    def __init__(self, subscribers: Iterable[Callable[[Record], None]] = (), *,
+                 required: Iterable[Callable[[Record], None]] = (), realtime: bool = False):
         self.errors: list[str] = []
+        self.failure: str | None = None
+        self.realtime = realtime
+        self._raised = False
+        self._lock = threading.Lock()
+        self.required = _Lane("required", list(required), self.REQUIRED_QUEUE, True, self._failed)
+        self.best_effort = _Lane("best-effort", list(subscribers), self.BEST_EFFORT_QUEUE, False, self._failed)
 
-    def subscribe(self, sub: Callable[[Record], None]) -> None:
-        self.subscribers.append(sub)
+    @property
+    def subscribers(self) -> list:
+        return self.required.subscribers + self.best_effort.subscribers
+
+    def subscribe(self, sub: Callable[[Record], None], *, required: bool = False) -> None:
+        (self.required if required else self.best_effort).subscribers.append(sub)
+
+    def _failed(self, sub, exc, required: bool, record) -> None:
+        text = f"{type(sub).__name__}: {exc}"
+        with self._lock:
+            self.errors.append(text)
+            if required and self.failure is None:
+                self.failure = f"{text} (while handling {record.kind})"
+        if required and isinstance(record, RunStop):
+            self._mark_fault(record)    # the subscribers after this one see a fault
 
     def emit(self, record: Record) -> None:
-        for sub in list(self.subscribers):
-            try:
-                sub(record)
-            except Exception as exc:  # an output must not take the bench down
-                self.errors.append(f"{type(sub).__name__}: {exc}")
-                self.subscribers.remove(sub)
+        if isinstance(record, RunStop):
+            self._emit_run_stop(record)
+            return
+        if not self.required.put(record, block=not self.realtime):
+            with self._lock:
+                self.failure = self.failure or (f"the record writer cannot keep up: {self.REQUIRED_QUEUE} "
+                                                f"records queued (slow or stalled disk?)")
+            self.required.put(record, block=True)
+        if not self.best_effort.put(record, block=record.kind not in self.DROPPABLE):
+            self.best_effort.dropped += 1
+        self.raise_if_failed()
+
+    def _emit_run_stop(self, record: RunStop) -> None:
+        """The run's end: written only after everything before it, and truthful about outputs.
+        Required subscribers get it first (the result writer last of them, so a database
+        that failed on it still makes result.json say fault), then the best-effort ones."""
+        self.flush()
+        record = self._mark_fault(record)
+        self.required.put(record, block=True)
+        self.required.join()
+        self.best_effort.put(self._mark_fault(record), block=True)
+        self.best_effort.join()
 
     __call__ = emit
 
+    def raise_if_failed(self) -> None:
+        """Raise ``OutputFailure`` once, on the first call after a required output failed."""
+        if self.failure and not self._raised:
+            self._raised = True
+            raise OutputFailure(self.failure)
+
+    def _mark_fault(self, record: RunStop) -> RunStop:
+        """A run whose required outputs failed is a fault, whatever its measurements say.
+        The result dict is updated in place (it is what the caller returns)."""
+        if not self.failure:
+            return record
+        r = record.result
+        r["output_failure"] = self.failure
+        if r.get("status") in ("passed", "failed"):
+            r.update(status="fault", passed=False, exit_code=3, reason=f"output failed: {self.failure}")
+        return RunStop(r.get("status", "fault"), int(r.get("exit_code", 3)), str(r.get("reason", "")), r)
+
+    def flush(self) -> None:
+        """Wait until every record emitted so far has been delivered."""
+        self.required.join()
+        self.best_effort.join()
+
     def close(self) -> None:
-        for sub in self.subscribers:
-            close = getattr(sub, "close", None)
-            if close:
-                try:
-                    close()
-                except Exception as exc:
-                    self.errors.append(f"{type(sub).__name__}.close: {exc}")
+        self.flush()
+        for lane in (self.required, self.best_effort):
+            lane.stop()
+            for sub in lane.subscribers:
+                close = getattr(sub, "close", None)
+                if close:
+                    try:
+                        close()
+                    except Exception as exc:
+                        self._failed(sub, exc, lane.required, RunStop("", 0))
+        if self.best_effort.dropped:
+            self.errors.append(f"{self.best_effort.dropped} sample batches/progress records not shown "
+                               f"by the live view/progress display (they could not keep up)")

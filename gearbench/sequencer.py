@@ -9,6 +9,7 @@ and ends the run with exit code 3, keeping every sample recorded before it.
 """
 from __future__ import annotations
 
+import gc
 import signal
 import socket
 import threading
@@ -23,9 +24,10 @@ import numpy as np
 from . import __version__
 from .analysis import METHOD_VERSIONS
 from .drives.base import DriveNetwork, Mode
-from .errors import BenchFault, GearbenchError
-from .records import (Calibration, EfficiencyPoint, LimitResult, Message, Progress, RunStart,
-                      RunStop, SampleBatch, StepStart, StepStop)
+from .drives.realtime import acquisition_priority
+from .errors import Aborted, BenchFault, GearbenchError
+from .records import (Calibration, EfficiencyPoint, LimitResult, Message, OutputFailure, Progress,
+                      RunStart, RunStop, SampleBatch, StepStart, StepStop)
 from .trace import Trace
 
 BATCH_SAMPLES = 200          # samples per SampleBatch (and per flush of the recorder)
@@ -37,7 +39,7 @@ WATCHDOG_MARGIN = 1.1        # the drive clamps at the profile's current limit (
 
 class Operator(Protocol):
     def confirm(self, prompt: str) -> None:
-        """Block until the operator confirms ``prompt``; raise BenchFault to abort."""
+        """Block until the operator confirms ``prompt``; raise ``Aborted`` to abort."""
 
 
 class Fixture(Protocol):
@@ -81,7 +83,7 @@ class Sequencer:
                  sim_truth: dict | None = None, method: str = "default"):
         self.profile = profile
         self.net = network
-        self.emit = emit
+        self._emit = emit
         self.operator = operator
         self.fixture = fixture or NoFixture()
         self.serial = serial
@@ -100,11 +102,40 @@ class Sequencer:
         self.ratio: float | None = None
         self.prompts: list[dict] = []              # operator prompts and when each was confirmed
         self.lost_by_step: dict[str, int] = {}
+        self.lost: dict[str, list[int]] = {}     # step -> sample counter values that never arrived
+        self.priority_granted = ""
+
+    def emit(self, record) -> None:
+        """Emit a record; a required output that failed becomes a bench fault."""
+        try:
+            self._emit(record)
+        except OutputFailure as exc:
+            raise BenchFault(f"output failed: {exc}; a unit cannot pass without its records") from None
+
+    def _emit_quiet(self, record) -> None:
+        """Emit on a path that is already ending (the stream keeps the failure and turns
+        the run's result into a fault itself)."""
+        try:
+            self._emit(record)
+        except OutputFailure:
+            pass
+
+    def _stop_drives(self, exc: BenchFault) -> BenchFault:
+        """Stop every drive unless the fault already did; the fault's text says what was verified."""
+        if getattr(exc, "stop_report", None):
+            return exc
+        stopped = self.net.stop_all()
+        new = type(exc)(f"{exc}; {stopped}")
+        new.stop_report = stopped
+        return new
 
     # ------------------------------------------------------------------ abort
     def request_abort(self, reason: str) -> None:
         """Thread/signal safe: the acquisition loop stops at the next sample."""
         self._abort_reason = reason
+
+    def _abort(self) -> Aborted:
+        return Aborted(self._abort_reason)
 
     def _install_signals(self):
         if threading.current_thread() is not threading.main_thread():
@@ -225,6 +256,10 @@ class Sequencer:
                            self.sim_truth is not None, tuple(p.motors), self.period_s,
                            str(self.out_dir)))
         self._old_signals = self._install_signals()
+        # everything imported and configured so far lives for the whole run: keep it out of
+        # the collector, so a collection between segments is short
+        gc.collect()
+        gc.freeze()
 
     def run_step(self, step) -> None:
         """Run one profile step (calibrate / load / efficiency). A fault quick-stops
@@ -232,15 +267,18 @@ class Sequencer:
         try:
             for action in self.plan_step(step):
                 if self._abort_reason:
-                    raise BenchFault(self._abort_reason)
+                    raise self._abort()
                 if isinstance(action, Segment):
                     self._acquire(action)
                 elif action[0] == "prompt":
                     self._prompt(action[1], action[2])
                 else:
                     self._analyse(action[1], action[2])
-        except GearbenchError:
-            self.net.stop_all()
+        except BenchFault as exc:
+            raise self._stop_drives(exc) from None
+        except GearbenchError as exc:   # analysis refused the data, a drive could not be configured...
+            stopped = self.net.stop_all()
+            exc.args = (f"{exc}; {stopped}",)
             raise
 
     def finish(self, error: Exception | None = None) -> dict:
@@ -250,16 +288,15 @@ class Sequencer:
         limits: list[dict] = []
         if error is not None:
             # a bench fault, an abort, or analysis refusing the data: drives are safe, run over
-            aborted = isinstance(error, BenchFault) and ("abort" in str(error) or "terminated" in str(error))
-            status, exit_code, reason = ("aborted" if aborted else "fault"), 3, str(error)
-            self.emit(Message(f"run stopped: {error}", level="error"))
+            status, exit_code, reason = ("aborted" if isinstance(error, Aborted) else "fault"), 3, str(error)
+            self._emit_quiet(Message(f"run stopped: {error}", level="error"))
         else:
             limits = self._check_limits()
             if not all(lim["passed"] for lim in limits):
                 status, exit_code = "failed", 1
                 reason = ", ".join(lim["name"] for lim in limits if not lim["passed"])
         result = self._result(self._started, status, exit_code, reason, limits)
-        self.emit(RunStop(status, exit_code, reason, result))
+        self._emit_quiet(RunStop(status, exit_code, reason, result))   # the stream makes it a fault if an output failed
         return result
 
     def _restore_signals(self) -> None:
@@ -277,7 +314,11 @@ class Sequencer:
 
     # ----------------------------------------------------------- acquisition
     def _acquire(self, seg: Segment) -> Trace:
-        """Play ``seg``'s setpoints sample by sample, recording every sample."""
+        """Play ``seg``'s setpoints sample by sample, recording every sample.
+
+        The loop does acquisition only: records go to the stream's queue (written by
+        another thread). The segment ends with every drive disabled and read back; a
+        drive that does not disable is a fault and no further segment starts."""
         net = self.net
         motors = list(seg.commands)
         n = len(next(iter(seg.commands.values()))[1])
@@ -297,50 +338,67 @@ class Sequencer:
         flushed = done = 0
         status = "ok"
         lost0 = net.lost_samples
+        end_fault: BenchFault | None = None
         try:
-            for k in range(n):
-                if self._abort_reason:
-                    raise BenchFault(self._abort_reason)
-                for m in motors:
-                    sp = float(seg.commands[m][1][k])
-                    if sp != last_sp[m]:
-                        drives[m].set_setpoint(sp)
-                        last_sp[m] = sp
-                samples = net.sample()
-                s0 = samples[names[0]]
-                buf_idx[k], buf_t[k] = s0.index, s0.time_s
-                for m in names:
-                    s = samples[m]
-                    cols[f"{m}.position_rad"][k] = s.position_rad
-                    cols[f"{m}.velocity_rad_s"][k] = s.velocity_rad_s
-                    cols[f"{m}.current_a"][k] = s.current_a
-                    cols[f"{m}.command"][k] = last_sp.get(m) or 0.0
-                done = k + 1
-                self._watchdog(seg.name, samples, names, limits, over)
-                if done - flushed >= BATCH_SAMPLES:
-                    self._flush(seg.name, buf_idx, buf_t, cols, flushed, done)
-                    flushed = done
-                    self._progress(seg, done, n)
-        except BenchFault:
-            self.net.stop_all()   # first the drives, within this sample period; then the books
-            status = "aborted" if self._abort_reason else "fault"
-            raise
+            with acquisition_priority(net.acquisition_threads(),
+                                      realtime=not getattr(net, "lockstep", False)) as granted:
+                self.priority_granted = granted
+                for k in range(n):
+                    if self._abort_reason:
+                        raise self._abort()
+                    for m in motors:
+                        sp = float(seg.commands[m][1][k])
+                        if sp != last_sp[m]:
+                            drives[m].set_setpoint(sp)
+                            last_sp[m] = sp
+                    samples = net.sample()
+                    s0 = samples[names[0]]
+                    buf_idx[k], buf_t[k] = s0.index, s0.time_s
+                    for m in names:
+                        s = samples[m]
+                        cols[f"{m}.position_rad"][k] = s.position_rad
+                        cols[f"{m}.velocity_rad_s"][k] = s.velocity_rad_s
+                        cols[f"{m}.current_a"][k] = s.current_a
+                        cols[f"{m}.command"][k] = last_sp.get(m) or 0.0
+                    done = k + 1
+                    self._watchdog(seg.name, samples, names, limits, over)
+                    if done - flushed >= BATCH_SAMPLES:
+                        self._flush(seg.name, buf_idx, buf_t, cols, flushed, done)
+                        flushed = done
+                        self._progress(seg, done, n)
+        except BenchFault as exc:
+            status = "aborted" if isinstance(exc, Aborted) else "fault"
+            raise self._stop_drives(exc) from None   # first the drives, within this sample period; then the books
         finally:
             if status == "ok":
-                for m in motors:
-                    try:
-                        drives[m].set_setpoint(0.0)
-                        drives[m].disable()
-                    except Exception:
-                        pass
-            self._flush(seg.name, buf_idx, buf_t, cols, flushed, done)
+                end_fault = self._end_segment(seg, drives)
+                status = "ok" if end_fault is None else "fault"
+            self._flush_quiet(seg.name, buf_idx, buf_t, cols, flushed, done)
             self._samples_done += done
             self.lost_by_step[seg.name] = net.lost_samples - lost0
-            self.emit(StepStop(seg.name, status, done, net.lost_samples - lost0))
+            gaps = np.flatnonzero(np.diff(buf_idx[:done]) > 1)
+            self.lost[seg.name] = [int(v) for i in gaps for v in range(buf_idx[i] + 1, buf_idx[i + 1])][:1000]
+            self._emit_quiet(StepStop(seg.name, status, done, net.lost_samples - lost0))
             self.traces[seg.name] = Trace(buf_t[:done], {"sample": buf_idx[:done],
                                           **{c: v[:done] for c, v in cols.items()}},
                                           {"step": seg.name, **seg.meta}, seg.name)
+        if end_fault is not None:
+            raise end_fault
         return self.traces[seg.name]
+
+    def _end_segment(self, seg: Segment, drives: dict) -> BenchFault | None:
+        """Zero setpoints and disable, verified; a drive that stays enabled is a fault."""
+        for m, d in drives.items():
+            try:
+                d.set_setpoint(0.0)
+                d.disable()
+            except GearbenchError as exc:
+                stopped = self.net.stop_all()
+                fault = BenchFault(f"drive '{m}' did NOT reach a disabled state at the end of "
+                                   f"{seg.name} ({exc}); {stopped}")
+                fault.stop_report = stopped
+                return fault
+        return None
 
     def _watchdog(self, step: str, samples, names, limits, over) -> None:
         """Drive fault, sustained over-current, over-speed -> BenchFault."""
@@ -358,10 +416,13 @@ class Sequencer:
                 raise BenchFault(f"limit: motor '{m}' speed {s.velocity_rad_s:.1f} rad/s beyond "
                                  f"{w_lim:g} rad/s in step {step} at t={s.time_s:.3f} s")
 
-    def _flush(self, step, idx, t, cols, i0, i1) -> None:
+    def _flush(self, step, idx, t, cols, i0, i1, emit=None) -> None:
         if i1 > i0:
-            self.emit(SampleBatch(step, idx[i0:i1].copy(), t[i0:i1].copy(),
-                                  {c: v[i0:i1].copy() for c, v in cols.items()}))
+            (emit or self.emit)(SampleBatch(step, idx[i0:i1].copy(), t[i0:i1].copy(),
+                                            {c: v[i0:i1].copy() for c, v in cols.items()}))
+
+    def _flush_quiet(self, step, idx, t, cols, i0, i1) -> None:
+        self._flush(step, idx, t, cols, i0, i1, emit=self._emit_quiet)
 
     def _progress(self, seg: Segment, k: int, n: int) -> None:
         done = self._samples_done + k
@@ -449,6 +510,8 @@ class Sequencer:
             "bench_time_s": n_samples * self.period_s,
             "wall_time_s": time.monotonic() - self._wall0,
             "samples": n_samples, "lost_samples": self.net.lost_samples,
+            "lost_at_sample": {k: v for k, v in self.lost.items() if v},
+            "supervision": {**self.net.supervision(), "acquisition_priority": self.priority_granted},
             "steps": {name: len(t) for name, t in self.traces.items()},
             "lost_samples_by_step": dict(self.lost_by_step),
             "out_dir": str(self.out_dir),

@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import json
 import os
-import random
-import socket
 import subprocess
 import sys
 import tempfile
@@ -19,6 +17,7 @@ import threading
 import time
 from dataclasses import replace
 
+from .drives.buses import free_udp_port
 from .errors import BenchFault, DriveError
 
 # first start compiles the physics kernel (numba), later starts are fast; an emulated CI guest needs more
@@ -26,10 +25,12 @@ READY_TIMEOUT_S = float(os.environ.get("GEARBENCH_SIM_START_TIMEOUT_S", 60.0))
 EMULATOR_NICE = -10      # the emulator stands in for drive hardware, which a busy PC does not slow down
 
 
-def free_tcp_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def _child_setup() -> None:
+    """In the emulator child before exec: a higher priority where the OS grants it."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, EMULATOR_NICE)
+    except OSError:
+        pass
 
 
 class SimBench:
@@ -45,12 +46,14 @@ class SimBench:
 
     def __enter__(self):
         bus = self.profile.bench.bus
-        cmd = [sys.executable, "-m", "gearbench", "emulate", str(self.profile.path), "--lockstep"]
+        # --exit-on-eof: the child ends when our end of its stdin closes, i.e. when this
+        # process ends for any reason, SIGKILL included (no orphan emulator on the bus)
+        cmd = [sys.executable, "-m", "gearbench", "emulate", str(self.profile.path), "--lockstep",
+               "--exit-on-eof"]
         if bus.family == "modbus":
-            port = free_tcp_port()
             maps = {str(m.drive) for m in self.profile.motors.values()}
-            cmd += ["--modbus", f"127.0.0.1:{port}", "--modbus-map", sorted(maps)[0]]
-            self.bus_options = dict(host="127.0.0.1", port=port, lockstep=True)
+            cmd += ["--modbus", "127.0.0.1:0", "--modbus-map", sorted(maps)[0]]   # the child binds, then says where
+            self.bus_options = dict(host="127.0.0.1", lockstep=True)
         elif bus.interface == "socketcan" and (bus.channel or "").startswith("vcan"):
             # a virtual CAN bus of this host's kernel (CI's vcan0): the emulated drives join it
             cmd += ["--can", f"socketcan:{bus.channel}"]
@@ -58,18 +61,29 @@ class SimBench:
         else:
             # a private multicast port per run: parallel runs on one host never cross-talk
             group = bus.channel if bus.interface == "udp_multicast" and bus.channel else "239.74.163.2"
-            port = random.randint(20000, 60000)
+            port = free_udp_port()
             cmd += ["--can", f"udp_multicast:{group}:{port}"]
             self.bus_options = dict(interface="udp_multicast", channel=group, port=port, lockstep=True)
         if self.seed is not None:
             cmd += ["--seed", str(self.seed)]
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         # the child's diagnostics go to a file: an unread pipe would fill and stall it
-        self._log = tempfile.TemporaryFile(mode="w+")
-        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                     stderr=self._log, text=True, env=env)
-        threading.Thread(target=self._reader, daemon=True).start()
-        self._wait_line(lambda ln: ln == "ready", READY_TIMEOUT_S, "start")
+        keep = os.environ.get("GEARBENCH_EMULATOR_LOG")   # a path to keep the child's diagnostics
+        self._log = open(keep, "w+") if keep else tempfile.TemporaryFile(mode="w+")
+        try:
+            # own session: a Ctrl-C at the terminal reaches gearbench, which stops the drives
+            # through the emulator and then ends it, instead of killing the drives first
+            self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                         stderr=self._log, text=True, env=env, start_new_session=True,
+                                         preexec_fn=_child_setup)
+            threading.Thread(target=self._reader, daemon=True).start()
+            ready = self._wait_line(lambda ln: ln.split()[:1] == ["ready"], READY_TIMEOUT_S, "start")
+        except BaseException:
+            self.__exit__()       # never leave the child or its log behind
+            raise
+        for word in ready.split()[1:]:
+            if word.startswith("modbus="):
+                self.bus_options["port"] = int(word.rpartition(":")[2])
         return self
 
     def _reader(self) -> None:
@@ -130,5 +144,7 @@ class SimBench:
                 self.proc.wait(5)
             except subprocess.TimeoutExpired:
                 self.proc.kill()
-        self._log.close()
+                self.proc.wait(5)
+        if not self._log.closed:
+            self._log.close()
         return False

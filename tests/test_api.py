@@ -17,7 +17,7 @@ from gearbench.api import (AutoOperator, EfficiencyPointResult, MotorResult, Run
                            run_profile)
 from conftest import assert_claimed_accuracy
 from gearbench.drives import registry
-from gearbench.errors import BenchFault, GearbenchError
+from gearbench.errors import Aborted, BenchFault, GearbenchError
 
 ROOT = Path(__file__).resolve().parents[1]
 PLUGIN_SRC = Path(__file__).resolve().parent / "plugin_example"
@@ -91,7 +91,7 @@ def test_fault_inside_the_block_ends_the_run_as_fault(loopback, tmp_path):
 def test_operator_abort_stops_the_run(loopback, tmp_path):
     class Refuses:
         def confirm(self, prompt):
-            raise BenchFault("operator abort at prompt")
+            raise Aborted("operator abort at prompt")   # an abort is its own type, not a message
 
     with open_bench(cvt_profile(tmp_path / "p.yaml"), out_dir=tmp_path / "run", serial="API-4",
                     operator=Refuses()) as bench:

@@ -9,9 +9,12 @@ cleanly on SIGINT/SIGTERM. Without endpoints it serves CANopen on
 """
 from __future__ import annotations
 
+import gc
+import os
 import signal
 import sys
 import threading
+import time
 from pathlib import Path
 
 import yaml
@@ -34,6 +37,8 @@ def add_arguments(parser) -> None:
                         help="Modbus: advance the world on each write of the 'sync' register (CANopen always "
                              "advances one period per SYNC)")
     parser.add_argument("--seed", type=int, default=None, help="noise seed (default: the plant's)")
+    parser.add_argument("--exit-on-eof", action="store_true",
+                        help="stop when stdin closes (a parent that started the emulator has gone, even by SIGKILL)")
 
 
 def load_plant(profile: str | None):
@@ -91,6 +96,27 @@ def _warm_up(plant) -> None:
     world.step()
 
 
+def _log_stalls(stop: threading.Event) -> None:
+    """Diagnostics: this process's own stalls on stderr (when GEARBENCH_EMULATOR_LOG is set)."""
+    from ..drives.supervision import HostStallMonitor
+
+    class Logging(HostStallMonitor):
+        def record(self, start_s, duration_s):
+            super().record(start_s, duration_s)
+            if duration_s > 0.1:
+                print(f"emulator stalled {duration_s:.3f} s", file=sys.stderr, flush=True)
+    Logging().start()
+    starts = {}
+
+    def on_gc(phase, info):
+        if phase == "start":
+            starts["t"] = time.perf_counter()
+        elif time.perf_counter() - starts.get("t", time.perf_counter()) > 0.05:
+            print(f"emulator gc gen{info['generation']} took {time.perf_counter() - starts['t']:.3f} s",
+                  file=sys.stderr, flush=True)
+    gc.callbacks.append(on_gc)
+
+
 def run(args) -> int:
     from ..drives.buses import parse_bus
     from ..emulate.bench import EmulatedBench
@@ -98,6 +124,10 @@ def run(args) -> int:
 
     plant = load_plant(args.profile)
     _warm_up(plant)
+    # the imports and the compiled kernel are hundreds of thousands of long-lived objects: a full
+    # collection over them stalls the emulated drives for ~0.5 s; freeze them out of the collector
+    gc.collect()
+    gc.freeze()
     bench = EmulatedBench(plant, seed=plant.seed if args.seed is None else args.seed)
     can_spec = args.can or (None if args.modbus else DEFAULT_CAN)
     handles = []
@@ -115,10 +145,15 @@ def run(args) -> int:
             lockstep = args.lockstep or bool(can_spec)
             kw = {"register_map": args.modbus_map} if args.modbus_map else {}
             handles.append(start_modbus_server(bench, host, port, lockstep=lockstep, **kw))
-        print("ready", flush=True)
-        bench.run_control_loop(sys.stdin, sys.stdout)
+        # 'ready' names the endpoints actually bound (a Modbus port 0 is chosen by the OS: no race)
+        bound = [f"modbus={h.host}:{h.port}" for h in handles if hasattr(h, "port") and hasattr(h, "host")]
+        print(" ".join(["ready", *bound]), flush=True)
+        if os.environ.get("GEARBENCH_EMULATOR_LOG"):
+            _log_stalls(stop)
+        control = bench.run_control_loop(sys.stdin, sys.stdout)
         while not stop.wait(0.2):
-            pass
+            if args.exit_on_eof and not control.is_alive():
+                break
     finally:
         for h in reversed(handles):
             try:

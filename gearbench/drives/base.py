@@ -98,6 +98,8 @@ class DriveNetwork(ABC):
         self.drives: dict[str, Drive] = {}
         self.period_s: float = 1e-3
         self.lost_samples = 0
+        self.stop_report = ""
+        self.stop_failed: list[str] = []
         self._last_index: int | None = None
 
     @abstractmethod
@@ -124,23 +126,57 @@ class DriveNetwork(ABC):
         """
         samples = self._sample()
         idx = next(iter(samples.values())).index if samples else None
-        if idx is not None and self._last_index is not None and idx > self._last_index + 1:
+        if idx is not None and self._last_index is not None:
+            if idx <= self._last_index:   # a repeated or backward counter is never a new sample
+                from ..errors import BenchFault
+                self.stop_all()
+                raise BenchFault(f"sample counter went from {self._last_index} to {idx}: a drive "
+                                 f"repeated or reordered a sample; {self.stop_report}")
             self.lost_samples += idx - self._last_index - 1
         self._last_index = idx
         return samples
 
-    def stop_all(self) -> None:
-        """Quick stop then disable every drive; never raises (used on faults)."""
+    def supervision(self) -> dict:
+        """What supervision saw (host stalls tolerated, frames dropped...); families extend it."""
+        return {}
+
+    def acquisition_threads(self) -> list[int]:
+        """Native ids of the family's threads on the acquisition path (e.g. the bus
+        receiver); they get the acquisition thread's priority while it samples."""
+        return []
+
+    def stop_all(self) -> str:
+        """Quick stop then disable every drive, verified; never raises (used on faults).
+
+        Every drive gets both commands even if another one fails. ``disable()`` reads
+        the drive's state back, so the returned sentence is true: either every drive
+        was seen disabled, or each one that was not is named with what went wrong.
+        The same sentence is kept in ``stop_report``.
+        """
+        failed: dict[str, str] = {}
         for d in self.drives.values():
             try:
                 d.quick_stop()
-            except Exception:
-                pass
+            except Exception as exc:   # keep going: the other drives must still stop
+                failed[d.name] = f"quick stop not sent ({exc})"
         for d in self.drives.values():
             try:
                 d.disable()
-            except Exception:
-                pass
+            except Exception as exc:
+                failed[d.name] = f"{failed[d.name]}; " if d.name in failed else ""
+                failed[d.name] += f"did NOT reach a disabled state ({exc})"
+        if not self.drives:
+            report = "no drive to stop"
+        elif failed:
+            report = "; ".join(f"drive '{n}' {why}" for n, why in failed.items())
+            ok = [n for n in self.drives if n not in failed]
+            if ok:
+                report += f"; drive(s) {', '.join(repr(n) for n in ok)} stopped and disabled (read back)"
+        else:
+            report = "drives stopped and disabled (state read back)"
+        self.stop_report = report
+        self.stop_failed = sorted(failed)
+        return report
 
     def close(self) -> None:
         try:

@@ -32,11 +32,25 @@ vendor's EDS/DCF as shipped joined with its drive description in ``drivers/``
 Units at the interface: SI (``gearbench.drives.scaling.AxisUnits``); torque
 setpoints are motor currents, sent as 0x6071 per the described torque relation.
 
-Sampling (``_sample``): one SYNC with counter, wait for both TPDOs of every drive for
-that SYNC; ``index`` = SYNC count since ``start``, ``time_s`` = index x period. A
-SYNC whose frames do not all arrive is skipped and counted in ``lost_samples``.
-EMCY, a fault bit in the statusword or a missed heartbeat -> drives stopped and
-``BenchFault``; a drive silent for ``timeout_s`` -> ``BenchFault`` naming node and bus.
+Sampling (``_sample``): one SYNC, wait for both TPDOs of every drive for that SYNC;
+``index`` = SYNC count since ``start``, ``time_s`` = index x period.
+
+- Lockstep (the emulated bench, whose physics advances one period per SYNC): no
+  sample can be missed, so the master waits for every answer, bounded only by the
+  drive-silence timeout. If an answer is still missing after a short wait, an SDO
+  read of the drive is the barrier: the drive handles it after the SYNC, so when its
+  answer is in, every TPDO sent before it is in too and a frame still missing was
+  dropped on the bus (counted lost, never filled in).
+- Paced (real drives): SYNC every period on the wall clock; a SYNC whose frames are
+  not all in by the next slot is counted in ``lost_samples``. Frames are matched to
+  their SYNC by the counter echo where the drive has one, otherwise by the bus's
+  receive timestamp (a frame received before this SYNC was sent answers an earlier one).
+
+Supervision (``gearbench.drives.supervision``): any frame of a node is proof of life;
+silence is measured on a clock that stops while the host is stalled, and a suspected
+drive is probed by SDO before the verdict. EMCY, a fault bit in the statusword, a
+drive that left NMT OPERATIONAL or one silent for ``timeout_s`` -> drives stopped and
+``BenchFault`` naming node and bus. Host stalls are counted (``supervision()``).
 """
 from __future__ import annotations
 
@@ -53,12 +67,15 @@ from ..errors import BenchFault, DriveError
 from ..shipped import shipped_driver
 from .base import AxisConfig, Drive, DriveNetwork, Mode, Sample
 from .buses import open_bus, parse_bus
+from .supervision import HostStallMonitor, Liveness
+from .sync_producer import start_sync_producer
 from .description import (DriveModel, ObjRef, axis_units, describe_velocity_code, modes_from_bits,
                           resolve_or_raise, unit_objects)
 from .scaling import AxisUnits, unwrap_int32
 
 DEFAULT_EDS = str(shipped_driver("cia402-servo.eds"))
 SYNC_OVERFLOW = 240
+STARVED_LIMIT_FACTOR = 10    # an emulated drive starved of CPU may be silent this many limits, not more
 STATES = {  # statusword mask, value (CiA 402)
     "SWITCH ON DISABLED": (0x4F, 0x40), "READY TO SWITCH ON": (0x6F, 0x21), "SWITCHED ON": (0x6F, 0x23),
     "OPERATION ENABLED": (0x6F, 0x27), "QUICK STOP ACTIVE": (0x6F, 0x07), "FAULT": (0x4F, 0x08),
@@ -429,7 +446,14 @@ class CiA402Network(DriveNetwork):
         self._got: dict[int, tuple] = {}
         self._formats: dict[int, tuple[struct.Struct, bool]] = {}
         self._faults: list[str] = []
-        self._last_rx: dict[int, float] = {}
+        self.stalls = HostStallMonitor()
+        self.liveness = Liveness(self.stalls)
+        self.probes = 0                 # SDO barriers/probes sent (lockstep drops, suspected silence)
+        self.dropped_frames = 0         # answers known to be lost on the bus
+        self.late_frames = 0            # answers that arrived after their SYNC's slot (discarded)
+        self.heartbeat_gaps = 0         # heartbeats overdue while the drive was otherwise heard
+        self.starved_deferrals = 0      # silence verdicts deferred: the emulating process was runnable
+        self._sync_sent_wall = 0.0
         self._started = False
 
     # ----------------------------------------------------------------- lifecycle
@@ -455,6 +479,7 @@ class CiA402Network(DriveNetwork):
         self.drives[config.name] = drive
         self.network.subscribe(0x700 + node.id, self._on_heartbeat_of(drive))
         self.network.subscribe(0x80 + node.id, self._on_emcy_of(drive))
+        self.network.subscribe(0x580 + node.id, self._on_any_of(node.id))   # SDO answers are life too
         return drive
 
     def start(self, period_s: float) -> None:
@@ -482,27 +507,68 @@ class CiA402Network(DriveNetwork):
             time.sleep(0.005)
         self.sync_count = 0
         self._last_index = 0
-        self._last_rx = {d.node.id: time.monotonic() for d in self.drives.values()}
+        self.stalls.start()
+        self.liveness.reset(d.node.id for d in self.drives.values())
         self._started = True
+
+    def watch_process(self, pid: int) -> None:
+        """The drives are emulated by process ``pid`` on this host (``--sim``): its
+        run-queue waits are host stalls, not drive silence."""
+        from .supervision import RunQueueMonitor
+
+        monitor = RunQueueMonitor(pid).start()
+        self.liveness.drive_monitors.append(monitor)
+        self._drive_monitors = getattr(self, "_drive_monitors", []) + [monitor]
+
+    def acquisition_threads(self) -> list[int]:
+        notifier = getattr(self.network, "notifier", None)
+        readers = getattr(notifier, "_readers", []) if notifier is not None else []
+        threads = [r for r in readers if hasattr(r, "native_id")]
+        if self.stalls._thread is not None:
+            threads.append(self.stalls._thread)
+        return [t.native_id for t in threads]
+
+    def supervision(self) -> dict:
+        """What supervision saw: host stalls tolerated, probes, dropped/late frames."""
+        drive_stalls = [m.summary() for m in self.liveness.drive_monitors]
+        emulated = {"emulator_stalls": sum(d["host_stalls"] for d in drive_stalls),
+                    "emulator_stall_max_s": max((d["host_stall_max_s"] for d in drive_stalls), default=0.0)} \
+            if drive_stalls else {}
+        return {**self.stalls.summary(), **emulated, "sdo_probes": self.probes, "dropped_frames": self.dropped_frames,
+                "late_frames": self.late_frames, "heartbeat_gaps": self.heartbeat_gaps,
+                "starved_deferrals": self.starved_deferrals,
+                "late_syncs": self.late_syncs}
 
     # ----------------------------------------------------------------- receive (notifier thread)
     def _on_tpdo(self, cob_id, data, timestamp):
         fmt, has_counter = self._formats[cob_id]
-        try:
-            values = fmt.unpack_from(data)
-        except struct.error:
+        self.liveness.heard(cob_id & 0x7F)
+        if len(data) != fmt.size:
+            with self._cv:    # a mapping we did not configure: never guess what the bytes mean
+                self._faults.append(f"TPDO 0x{cob_id:03X} of node {cob_id & 0x7F} has {len(data)} bytes, "
+                                    f"expected {fmt.size} for the mapping gearbench configured")
+                self._cv.notify()
             return
-        self._last_rx[cob_id & 0x7F] = time.monotonic()
+        values = fmt.unpack_from(data)
         with self._cv:
-            if has_counter and values[-1] != self._expect:
-                return                              # late frame of an earlier SYNC
+            late = values[-1] != self._expect if has_counter else \
+                bool(timestamp) and timestamp < self._sync_sent_wall   # received before this SYNC went out
+            if late:
+                self.late_frames += 1
+                return
             self._got[cob_id] = values
             self._cv.notify()
+
+    def _on_any_of(self, node_id: int):
+        def on_frame(can_id, data, timestamp):
+            self.liveness.heard(node_id)
+        return on_frame
 
     def _on_heartbeat_of(self, drive: CiA402Drive):
         def on_heartbeat(can_id, data, timestamp):
             drive.last_heartbeat = time.monotonic()
             drive.nmt_state = data[0] & 0x7F if data else None
+            self.liveness.heard(drive.node.id, drive.last_heartbeat)
         return on_heartbeat
 
     def _on_emcy_of(self, drive: CiA402Drive):
@@ -511,6 +577,7 @@ class CiA402Network(DriveNetwork):
                 return
             code, register, extra = struct.unpack("<HB5s", bytes(data[:8]))
             entry = EmcyError(code, register, extra, timestamp)
+            self.liveness.heard(drive.node.id)
             drive.emcy.append(entry)
             if code & 0xFF00:
                 with self._cv:
@@ -519,49 +586,170 @@ class CiA402Network(DriveNetwork):
         return on_emcy
 
     # ----------------------------------------------------------------- sampling
+    @property
+    def silence_limit_s(self) -> float:
+        """A drive heard from by no frame for this long (host stalls excluded) is silent."""
+        return max(self.timeout_s, 2.5 * self.heartbeat_ms / 1000.0)
+
     def _check_health(self) -> None:
+        """Faults reported by the drives, NMT state, and silence (probed before the verdict)."""
+        with self._cv:
+            problems, self._faults = self._faults, []     # swapped under the lock: no EMCY lost
+        heartbeat_s = 3 * self.heartbeat_ms / 1000.0
         now = time.monotonic()
-        problems = list(self._faults)
-        limit_s = 3 * self.heartbeat_ms / 1000.0
         for d in self.drives.values():
-            if d.last_heartbeat is not None and now - d.last_heartbeat > limit_s:
-                problems.append(f"{d.where}: no heartbeat for {now - d.last_heartbeat:.2f} s "
-                                f"(producer time {self.heartbeat_ms} ms)")
-            elif d.nmt_state not in (None, 5):
+            if d.nmt_state not in (None, 5):
                 problems.append(f"{d.where}: left NMT OPERATIONAL (state {d.nmt_state})")
+            if d.last_heartbeat is not None:
+                overdue = now - d.last_heartbeat - self.stalls.stalled_since(d.last_heartbeat) > heartbeat_s
+                if overdue and not d._heartbeat_overdue:
+                    self.heartbeat_gaps += 1     # counted; the verdict is on silence (any frame)
+                d._heartbeat_overdue = overdue
+            # suspected at half the limit, probed, condemned only if still silent beyond the limit
+            if self.liveness.silent_s(d.node.id, now) > self.silence_limit_s / 2 and not self._probe(d):
+                self.liveness.poll()      # the stall records must be current before a verdict
+                silent = self.liveness.silent_s(d.node.id)
+                if silent > self.silence_limit_s and self.liveness.starved() and \
+                        silent < STARVED_LIMIT_FACTOR * self.silence_limit_s:
+                    self.starved_deferrals += 1    # an emulated drive waiting for this host's CPU
+                    continue
+                if silent > self.silence_limit_s:
+                    problems.append(f"{d.where}: silent for {silent:.2f} s (no heartbeat, PDO or SDO answer; "
+                                    f"limit {self.silence_limit_s:g} s, host stalls excluded)")
         if problems:
-            self._faults.clear()
-            self.stop_all()
-            raise BenchFault("; ".join(problems) + "; drives stopped")
+            self._fault("; ".join(problems))
+
+    def _probe(self, d: CiA402Drive, timeout_s: float | None = None) -> bool:
+        """SDO read of the statusword: True if the drive answered (it is alive)."""
+        self.probes += 1
+        sdo = d.node.sdo
+        old = sdo.RESPONSE_TIMEOUT
+        sdo.RESPONSE_TIMEOUT = timeout_s or max(self.sdo_timeout_s, self.silence_limit_s / 2)
+        try:
+            d.sdo_read(0x6041)
+            return True
+        except DriveError:
+            return False
+        finally:
+            sdo.RESPONSE_TIMEOUT = old
+
+    def _fault(self, text: str) -> None:
+        stopped = self.stop_all()
+        exc = BenchFault(f"{text}; {stopped}")
+        exc.stop_report = stopped     # the drives were stopped (and that was verified) here
+        raise exc
+
+    def _complete(self) -> bool:
+        return len(self._got) == len(self._formats)
 
     def _sample(self) -> dict[str, Sample]:
         if not self._started:
             raise DriveError("CiA402Network.sample before start(period_s)")
         while True:
             self._check_health()
+            if self._paced_by_producer():   # SYNC from the kernel's broadcast manager or a SYNC thread
+                got = self._wait_produced()
+                if got is not None:
+                    return self._build(got)
+                continue
             if not self.lockstep:
                 self._pace()
             self.sync_count += 1
             counter = (self.sync_count - 1) % SYNC_OVERFLOW + 1
             with self._cv:
                 self._expect, self._got = counter, {}
-            self.network.send_message(0x80, bytes([counter]) if self.sync_counter_byte else b"")
-            with self._cv:
-                # the drives answer a SYNC together: wait long for the first frame (a busy host is not a
-                # lost frame), then briefly for the rest of that SYNC before calling it lost
-                self._cv.wait_for(lambda: len(self._got) == len(self._formats) or self._got, self.timeout_s / 2)
-                if self._got:
-                    self._cv.wait_for(lambda: len(self._got) == len(self._formats), self.frame_grace_s)
-                got = dict(self._got)
-            if len(got) == len(self._formats):
+                self._sync_sent_wall = time.time()
+            self.send_sync(counter)
+            got = self._wait_lockstep() if self.lockstep else self._wait_paced()
+            if got is not None:
                 return self._build(got)
-            # incomplete: this SYNC is lost (base class counts the index gap); a drive silent too long is fatal
-            now = time.monotonic()
-            missing = [d.where for d in self.drives.values() if now - self._last_rx[d.node.id] > self.timeout_s]
-            if missing:
-                self.stop_all()
-                raise BenchFault(f"{', '.join(missing)}: no TPDO answer to SYNC for {self.timeout_s:g} s; "
-                                 f"drives stopped")
+            # this SYNC is lost (the base class counts the index gap); supervision runs again above
+
+    def _wait_lockstep(self) -> dict | None:
+        """Every answer, however late; None only when a frame is known dropped."""
+        with self._cv:
+            if self._cv.wait_for(self._complete, 0.02):
+                return dict(self._got)
+        while True:
+            self._check_health()
+            with self._cv:
+                missing = {cob & 0x7F for cob in self._formats if cob not in self._got}
+            for d in self.drives.values():
+                if d.node.id in missing and not self._probe(d):
+                    break       # no answer yet: the silence check above decides
+            else:
+                with self._cv:   # every drive answered the barrier: what is still missing was dropped
+                    if self._complete():
+                        return dict(self._got)
+                    self.dropped_frames += len(self._formats) - len(self._got)
+                    return None
+            with self._cv:
+                if self._cv.wait_for(self._complete, 0.01):
+                    return dict(self._got)
+
+    def _wait_paced(self) -> dict | None:
+        """The answers that arrive before the next SYNC slot; None if any is missing."""
+        slot_end = self._t0 + (self.sync_count + 1) * self.period_s - 1e-4
+        with self._cv:
+            self._cv.wait_for(self._complete, max(0.0, slot_end - time.perf_counter()))
+            if self._complete():
+                return dict(self._got)
+            self.dropped_frames += len(self._formats) - len(self._got)
+            return None
+
+    def send_sync(self, counter: int) -> None:
+        """One SYNC; the counter byte only where every drive has 0x1019 (CiA 301)."""
+        self.network.send_message(0x80, bytes([counter]) if self.sync_counter_byte else b"")
+
+    # -- paced mode: SYNC from a producer (gearbench.drives.sync_producer), option sync: auto|kernel|thread|loop
+    sync_producer = None
+    _sync_number = 0
+    _ready: dict = {}          # SYNC number -> its complete answers, not yet taken by the sample loop
+
+    def _paced_by_producer(self) -> bool:
+        """Paced and not ``sync: loop``: start the producer once (kernel BCM on socketcan, else a thread)."""
+        kind = self.options.get("sync", "auto")
+        if self.lockstep or kind == "loop":
+            return False
+        if self.sync_producer is None:
+            try:
+                self.sync_producer = start_sync_producer(self.network, self.period_s, SYNC_OVERFLOW
+                                                         if self.sync_counter_byte else None, self._begin_sync, kind)
+            except (ValueError, OSError) as exc:
+                raise DriveError(f"bus {self.bus_spec}: cannot start the SYNC producer ({exc})") from exc
+        return True
+
+    def _begin_sync(self, number: int, counter: int | None, wall_s: float) -> None:
+        """Producer callback, before any answer to SYNC ``number`` can arrive."""
+        with self._cv:
+            if self._sync_number and self._complete():   # all answers in before the next SYNC: keep them
+                self._ready = {n: g for n, g in self._ready.items() if n > number - 256}
+                self._ready[self._sync_number] = dict(self._got)
+            self._sync_number, self._expect, self._got, self._sync_sent_wall = number, counter, {}, wall_s
+            self._cv.notify_all()
+
+    def _wait_produced(self) -> dict | None:
+        """The next produced SYNC whose answers were all in before the SYNC after it (the bus's
+        order decides, not how late this loop is); SYNCs without them are gaps: counted lost."""
+        p = self.sync_producer
+        number = p.wait_next(self.sync_count, self.silence_limit_s)
+        if number == self.sync_count:
+            self._fault(f"no SYNC seen on {self.bus_spec} for {self.silence_limit_s:g} s ({p.kind} producer)")
+        with self._cv:   # an earlier SYNC answered in full while this loop was busy comes first
+            waiting = sorted(n for n in self._ready if self.sync_count < n < number)
+            if waiting:
+                self.sync_count, self.late_syncs = waiting[0], p.late
+                return self._ready.pop(waiting[0])
+        self.sync_count, self.late_syncs = number, p.late
+        with self._cv:
+            self._cv.wait_for(lambda: self._sync_number != number or self._complete(),
+                              max(0.0, p.slot_end(number) - time.perf_counter()))
+            if self._sync_number != number:
+                return self._ready.pop(number, None)
+            if self._complete():
+                return dict(self._got)
+            self.dropped_frames += len(self._formats) - len(self._got)
+            return None
 
     def _pace(self) -> None:
         """Wait for this SYNC's slot on the wall clock. A host that fell more than half
@@ -577,10 +765,8 @@ class CiA402Network(DriveNetwork):
             self.sync_count += missed
             self.late_syncs += missed
             return
-        if target - now > 2e-3:
-            time.sleep(target - now - 1e-3)   # coarse sleep, then spin for the last millisecond
-        while time.perf_counter() < target:
-            pass
+        if target > now:
+            time.sleep(target - now)   # sleep, never spin: at SCHED_FIFO a spin would starve the receiver
 
     def _build(self, got: dict[int, tuple]) -> dict[str, Sample]:
         index = self.sync_count
@@ -589,15 +775,20 @@ class CiA402Network(DriveNetwork):
         for name, d in self.drives.items():
             nid = d.node.id
             out[name] = d.sample(index, time_s, got[0x180 + nid], got[0x280 + nid])
-        faulted = [s for s in out.values() if s.fault]
+        faulted = [self.drives[n].where for n, s in out.items() if s.fault]
         if faulted:
-            self._check_health()   # an EMCY usually arrived first and names the code
-            names = [self.drives[n].where for n, s in out.items() if s.fault]
-            self.stop_all()
-            raise BenchFault(f"{', '.join(names)}: FAULT in statusword at sample {index}; drives stopped")
+            with self._cv:     # an EMCY usually arrived first and names the code
+                emcy, self._faults = self._faults, []
+            self._fault("; ".join(emcy + [f"{', '.join(faulted)}: FAULT in statusword at sample {index}"]))
         return out
 
     def _close(self) -> None:
+        self.stalls.stop()
+        for m in getattr(self, "_drive_monitors", []):
+            m.stop()
+        if self.sync_producer is not None:
+            self.sync_producer.stop()
+            self.sync_producer = None
         if self.network is not None:
             try:
                 for d in self.drives.values():

@@ -172,8 +172,21 @@ class ModbusDrive(Drive):
         self.mode = None
 
     def disable(self) -> None:
+        """Disable and read the status back: DriveError if the drive still shows enabled."""
         self.write("control", self.map.control_values["disable"])
         self.mode = None
+        deadline = time.monotonic() + self.map.enable_timeout_s
+        while True:
+            status = int(self.read("status"))
+            if not self.map.is_enabled(status) or self.map.is_fault(status):
+                return
+            if time.monotonic() > deadline:
+                raise DriveError(f"{self!r}: still OPERATION ENABLED (status 0x{status:04X}) after the "
+                                 f"disable command; stop it by its enable input / STO")
+            if self.network.lockstep:
+                self.network._sync()
+            else:
+                time.sleep(0.002)
 
     def reset_fault(self) -> None:
         # CiA 402 acts on the rising edge of the fault-reset bit
@@ -205,6 +218,8 @@ class ModbusNetwork(DriveNetwork):
         self._sync_drive: ModbusDrive | None = None
         self._last_counter: int | None = None
         self._k = 1
+        self.counter_skew_max = 0      # largest |index difference| between drives in one sample
+        self.skewed_samples = 0
 
     def _client(self, host: str, port: int) -> ModbusTcpClient:
         key = (host, port)
@@ -269,15 +284,27 @@ class ModbusNetwork(DriveNetwork):
             samples = {first.name: self._next_free_running(first)}
         for d in drives[1:]:
             samples[d.name] = d.read_sample()
+        # every drive's own counter is checked: one sample must be one instant on every drive
+        skew = max(abs(s.index - samples[first.name].index) for s in samples.values())
+        if skew:
+            self.skewed_samples += 1
+            self.counter_skew_max = max(self.counter_skew_max, skew)
+            if self.lockstep:     # lockstep advances every drive together: a skew is a broken bench
+                stopped = self.stop_all()
+                raise BenchFault(f"sample counters differ by {skew} between drives in lockstep "
+                                 f"({', '.join(f'{n}={s.index}' for n, s in samples.items())}); {stopped}")
         faulted = [d for d in drives if samples[d.name].fault]
         if faulted:
             texts = [f"{d!r} status 0x{samples[d.name].status:04X}{d._error_text()}" for d in faulted]
-            self.stop_all()
+            stopped = self.stop_all()
             exc = BenchFault(f"drive fault at sample {samples[faulted[0].name].index}: {'; '.join(texts)}; "
-                             f"all drives quick-stopped and disabled")
+                             f"{stopped}")
             exc.samples = samples
             raise exc
         return samples
+
+    def supervision(self) -> dict:
+        return {"skewed_samples": self.skewed_samples, "counter_skew_max": self.counter_skew_max}
 
     def _next_free_running(self, drive: ModbusDrive) -> Sample:
         """Poll until the drive's counter reaches the next sampling instant."""
@@ -291,6 +318,7 @@ class ModbusNetwork(DriveNetwork):
             if time.monotonic() > deadline:
                 raise DriveError(f"{drive!r}: sample counter stuck at {counter}; the drive is not running its "
                                  f"cycle (or, emulated, needs lockstep=True)")
+            time.sleep(self.period_s / 8)    # poll, don't spin: the other core has work too
 
     def _close(self) -> None:
         for c in self._clients.values():

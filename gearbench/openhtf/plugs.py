@@ -12,7 +12,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from ..api import AutoOperator, Bench, RunResult, open_bench
-from ..errors import BenchFault, GearbenchError
+from ..errors import Aborted, BenchFault, GearbenchError
 from ._compat import htf
 
 
@@ -90,7 +90,7 @@ class BenchPlug(htf.plugs.BasePlug):
         if self._cm is None:
             return
         if self.bench.result is None and self.bench.error is None and self._stopped is not None:
-            self.bench.error = BenchFault(f"operator abort: OpenHTF stopped the test ({type(self._stopped).__name__})")
+            self.bench.error = Aborted(f"operator abort: OpenHTF stopped the test ({type(self._stopped).__name__})")
         cm, self._cm = self._cm, None
         cm.__exit__(None, None, None)      # finish if needed, disable drives, close outputs
         self.result = self.bench.result
