@@ -129,7 +129,7 @@ def test_db_upgrade_is_versioned_and_idempotent(pg, cli):
     p = cli("db", "upgrade", fresh)
     assert p.returncode == 0 and "up to date" in p.stdout and "applied" not in p.stdout.split("(")[0]
     p = cli("db", "upgrade", f"postgresql://postgres@127.0.0.1:{free_port()}/x")
-    assert p.returncode == 2 and "unreachable" in p.stderr and "Traceback" not in p.stderr
+    assert p.returncode == 3 and "unreachable" in p.stderr and "Traceback" not in p.stderr
 
 
 # ---------------------------------------------------- the run pushes itself

@@ -34,7 +34,7 @@ PLANT_RUNS_PER_YEAR = 100 * 1000 * 365
 
 def _station(args) -> dict:
     """One station process: store + push ``n`` runs; latencies of online pushes."""
-    name, db, url, template, n, ready = args
+    name, db, url, template, n, ready, made_total = args
     os.environ["GEARBENCH_STATION"] = name
     from gearbench.central.push import push_pending
     from gearbench.station_db import store_run
@@ -48,6 +48,7 @@ def _station(args) -> dict:
         t0 = time.perf_counter()
         store_run(db, r)
         made.append(r["run_id"])
+        made_total.put(1)
         rep = push_pending(db, url, timeout_s=1)
         if rep.error or rep.pending:
             offline += 1
@@ -73,16 +74,17 @@ def ingest(template: dict, *, stations: int, runs: int, outage_s: float, tmp: Pa
             migrations.upgrade(c)
         ctx = mp.get_context("spawn")
         with ctx.Manager() as mgr:
-            ready = mgr.Event()
-            jobs = [(f"st-{i:02d}", tmp / f"st-{i:02d}" / "station.sqlite", pg.url, template, runs, ready)
-                    for i in range(stations)]
+            ready, made_total = mgr.Event(), mgr.Queue()
+            jobs = [(f"st-{i:02d}", tmp / f"st-{i:02d}" / "station.sqlite", pg.url, template, runs, ready,
+                     made_total) for i in range(stations)]
             with ctx.Pool(stations) as pool:
                 res = pool.map_async(_station, jobs)
                 time.sleep(3.0)             # interpreters up
                 t0 = time.perf_counter()
                 ready.set()
                 if outage_s > 0:
-                    time.sleep(1.0)
+                    for _ in range(stations * runs // 3):   # the outage starts a third of the way in
+                        made_total.get()
                     pg.stop()
                     t_out = time.perf_counter()
                     time.sleep(outage_s)
@@ -188,15 +190,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--real-runs", type=int, default=2)
     ap.add_argument("--archive", type=int, default=24, help="archived runs to re-analyse")
     ap.add_argument("--skip", choices=["ingest", "reanalysis"], action="append", default=[])
+    ap.add_argument("--template", help="with --skip reanalysis: ingest copies of this result.json "
+                                       "instead of making real runs first")
     args = ap.parse_args(argv)
     print(f"host: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} (shared: figures are lower bounds)")
     with tempfile.TemporaryDirectory(prefix="gearbench-fleet-") as t:
         tmp = Path(t)
         t0 = time.perf_counter()
-        real = _real_runs(args.profile, args.real_runs, tmp)
-        template = json.loads((real[0] / "result.json").read_text())
-        print(f"real runs on the simulated bench: {len(real)} of {args.profile} "
-              f"({time.perf_counter() - t0:.0f} s)")
+        if args.template and "reanalysis" in args.skip:
+            template = json.loads(Path(args.template).read_text())
+            print(f"ingest template: {args.template} (a recorded real run)")
+        else:
+            real = _real_runs(args.profile, args.real_runs, tmp)
+            template = json.loads((real[0] / "result.json").read_text())
+            print(f"real runs on the simulated bench: {len(real)} of {args.profile} "
+                  f"({time.perf_counter() - t0:.0f} s)")
         if "ingest" not in args.skip:
             r = ingest(template, stations=args.stations, runs=args.runs, outage_s=args.outage_s, tmp=tmp)
             print(f"\n(a) ingest: {r['stations']} station processes, {r['runs']} runs, PostgreSQL stopped "

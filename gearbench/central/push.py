@@ -35,6 +35,12 @@ PUSH_WAIT_S = 6.0           # at most this long at the end of a run for the back
 BATCH_RUNS = 50             # runs per transaction
 
 
+class CentralUnreachable(GearbenchError):
+    """The central database did not answer (network, server down): not bad input."""
+
+    exit_code = 3
+
+
 class RunIdCollision(Exception):
     """Two different runs with one id: refused, reported, left pending in the outbox."""
 
@@ -59,7 +65,7 @@ def connect(url: str, *, timeout_s: float = CONNECT_TIMEOUT_S):
     try:
         return psycopg.connect(url, autocommit=True, connect_timeout=max(1, int(timeout_s)))
     except psycopg.OperationalError as exc:
-        raise GearbenchError(f"central database {target_name(url)} unreachable: "
+        raise CentralUnreachable(f"central database {target_name(url)} unreachable: "
                              f"{str(exc).strip().splitlines()[-1]}") from None
 
 

@@ -13,6 +13,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
+    import sys
     from pathlib import Path
 
     from ..central.config import central_url
@@ -32,5 +33,7 @@ def run(args) -> int:
     for run_id, why in rep.failed_runs.items():
         print(f"  run {run_id} refused: {why}")
     if rep.error:
-        raise GearbenchError(f"{rep.error}; {rep.pending} run(s) stay in the outbox, run sync again later")
+        print(f"gearbench sync: error: {rep.error}; {rep.pending} run(s) stay in the outbox, "
+              f"run sync again later", file=sys.stderr)
+        return 3
     return 0 if rep.ok else 1
