@@ -41,12 +41,14 @@ def fill_lost_samples(step: Trace) -> Trace:
 
 
 def calibrate(unloaded: Trace, loaded: Trace, *, motor: str, disk_kgm2: float,
-              method: str = "default", disk_std_kgm2: float = 0.0) -> dict:
+              method: str = "default", disk_std_kgm2: float = 0.0, disk_name: str = "") -> dict:
     """Kt, J, D, Tc of ``motor`` from its unloaded and disk runs (corrected eq. 17);
-    ``disk_std_kgm2`` (the disk's standard uncertainty) enters Kt's uncertainty."""
+    ``disk_std_kgm2`` (the disk's standard uncertainty) enters Kt's uncertainty and
+    ``disk_name`` records which disk (motors sharing one share its error)."""
     u, l_ = motor_trace(fill_lost_samples(unloaded), motor), motor_trace(fill_lost_samples(loaded), motor)
     u.source, l_.source = f"step {unloaded.source}", f"step {loaded.source}"
-    return calibrate_motor(u, l_, disk_kgm2, method=method, disk_std_kgm2=disk_std_kgm2).to_dict()
+    return calibrate_motor(u, l_, disk_kgm2, method=method, disk_std_kgm2=disk_std_kgm2,
+                           disk_name=disk_name).to_dict()
 
 
 def efficiency(step: Trace, motor_in: dict, motor_out: dict, *, ratio: float | None,

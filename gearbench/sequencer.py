@@ -181,7 +181,7 @@ class Sequencer:
             actions.append(("prompt", step.remove_prompt or f"Remove disk '{disk.name}' from motor '{m}'",
                             dict(coupling="none", disk_kgm2={})))
             actions.append(("analyse", "calibrate", dict(motor=m, disk=disk.inertia_kgm2,
-                            disk_std=disk.inertia_std_kgm2,
+                            disk_std=disk.inertia_std_kgm2, disk_name=disk.name,
                             unloaded=f"calibrate-{m}-unloaded",
                             loaded=f"calibrate-{m}-{disk.name}")))
         elif isinstance(step, LoadStep):
@@ -443,7 +443,8 @@ class Sequencer:
             m = args["motor"]
             cal = pipeline.calibrate(self.traces[args["unloaded"]], self.traces[args["loaded"]],
                                      motor=m, disk_kgm2=args["disk"], method=self.method,
-                                     disk_std_kgm2=args.get("disk_std", 0.0))
+                                     disk_std_kgm2=args.get("disk_std", 0.0),
+                                     disk_name=args.get("disk_name", ""))
             self.motors_result[m] = cal
             self.emit(Calibration(m, cal))
         elif what == "efficiency":

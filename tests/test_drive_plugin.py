@@ -82,6 +82,7 @@ def test_profile_runs_through_the_plugin(loopback_installed, tmp_path):
         got = on_disk["motors"][m]
         assert got["fit"]["Kt_std_disk"] == pytest.approx(got["Kt"] * 0.0025, rel=1e-9)
         assert got["Kt_std"] >= got["fit"]["Kt_std_disk"] and got["Kt_dof"] >= 1
+        assert got["fit"]["disk"] == "disk_a"       # both motors share it: efficiency knows
 
 
 def test_plugin_run_fails_an_impossible_limit(loopback_installed, tmp_path):

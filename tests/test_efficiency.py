@@ -94,6 +94,25 @@ def test_interval_is_student_t_on_the_stored_std_and_adds_kt_uncertainty_in_quad
     assert q.eta_incremental_dof > p.eta_incremental_dof   # a known (type B) part raises ν
 
 
+def test_one_disk_for_both_motors_cancels_in_the_incremental_efficiency():
+    """Kt_in and Kt_out calibrated with the same disk share its error (correlation 1 for
+    the disk part): η_inc ∝ Kt_out/Kt_in does not see it; two different disks add
+    u_rel(j)² twice. First-order GUM with the covariance."""
+    tr, _, _ = hand_bench(noise=0.004, seed=1, levels=(0, 1.0, 0))
+    (p0,) = efficiency(tr, M_IN, M_OUT).points
+    u = 0.0025                                          # ±0.5 % measured disk: u_rel = 0.25 %
+
+    def with_disk(m, name):
+        fit = {"disk": name, "Kt_std_disk": m.Kt * u}
+        return MotorCalibration(m.Kt, m.Kt_ci95, m.J, m.D, m.Tc, "hand", fit, Kt_std=m.Kt * u, Kt_dof=1e6)
+    (same,) = efficiency(tr, with_disk(M_IN, "disk_a"), with_disk(M_OUT, "disk_a")).points
+    (two,) = efficiency(tr, with_disk(M_IN, "disk_a"), with_disk(M_OUT, "disk_b")).points
+    assert same.eta_incremental_std == pytest.approx(p0.eta_incremental_std, rel=1e-6)
+    assert two.eta_incremental_std ** 2 == pytest.approx(
+        p0.eta_incremental_std ** 2 + 2 * (p0.eta_incremental * u) ** 2, rel=1e-6)
+    assert p0.eta_absolute_std < same.eta_absolute_std < two.eta_absolute_std
+
+
 def test_steady_windows_drop_settle_time_and_ramps():
     t = np.arange(5000) / 1000.0
     cin = np.minimum(t * 400, 100.0)                  # ramp for 0.25 s, then constant

@@ -108,7 +108,7 @@ class MotorCalibration:
 
 
 def calibrate_from_fits(unloaded: IdentificationResult, loaded: IdentificationResult,
-                        disk_kgm2: float, *, disk_std_kgm2: float = 0.0,
+                        disk_kgm2: float, *, disk_std_kgm2: float = 0.0, disk_name: str = "",
                         unloaded_name: str = "unloaded run",
                         loaded_name: str = "loaded run") -> MotorCalibration:
     """Kt by corrected eq. 17, J = Kt/b2~, and D, Tc as the inverse-variance mean of
@@ -116,7 +116,9 @@ def calibrate_from_fits(unloaded: IdentificationResult, loaded: IdentificationRe
     the runs' disagreement Δ = (D, Tc)_unloaded − (D, Tc)_loaded: ``LOSS_RUN_SPREAD``·ΔΔᵀ
     (both runs measure the same motor's friction, so what separates them beyond
     noise is model error, and it grows when the loss is extrapolated along Δ).
-    ``disk_std_kgm2`` is the disk inertia's standard uncertainty (it enters Kt 1:1)."""
+    ``disk_std_kgm2`` is the disk inertia's standard uncertainty (it enters Kt 1:1);
+    ``disk_name`` names the disk, so two motors calibrated with one disk are known to
+    share its error (``efficiency.shared_disk_covariance``)."""
     kt = torque_constant(unloaded, loaded, disk_kgm2, disk_inertia_std=disk_std_kgm2,
                          unloaded_name=unloaded_name, loaded_name=loaded_name)
     J = kt.rotor_inertia_kgm2
@@ -148,7 +150,7 @@ def calibrate_from_fits(unloaded: IdentificationResult, loaded: IdentificationRe
         "b2_std_unloaded": unloaded.b2_std, "b2_std_loaded": loaded.b2_std,
         "Kt_std": kt.torque_constant_std, "J_std": kt.rotor_inertia_std, "dof": kt.dof,
         "Kt_std_statistical": kt.statistical_std, "Kt_std_model": kt.model_std,
-        "Kt_std_disk": kt.disk_std, "disk_inertia_std_kgm2": disk_std_kgm2,
+        "Kt_std_disk": kt.disk_std, "disk_inertia_std_kgm2": disk_std_kgm2, "disk": disk_name,
         "r2": min(unloaded.r2, loaded.r2), "rmse": max(unloaded.rmse, loaded.rmse),
         "n_samples": unloaded.n_samples + loaded.n_samples,
         "condition": max(unloaded.condition, loaded.condition),
@@ -169,7 +171,7 @@ def calibrate_from_fits(unloaded: IdentificationResult, loaded: IdentificationRe
 
 def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
                     method: str = "default", *, disk_std_kgm2: float = 0.0,
-                    **options) -> MotorCalibration:
+                    disk_name: str = "", **options) -> MotorCalibration:
     """Identify both runs with ``method`` (``default``, ``paper``, ``paper-15ms``) and
     combine them (corrected eq. 17); ``disk_std_kgm2`` is the disk inertia's standard
     uncertainty. Raises GearbenchError subclasses on bad input."""
@@ -178,7 +180,7 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
                              f"inertia, e.g. --inertia 1.5e-5")
     fu = identify_trace(unloaded, method=method, **options)
     fl = identify_trace(loaded, method=method, **options)
-    return calibrate_from_fits(fu, fl, disk_kgm2, disk_std_kgm2=disk_std_kgm2,
+    return calibrate_from_fits(fu, fl, disk_kgm2, disk_std_kgm2=disk_std_kgm2, disk_name=disk_name,
                                unloaded_name=unloaded.source, loaded_name=loaded.source)
 
 

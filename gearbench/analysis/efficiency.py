@@ -122,6 +122,16 @@ def loss_speed_range(motor: MotorCalibration) -> tuple[float, float] | None:
     return (lo, hi) if np.isfinite(lo) and np.isfinite(hi) and lo <= hi else None
 
 
+def shared_disk_covariance(motor_in: MotorCalibration, motor_out: MotorCalibration) -> float:
+    """Covariance of the two Kt through a disk both were calibrated with (``fit.disk``
+    names it): the product of their disk parts ``fit.Kt_std_disk``; 0 for different or
+    unnamed disks."""
+    a, b = (m.fit.get("disk") if m.fit else None for m in (motor_in, motor_out))
+    if not a or a != b:
+        return 0.0
+    return float(motor_in.fit.get("Kt_std_disk", 0.0)) * float(motor_out.fit.get("Kt_std_disk", 0.0))
+
+
 def is_extrapolated(speed_rad_s: float, speed_range: tuple[float, float] | None) -> bool:
     """True when the motor has a loss model (a known calibrated range) and
     ``speed_rad_s`` lies outside that range."""
@@ -333,11 +343,10 @@ def _point(w, ref, m_in, m_out, n_signed, n_rel_std, source) -> EfficiencyPoint:
     cov = np.zeros((11, 11))
     sd = [w.current_in_sem, ref_in_sem, w.current_out_sem, ref_out_sem, m_in.Kt_std,
           m_out.Kt_std, abs(n_signed) * n_rel_std]
-    # degrees of freedom per input group: the 7 scalars, then each motor's (D, Tc) block
-    # (from the same calibration as its Kt); the ratio is type B (known)
-    dofs = [w.current_in_dof, ref_in_dof, w.current_out_dof, ref_out_dof, m_in.Kt_dof,
-            m_out.Kt_dof, DOF_MAX, m_in.Kt_dof, m_out.Kt_dof]
     cov[np.arange(7), np.arange(7)] = np.square(sd)
+    # both motors calibrated with the same disk share its error: Kt_in and Kt_out move
+    # together, so it cancels in the incremental η (∝ Kt_out/Kt_in) and partly in P_out/P_in
+    cov[4, 5] = cov[5, 4] = shared_disk_covariance(m_in, m_out)
     cov[7:9, 7:9] = np.asarray(m_in.loss_covariance)
     cov[9:11, 9:11] = np.asarray(m_out.loss_covariance)
     # First-order propagation with a numerical Jacobian (central differences).
@@ -350,10 +359,15 @@ def _point(w, ref, m_in, m_out, n_signed, n_rel_std, source) -> EfficiencyPoint:
         jac[:, k] = (etas(vp) - etas(vm)) / (2 * h)
     eta = etas(v0)
     std = np.sqrt(np.maximum(np.diag(jac @ cov @ jac.T), 0.0))
+    # Welch–Satterthwaite over independent input groups: the four window means, the two
+    # Kt (one group: they may share the disk), the ratio (type B, known) and each motor's
+    # (D, Tc) block (from the same calibration as its Kt)
+    groups = ((0,), (1,), (2,), (3,), (4, 5), (6,), (7, 8), (9, 10))
+    dofs = (w.current_in_dof, ref_in_dof, w.current_out_dof, ref_out_dof,
+            min(m_in.Kt_dof, m_out.Kt_dof), DOF_MAX, m_in.Kt_dof, m_out.Kt_dof)
     dof = []
     for row in jac:
-        parts = [(row[k] * sd[k]) ** 2 for k in range(7)]
-        parts += [float(row[a:a + 2] @ cov[a:a + 2, a:a + 2] @ row[a:a + 2]) for a in (7, 9)]
+        parts = [max(float(row[list(g)] @ cov[np.ix_(g, g)] @ row[list(g)]), 0.0) for g in groups]
         dof.append(effective_dof(parts, dofs))
     t_in, t_out, p_in, p_out = shaft_powers(w.current_in_a, w.current_out_a, w.speed_in_rad_s,
                                             w.speed_out_rad_s, m_in, m_out)
