@@ -47,7 +47,7 @@ class ProgressDisplay(Subscriber):
         self._live = True
 
     def on_step_stop(self, r: StepStop) -> None:
-        lost = f", {r.lost_samples} lost" if r.lost_samples else ""
+        lost = f", {r.lost_samples} lost (counted, never filled in: see result.json lost_at_sample)" if r.lost_samples else ""
         self._line(f"  step {r.name}: {r.status}, {r.n_samples} samples{lost}")
 
     def on_message(self, r: Message) -> None:

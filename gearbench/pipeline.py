@@ -45,10 +45,14 @@ def calibrate(unloaded: Trace, loaded: Trace, *, motor: str, disk_kgm2: float,
     """Kt, J, D, Tc of ``motor`` from its unloaded and disk runs (corrected eq. 17);
     ``disk_std_kgm2`` (the disk's standard uncertainty) enters Kt's uncertainty and
     ``disk_name`` records which disk (motors sharing one share its error)."""
-    u, l_ = motor_trace(fill_lost_samples(unloaded), motor), motor_trace(fill_lost_samples(loaded), motor)
+    fu, fl = fill_lost_samples(unloaded), fill_lost_samples(loaded)
+    u, l_ = motor_trace(fu, motor), motor_trace(fl, motor)
     u.source, l_.source = f"step {unloaded.source}", f"step {loaded.source}"
-    return calibrate_motor(u, l_, disk_kgm2, method=method, disk_std_kgm2=disk_std_kgm2,
-                           disk_name=disk_name).to_dict()
+    out = calibrate_motor(u, l_, disk_kgm2, method=method, disk_std_kgm2=disk_std_kgm2,
+                          disk_name=disk_name).to_dict()
+    # interpolated samples are stated with the result they entered (positions: result.json lost_at_sample)
+    out["interpolated_samples"] = fu.meta.get("interpolated_samples", 0) + fl.meta.get("interpolated_samples", 0)
+    return out
 
 
 def efficiency(step: Trace, motor_in: dict, motor_out: dict, *, ratio: float | None,
@@ -57,10 +61,14 @@ def efficiency(step: Trace, motor_in: dict, motor_out: dict, *, ratio: float | N
 
     ``motor_in``/``motor_out`` are calibration dicts, or ``{"Kt": ...}`` alone (datasheet
     value, no loss model) for a motor the profile does not calibrate."""
-    bench = bench_trace(fill_lost_samples(step).slice(skip_samples, None))
+    filled = fill_lost_samples(step)
+    bench = bench_trace(filled.slice(skip_samples, None))
     bench.source = f"step {step.source}"
     m_in, m_out = _calibration(motor_in, "motor in"), _calibration(motor_out, "motor out")
-    return _efficiency(bench, m_in, m_out, ratio=ratio, settle_s=settle_s).to_dict()
+    out = _efficiency(bench, m_in, m_out, ratio=ratio, settle_s=settle_s).to_dict()
+    for pt in out.get("points", []):
+        pt["interpolated_samples"] = filled.meta.get("interpolated_samples", 0)
+    return out
 
 
 def _calibration(d: dict, where: str) -> MotorCalibration:
