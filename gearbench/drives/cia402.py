@@ -537,6 +537,9 @@ class CiA402Network(DriveNetwork):
         return {**self.stalls.summary(), **emulated, "sdo_probes": self.probes, "dropped_frames": self.dropped_frames,
                 "late_frames": self.late_frames, "heartbeat_gaps": self.heartbeat_gaps,
                 "starved_deferrals": self.starved_deferrals,
+                # where a drive echoes no SYNC counter, its samples are matched to SYNCs by arrival
+                # order and the bus's receive time only: flagged so a reader of the data knows
+                "sync_counter_echo": {n: bool(d._has_counter) for n, d in self.drives.items()},
                 "late_syncs": self.late_syncs}
 
     # ----------------------------------------------------------------- receive (notifier thread)
