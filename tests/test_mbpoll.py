@@ -13,7 +13,6 @@ import math
 import re
 import select
 import shutil
-import socket
 import struct
 import subprocess
 import sys
@@ -37,12 +36,6 @@ def _scale(reg) -> float:
     return float(eval(str(s), {"__builtins__": {}, "pi": math.pi}))   # "2*pi/10000" style
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(autouse=True)
 def _mbpoll_installed():
     require_tool("mbpoll", "install Debian's independent Modbus client with `apt-get install mbpoll`")
@@ -51,16 +44,15 @@ def _mbpoll_installed():
 @pytest.fixture
 def emulator(tmp_path):
     """The emulated bench, free-running in real time, in a separate process."""
-    port = _free_port()
-    cmd = [sys.executable, "-m", "gearbench", "emulate", "--modbus", f"127.0.0.1:{port}"]
+    cmd = [sys.executable, "-m", "gearbench", "emulate", "--modbus", "127.0.0.1:0"]   # it binds, then says where
     print("emulator:", " ".join(cmd))
     log = (tmp_path / "emulate.stderr").open("w+")
     proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log, text=True)
     try:
         ready, _, _ = select.select([proc.stdout], [], [], 30)
         line = proc.stdout.readline() if ready else ""
-        assert line.strip() == "ready", f"emulator did not start: {line!r} {log.seek(0) or log.read()[-500:]}"
-        yield port
+        assert line.split()[:1] == ["ready"], f"emulator did not start: {line!r} {log.seek(0) or log.read()[-500:]}"
+        yield int(line.split("modbus=")[1].rpartition(":")[2])
     finally:
         proc.terminate()
         try:

@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import os
 import select
-import socket
 import subprocess
 import sys
 import time
@@ -28,14 +27,8 @@ DEFAULT_MAP = "drivers/generic-modbus-servo.yaml"
 SERVER = ("import sys; from gearbench.emulate.bench import EmulatedBench; "
           "from gearbench.emulate.modbus_server import start_modbus_server; "
           "b = EmulatedBench(); b.advance(); "       # compile the physics before 'ready'
-          "h = start_modbus_server(b, '127.0.0.1', {port}, register_map={map!r}, lockstep={lockstep}); "
-          "print('ready', flush=True); sys.stdin.read(); h.stop()")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+          "h = start_modbus_server(b, '127.0.0.1', 0, register_map={map!r}, lockstep={lockstep}); "
+          "print('ready', h.port, flush=True); sys.stdin.read(); h.stop()")   # port 0: the OS picks, no race
 
 
 def _cpu_s(pid: int) -> float:
@@ -45,14 +38,14 @@ def _cpu_s(pid: int) -> float:
 
 
 def _start_server(regmap: str, lockstep: bool) -> tuple[subprocess.Popen, int]:
-    port = _free_port()
-    proc = subprocess.Popen([sys.executable, "-c", SERVER.format(port=port, map=regmap, lockstep=lockstep)],
+    proc = subprocess.Popen([sys.executable, "-c", SERVER.format(map=regmap, lockstep=lockstep)],
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     ready, _, _ = select.select([proc.stdout], [], [], 60)
-    if not ready or proc.stdout.readline().strip() != "ready":
+    words = proc.stdout.readline().split() if ready else []
+    if words[:1] != ["ready"]:
         proc.kill()
         raise RuntimeError("emulator process did not start")
-    return proc, port
+    return proc, int(words[1])
 
 
 def measure(regmap: str, seconds: float, lockstep: bool) -> dict:
