@@ -66,6 +66,12 @@ class SimBench:
             self.bus_options = dict(interface="udp_multicast", channel=group, port=port, lockstep=True)
         if self.seed is not None:
             cmd += ["--seed", str(self.seed)]
+        # test facility (gearbench.faultinject): a journal of the emulated drives' states, and
+        # faults the emulator applies at given world times
+        if os.environ.get("GEARBENCH_SIM_JOURNAL"):
+            cmd += ["--journal", os.environ["GEARBENCH_SIM_JOURNAL"]]
+        if os.environ.get("GEARBENCH_SIM_FAULT_PLAN"):
+            cmd += ["--fault-plan", os.environ["GEARBENCH_SIM_FAULT_PLAN"]]
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         # the child's diagnostics go to a file: an unread pipe would fill and stall it
         keep = os.environ.get("GEARBENCH_EMULATOR_LOG")   # a path to keep the child's diagnostics

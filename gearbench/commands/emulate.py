@@ -10,6 +10,7 @@ cleanly on SIGINT/SIGTERM. Without endpoints it serves CANopen on
 from __future__ import annotations
 
 import gc
+import json
 import os
 import signal
 import sys
@@ -39,6 +40,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("--seed", type=int, default=None, help="noise seed (default: the plant's)")
     parser.add_argument("--exit-on-eof", action="store_true",
                         help="stop when stdin closes (a parent that started the emulator has gone, even by SIGKILL)")
+    parser.add_argument("--journal", metavar="FILE",
+                        help="test facility: append every axis state change and applied fixture command "
+                             "to FILE as JSON lines (world and wall time)")
+    parser.add_argument("--fault-plan", metavar="JSON",
+                        help="test facility: a JSON list of fixture commands applied at start, usually "
+                             "with \"at_s\" (world time), e.g. '[{\"cmd\": \"mute\", \"axis\": \"in\", \"at_s\": 1.2}]'")
 
 
 def load_plant(profile: str | None):
@@ -145,15 +152,25 @@ def run(args) -> int:
             lockstep = args.lockstep or bool(can_spec)
             kw = {"register_map": args.modbus_map} if args.modbus_map else {}
             handles.append(start_modbus_server(bench, host, port, lockstep=lockstep, **kw))
+        if args.journal:
+            bench.journal = open(args.journal, "a")
+            bench.log("ready", pid=os.getpid())
+        for cmd in json.loads(args.fault_plan) if args.fault_plan else []:
+            reply = json.loads(bench.handle_control_line(json.dumps(cmd)))
+            if not reply.get("ok"):
+                raise DriveError(f"--fault-plan: {cmd}: {reply.get('error')}")
         # 'ready' names the endpoints actually bound (a Modbus port 0 is chosen by the OS: no race)
         bound = [f"modbus={h.host}:{h.port}" for h in handles if hasattr(h, "port") and hasattr(h, "host")]
         print(" ".join(["ready", *bound]), flush=True)
         if os.environ.get("GEARBENCH_EMULATOR_LOG"):
             _log_stalls(stop)
         control = bench.run_control_loop(sys.stdin, sys.stdout)
+        ended = "signal"
         while not stop.wait(0.2):
             if args.exit_on_eof and not control.is_alive():
+                ended = "stdin closed"
                 break
+        bench.log("exit", why=ended, states={n: a.state for n, a in bench.drives.items()})
     finally:
         for h in reversed(handles):
             try:

@@ -15,12 +15,30 @@ reply is one JSON line ``{"ok": true, ...}`` or ``{"ok": false, "error": ...}``)
 - ``{"cmd": "mute", "axis": "in", "on": true}`` — the drive stops answering (no PDO,
   SDO or heartbeat), like a cut cable;
 - ``{"cmd": "status"}`` — sample index, time, states and modes.
+
+Fault injection (test facility of ``gearbench.faultinject``; any command but ``status``
+may carry ``"at_s"``: it is then applied when world time reaches it, between two steps):
+
+- ``{"cmd": "heartbeat", "axis": "in", "on": false}`` — only the heartbeat stops (PDOs, SDO
+  and EMCY go on);
+- ``{"cmd": "refuse_disable", "axis": "out", "on": true}`` — the axis ignores every
+  controlword while OPERATION ENABLED (a drive that will not disable);
+- ``{"cmd": "modbus", "exception": 4, "delay_s": 0.2, "count": 3, "disconnect": true}`` — the
+  next ``count`` Modbus requests are answered with that exception code and/or after
+  ``delay_s``; ``disconnect`` closes the master's TCP connections once;
+- ``{"cmd": "mark", "label": "..."}`` — nothing happens but the journal line (an instant
+  for the harness to act on, e.g. send a signal to gearbench).
+
+Journal: with ``journal`` set to a text file, every axis state change and every applied
+command is one JSON line ``{"t_s": world time, "wall_s": time.time(), "event": ...}``,
+flushed at once (it survives any death of the master).
 """
 from __future__ import annotations
 
 import json
 import random
 import threading
+import time
 
 from .cia402_axis import Cia402Axis
 
@@ -55,8 +73,26 @@ class EmulatedBench:
         # fault options for tests of the masters' error handling
         self.pdo_drop_rate = 0.0
         self.muted: set[str] = set()
-        self._scheduled: list[tuple[float, str, int]] = []
+        self.heartbeat_muted: set[str] = set()
+        self.modbus_faults = {"exception": 0, "delay_s": 0.0, "count": 0, "disconnect": False}
+        self._scheduled: list[tuple[float, dict]] = []
         self._rng = random.Random(seed)
+        self.journal = None                       # text file: one JSON line per event
+        for axis in self.drives.values():
+            axis.state_listeners.append(
+                lambda a, old, new: self.log("state", axis=a.name, old=old, new=new))
+
+    def log(self, event: str, **fields) -> None:
+        """One journal line (fault-injection harness), written and flushed at once."""
+        if self.journal is None:
+            return
+        line = json.dumps({"t_s": round(self.sample_index * self.world.period_s, 6),
+                           "wall_s": time.time(), "event": event, **fields})
+        try:
+            self.journal.write(line + "\n")
+            self.journal.flush()
+        except (OSError, ValueError):   # a closed journal never stops the drives
+            pass
 
     @property
     def period_s(self) -> float:
@@ -72,7 +108,7 @@ class EmulatedBench:
                 time_s = (self.sample_index + 1) * self.world.period_s
                 for due in [f for f in self._scheduled if f[0] <= time_s + 1e-12]:
                     self._scheduled.remove(due)
-                    self.drives[due[1]].inject_fault(due[2])
+                    self._handle(due[1])
                 for name, axis in self.drives.items():
                     mode, setpoint = axis.command()
                     if mode != self._world_modes.get(name):   # set_mode resets the drive loop
@@ -105,33 +141,62 @@ class EmulatedBench:
         return name
 
     def _handle(self, cmd: dict) -> dict:
-        kind = cmd.get("cmd")
         with self.lock:
-            if kind == "mount":
+            if "at_s" in cmd and cmd.get("cmd") != "status":
+                at_s = float(cmd["at_s"])
+                cmd = {k: v for k, v in cmd.items() if k != "at_s"}
+                self._apply(cmd, dry=True)          # refuse a bad command now, not at its time
+                self._scheduled.append((at_s, cmd))
+                return {"scheduled_at_s": at_s}
+            reply = self._apply(cmd)
+            if cmd.get("cmd") != "status":
+                self.log("command", **cmd)
+            return reply
+
+    def _apply(self, cmd: dict, dry: bool = False) -> dict:
+        kind = cmd.get("cmd")
+        if kind in ("fault", "mute", "heartbeat", "refuse_disable"):
+            name = self._axis_name(cmd)
+        if kind == "mount":
+            if not dry:
                 self.world.mount(coupling=cmd.get("coupling", "none"), disk_kgm2=cmd.get("disk_kgm2"))
-                return {}
-            if kind == "fault":
-                name, code = self._axis_name(cmd), int(cmd.get("code", 0x1000))
-                if "at_s" in cmd:
-                    self._scheduled.append((float(cmd["at_s"]), name, code))
-                else:
-                    self.drives[name].inject_fault(code)
-                return {}
-            if kind == "drop":
-                rate = float(cmd["rate"])
-                if not 0 <= rate <= 1:
-                    raise ValueError("'rate' must be within 0..1")
+            return {}
+        if kind == "fault":
+            code = int(cmd.get("code", 0x1000))
+            if not dry:
+                self.drives[name].inject_fault(code)
+            return {}
+        if kind == "drop":
+            rate = float(cmd["rate"])
+            if not 0 <= rate <= 1:
+                raise ValueError("'rate' must be within 0..1")
+            if not dry:
                 self.pdo_drop_rate = rate
-                return {}
-            if kind == "mute":
-                name = self._axis_name(cmd)
-                (self.muted.add if cmd.get("on", True) else self.muted.discard)(name)
-                return {}
-            if kind == "status":
-                return {"sample_index": self.sample_index,
-                        "time_s": self.sample_index * self.world.period_s,
-                        "drives": {n: a.snapshot() for n, a in self.drives.items()}}
-        raise ValueError(f"unknown cmd {kind!r}; known: mount, fault, drop, mute, status")
+            return {}
+        if kind == "mute" and not dry:          # "on": muted
+            (self.muted.add if cmd.get("on", True) else self.muted.discard)(name)
+        if kind == "heartbeat" and not dry:     # "on": heartbeats produced
+            (self.heartbeat_muted.discard if cmd.get("on", True) else self.heartbeat_muted.add)(name)
+        if kind in ("mute", "heartbeat"):
+            return {}
+        if kind == "refuse_disable":
+            if not dry:
+                self.drives[name].refuse_disable = bool(cmd.get("on", True))
+            return {}
+        if kind == "modbus":
+            faults = {"exception": int(cmd.get("exception", 0)), "delay_s": float(cmd.get("delay_s", 0.0)),
+                      "count": int(cmd.get("count", 1)), "disconnect": bool(cmd.get("disconnect", False))}
+            if not dry:
+                self.modbus_faults = faults
+            return {}
+        if kind == "mark":
+            return {}
+        if kind == "status":
+            return {"sample_index": self.sample_index,
+                    "time_s": self.sample_index * self.world.period_s,
+                    "drives": {n: a.snapshot() for n, a in self.drives.items()}}
+        raise ValueError(f"unknown cmd {kind!r}; known: mount, fault, drop, mute, heartbeat, "
+                         f"refuse_disable, modbus, mark, status")
 
     def run_control_loop(self, stdin, stdout) -> threading.Thread:
         """Serve fixture commands from ``stdin`` in a daemon thread until EOF."""

@@ -403,7 +403,7 @@ class CanopenServer:
                 period_ms = node.raw(0x1017)
                 if period_ms and now >= due[node.id]:
                     due[node.id] = now + period_ms / 1000.0
-                    if node.axis.name not in self.bench.muted:
+                    if node.axis.name not in self.bench.muted | self.bench.heartbeat_muted:
                         try:
                             self.network.send_message(0x700 + node.id, [node.nmt._state])
                         except Exception:   # bus closing under us at stop()

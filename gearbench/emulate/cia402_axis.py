@@ -67,6 +67,8 @@ class Cia402Axis:
     def __init__(self, name: str, *, rated_current_a: float = 1.0, max_current_a: float = 3.0,
                  speed_limit_rad_s: float = 420.0, counts_per_rev: int = 10000):
         self.name = name
+        self.state_listeners: list[Callable[["Cia402Axis", str, str], None]] = []   # (axis, old, new)
+        self.refuse_disable = False         # fault-injection option: ignore commands while enabled
         self.rated_current_a = rated_current_a
         self.max_current_a = max_current_a
         self.speed_limit_rad_s = speed_limit_rad_s
@@ -93,6 +95,17 @@ class Cia402Axis:
 
     # ------------------------------------------------------------------ inputs
     @property
+    def state(self) -> str:
+        return self._state
+
+    @state.setter
+    def state(self, value: str) -> None:
+        old, self._state = getattr(self, "_state", None), value
+        if old is not None and value != old:
+            for listener in list(self.state_listeners):
+                listener(self, old, value)
+
+    @property
     def statusword(self) -> int:
         sw = STATUSWORD[self.state] | SW_REMOTE
         if self.target_reached:
@@ -108,6 +121,8 @@ class Cia402Axis:
 
     def write_controlword(self, cw: int) -> None:
         """Apply a controlword (0x6040); CiA 402 device control commands."""
+        if self.refuse_disable and self.state == "OPERATION ENABLED":
+            return               # fault injection: a drive that does not obey disable/quick stop
         previous, self.controlword = self.controlword, cw & 0xFFFF
         s = self.state
         if s in ("FAULT", "FAULT REACTION ACTIVE"):

@@ -128,6 +128,19 @@ class ModbusServerHandle:
         """pymodbus SimDevice action: apply writes, or fill the registers a read returns."""
         while self.bench.axes[unit] in self.bench.muted and not self._stop.is_set():
             await asyncio.sleep(0.01)      # "mute" fixture: the drive stops answering
+        faults = self.bench.modbus_faults  # fault injection: exception, slow answer, dropped connection
+        if faults["disconnect"]:
+            faults["disconnect"] = False
+            self.bench.log("modbus-disconnect")
+            for conn in list(self._server.active_connections.values()):
+                conn.transport.close()
+            return None
+        if faults["count"] > 0 and (faults["exception"] or faults["delay_s"]):
+            faults["count"] -= 1
+            if faults["delay_s"]:
+                await asyncio.sleep(faults["delay_s"])
+            if faults["exception"]:
+                return ExcCodes(faults["exception"])
         try:
             if set_values is not None:
                 return self._write(unit, start_address, address, list(set_values), registers)
