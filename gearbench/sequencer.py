@@ -91,7 +91,7 @@ class Sequencer:
         self.sim_truth = sim_truth
         self.method = method
         self.period_s = profile.bench.period_s
-        self.run_id = uuid.uuid4().hex[:12]
+        self.run_id = uuid.uuid4().hex   # full 128 bits: a plant makes tens of millions of runs a year
         self._abort_reason: str | None = None
         self._samples_done = 0
         self._samples_total = 1
