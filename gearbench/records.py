@@ -249,7 +249,9 @@ class RecordStream:
             with self._lock:
                 self.failure = self.failure or (f"the record writer cannot keep up: {self.REQUIRED_QUEUE} "
                                                 f"records queued (slow or stalled disk?)")
-            self.required.put(record, block=True)
+            if not self._raised:       # fail fast: the drives are stopped first, then the samples kept
+                self.raise_if_failed()
+            self.required.put(record, block=True)   # on the stopping path: every sample is kept
         if not self.best_effort.put(record, block=record.kind not in self.DROPPABLE):
             self.best_effort.dropped += 1
         self.raise_if_failed()
