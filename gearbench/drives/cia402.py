@@ -648,25 +648,34 @@ class CiA402Network(DriveNetwork):
     def _sample(self) -> dict[str, Sample]:
         if not self._started:
             raise DriveError("CiA402Network.sample before start(period_s)")
+        since = time.monotonic()
         while True:
             self._check_health()
             if self._paced_by_producer():   # SYNC from the kernel's broadcast manager or a SYNC thread
                 got = self._wait_produced()
-                if got is not None:
-                    return self._build(got)
-                continue
-            if not self.lockstep:
-                self._pace()
-            self.sync_count += 1
-            counter = (self.sync_count - 1) % SYNC_OVERFLOW + 1
-            with self._cv:
-                self._expect, self._got = counter, {}
-                self._sync_sent_wall = time.time()
-            self.send_sync(counter)
-            got = self._wait_lockstep() if self.lockstep else self._wait_paced()
+            else:
+                if not self.lockstep:
+                    self._pace()
+                self.sync_count += 1
+                counter = (self.sync_count - 1) % SYNC_OVERFLOW + 1
+                with self._cv:
+                    self._expect, self._got = counter, {}
+                    self._sync_sent_wall = time.time()
+                self.send_sync(counter)
+                got = self._wait_lockstep() if self.lockstep else self._wait_paced()
             if got is not None:
                 return self._build(got)
-            # this SYNC is lost (the base class counts the index gap); supervision runs again above
+            # this SYNC is lost (the base class counts the index gap). Drives that are alive but
+            # never answer a SYNC in time would lose every sample: bounded like silence
+            stuck = time.monotonic() - since - self.stalls.stalled_since(since)
+            if stuck > self.silence_limit_s:
+                with self._cv:
+                    missing = sorted({cob & 0x7F for cob in self._formats if cob not in self._got})
+                names = [d.where for d in self.drives.values() if d.node.id in missing] or ["the drives"]
+                self._fault(f"{', '.join(names)}: no complete answer to any SYNC for {stuck:.2f} s "
+                            f"(alive, but every answer missing or too late for its SYNC period "
+                            f"{self.period_s * 1e3:g} ms; {self.lost_samples + self.sync_count - (self._last_index or 0)} "
+                            f"samples lost so far)")
 
     def _wait_lockstep(self) -> dict | None:
         """Every answer, however late; None only when a frame is known dropped."""
