@@ -23,6 +23,10 @@ from .errors import BenchFault, DriveError
 # first start compiles the physics kernel (numba), later starts are fast; an emulated CI guest needs more
 READY_TIMEOUT_S = float(os.environ.get("GEARBENCH_SIM_START_TIMEOUT_S", 60.0))
 EMULATOR_NICE = -10      # the emulator stands in for drive hardware, which a busy PC does not slow down
+# Supervision of emulated drives: they share this host's CPUs, and on a loaded tester PC a process is
+# measured to wait up to ~2 s for a CPU even at nice -10 (load 16 on 2 cores). Real drives keep the
+# profile's (default 0.5 s silence, 0.3 s SDO). A frozen emulated drive still stops the bench in 2 s.
+SIM_SUPERVISION = {"timeout_s": 2.0, "sdo_timeout_s": 1.0}
 
 
 def _child_setup() -> None:
@@ -134,6 +138,9 @@ class SimBench:
         bus = self.profile.bench.bus
         opts = dict(bus.options or {})
         opts.update({k: v for k, v in self.bus_options.items() if k not in ("interface", "channel", "host", "port")})
+        if bus.family == "cia402":   # the profile's own values win; these are for drives that share our CPUs
+            for key, value in SIM_SUPERVISION.items():
+                opts.setdefault(key, value)
         return replace(bus, interface=self.bus_options.get("interface", bus.interface),
                        channel=self.bus_options.get("channel", bus.channel),
                        host=self.bus_options.get("host", bus.host),
