@@ -8,6 +8,7 @@ finalises the Parquet file with everything recorded before it.
 """
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 
@@ -55,6 +56,10 @@ class ParquetRecorder(Subscriber):
             self._writer = pa.ipc.new_stream(self._sink, self._schema)
         self._writer.write_batch(batch)
         self._sink.flush()
+        if os.fstat(self._sink.fileno()).st_nlink == 0:
+            # the folder was removed under us: writes "succeed" into a file nobody can read
+            raise FileNotFoundError(f"{self.stream_path(rec.step)} was removed while recording "
+                                    f"(output folder deleted or unmounted?)")
 
     def on_step_stop(self, rec: StepStop) -> None:
         self._finish()

@@ -104,6 +104,7 @@ class Sequencer:
         self.lost_by_step: dict[str, int] = {}
         self.lost: dict[str, list[int]] = {}     # step -> sample counter values that never arrived
         self.priority_granted = ""
+        self._output_failure: str | None = None     # a required output failed on a path that went on
 
     def emit(self, record) -> None:
         """Emit a record; a required output that failed becomes a bench fault."""
@@ -117,8 +118,8 @@ class Sequencer:
         the run's result into a fault itself)."""
         try:
             self._emit(record)
-        except OutputFailure:
-            pass
+        except OutputFailure as exc:   # raised once: keep it, so no further segment starts
+            self._output_failure = str(exc)
 
     def _stop_drives(self, exc: BenchFault) -> BenchFault:
         """Stop every drive unless the fault already did; the fault's text says what was verified."""
@@ -268,6 +269,9 @@ class Sequencer:
             for action in self.plan_step(step):
                 if self._abort_reason:
                     raise self._abort()
+                if self._output_failure:   # seen on a quiet path (a segment's end): no further segment
+                    raise BenchFault(f"output failed: {self._output_failure}; a unit cannot pass "
+                                     f"without its records")
                 if isinstance(action, Segment):
                     self._acquire(action)
                 elif action[0] == "prompt":

@@ -88,7 +88,8 @@ def test_fault_plan_applies_at_world_time_and_journals():
     axis.write_controlword(0x00)
     assert axis.state == "OPERATION ENABLED"         # refusing from 3 ms on
     events = [json.loads(ln) for ln in bench.journal.getvalue().splitlines()]
-    assert [e["t_s"] for e in events if e["event"] == "command"] == [0.003]
+    # applied before the step that reaches 3 ms, i.e. at the end of the 2nd (journal time 2 ms)
+    assert [e["t_s"] for e in events if e["event"] == "command"] == [0.002]
     assert any(e["event"] == "state" and e["new"] == "SWITCH ON DISABLED" for e in events)
     bad = json.loads(bench.handle_control_line(json.dumps({"cmd": "heartbeat", "axis": "x", "at_s": 1})))
     assert not bad["ok"] and "axis" in bad["error"]   # refused when planned, not at its time
