@@ -11,6 +11,7 @@ from gearbench.cli import main
 from gearbench.trace import Trace
 
 pytest.importorskip("gearbench.sim")
+from gearbench.analysis.diagnose import harness  # noqa: E402
 from gearbench.analysis.diagnose.bench import bench_case_trace, diagnose_bench  # noqa: E402
 
 
@@ -68,3 +69,198 @@ def test_chain_output_is_consistent_with_the_verdict():
     assert 0 <= rem["share_of_gap"] <= 1 and rem["stopped"] in (
         "noise_floor", "no_significant_candidate", "max_steps")
     assert rem["share_of_gap"] == pytest.approx(1 - d["chain"][-1]["cumulative_shrink"], abs=1e-9)
+
+
+# ------------------------------------------------ stepwise chain: null, elimination
+def test_a_candidate_must_beat_random_regressors():
+    """The null test: a candidate no better on held-out horizons than random smooth
+    regressors is not significant, whatever it does against the current model."""
+    from gearbench.analysis.diagnose import verdict as vd
+
+    rng = np.random.default_rng(0)
+    before = 4.0 + rng.random(400)
+    good = 1.0 + 0.1 * rng.random(400)
+    cand = vd.score("x", {}, before, good, 1, 1.0, 1.0, overlap=4)
+    assert cand.significant
+    like_null = vd.against_null(cand, good + 0.01 * rng.standard_normal(400), cand.shrink)
+    assert not like_null.significant and like_null.t_vs_null < vd.T_CRIT
+    beats = vd.against_null(cand, before - 0.5, 0.1)
+    assert beats.significant and beats.t_vs_null > vd.T_CRIT
+
+
+def test_null_regressors_are_deterministic_and_unit_scaled():
+    from gearbench.analysis.diagnose.nominal import prepare
+    from gearbench.analysis.diagnose.pipeline import NullTerm
+
+    tr, _ = harness.blind_trace(harness.Case(None, "-", "reversing", 0, {}))
+    a, b = prepare(tr), prepare(tr)
+    fa, fb = NullTerm().measured(a), NullTerm().measured(b)
+    assert all(np.array_equal(x, y) for x, y in zip(fa, fb))
+    assert all(abs(np.std(x) - 1) < 1e-9 for x in fa)
+    assert abs(np.corrcoef(*fa)[0, 1]) < 0.2
+
+
+def test_composite_chain_names_both_effects_drops_look_alikes_and_sizes_them():
+    """Coulomb friction + a current offset (reversing multisine): both in the final
+    chain, a Stribeck look-alike chosen early is dropped once Coulomb is in (backward
+    elimination), Coulomb sized largest by drop-one (it opens the larger gap alone),
+    the remainder within 1.5x of the noise floor, and the output consistent."""
+    out = harness.run_case(harness.composite_case(("coulomb_friction", "current_offset")))
+    d = out.diagnosis
+    chain = [c["effect"] for c in d.chain]
+    assert {"coulomb_friction", "current_offset"} <= set(chain)
+    assert "stribeck_friction" not in chain
+    size = {c["effect"]: c["size_rank"] for c in d.chain}
+    assert size["coulomb_friction"] < size["current_offset"]
+    assert d.remaining["gap_ratio"] < 1.5
+    assert d.remaining["share_of_gap"] == pytest.approx(1 - d.chain[-1]["cumulative_shrink"],
+                                                        abs=1e-9)
+    for x in d.dropped:
+        assert x["effect"] not in chain and "not significant once" in x["why"]
+    for c in d.chain:
+        assert c["significant"] and c["t_vs_null"] > 2
+
+
+def test_friction_simulation_stops_motion_without_reversing_it():
+    """A Coulomb term far stiffer than one step (Tc/J dt >> eps) is simulated
+    semi-implicitly: from rest with no current the motor stays still, and a coasting
+    motor stops and stays stopped (explicit Euler chatters through zero)."""
+    from gearbench.analysis.diagnose import simerror
+    from gearbench.analysis.diagnose.effects import CoulombTerm
+    from gearbench.analysis.diagnose.nominal import Model, Signals, Viscous
+
+    n = 400
+    t = np.arange(n) * 1e-3
+    w0 = 20.0
+    # coasting against 300 rad/s^2 of friction: stops after ~67 ms, then stays
+    stop = w0 / 300.0
+    theta = np.where(t < stop, w0 * t - 150.0 * t ** 2, w0 * stop - 150.0 * stop ** 2)
+    sig = Signals(t, theta, np.gradient(theta, t), np.zeros(n), 1e-3)
+    model = Model([CoulombTerm(eps=0.01), Viscous()], np.array([300.0, 0.0]), None)
+    err = simerror.simulate(sig, model, np.array([20, 200]), 100)
+    assert np.max(np.abs(err[1])) < 1e-6          # at rest, no current: stays at rest
+    assert np.max(np.abs(err[0])) < 0.02          # stops at ~67 ms, no chatter (explicit: 0.05)
+
+
+# ------------------------------------------------ units: orders per revolution
+def test_angle_orders_need_a_known_angle():
+    """Cogging orders are per motor revolution: in degrees (stated) the features are
+    those in radians; in metres they exist only with the lead; an unknown unit is
+    refused with the choices."""
+    from gearbench.analysis.diagnose.effects import Cogging, CoggingTerm
+    from gearbench.analysis.diagnose.nominal import angle_scale, prepare
+    from gearbench.errors import TraceError
+
+    tr, _ = harness.blind_trace(harness.Case(None, "-", "sweep_slow", 0, {}))
+    rad = prepare(tr)
+    k = 180 / np.pi
+    deg_tr = Trace(tr.time_s, {"position_rad": tr["position_rad"] * k,
+                               "current_a": tr["current_a"]}, {})
+    deg = prepare(deg_tr, angle_scale("deg"))
+    for a, b in zip(CoggingTerm(order=6).measured(rad), CoggingTerm(order=6).measured(deg)):
+        np.testing.assert_allclose(a, b, atol=1e-9)
+    lead = 0.0025
+    m_tr = Trace(tr.time_s, {"position_rad": tr["position_rad"] * lead / (2 * np.pi),
+                             "current_a": tr["current_a"]}, {})
+    assert Cogging().grid(prepare(m_tr, angle_scale("m")), None) == []
+    with_lead = prepare(m_tr, angle_scale("m", lead))
+    for a, b in zip(CoggingTerm(order=6).measured(rad), CoggingTerm(order=6).measured(with_lead)):
+        np.testing.assert_allclose(a, b, atol=1e-9)
+    with pytest.raises(TraceError, match="rad, deg"):
+        angle_scale("furlong")
+    with pytest.raises(TraceError, match="positive"):
+        angle_scale("m", -1.0)
+
+
+def test_cogging_in_degrees_and_metres_gives_the_same_order_or_a_clear_refusal():
+    case = harness.Case("cogging", "moderate", "sweep_slow", 0,
+                        harness.INJECTIONS["cogging"][1])
+    rad = harness.run_case(case, chain=False).diagnosis
+    deg = harness.run_case(harness.Case(**{**case.__dict__, "unit": "deg"}), chain=False).diagnosis
+    assert rad.verdict.effect == deg.verdict.effect == "cogging"
+    assert rad.candidates[0].params["cog_order"] == deg.candidates[0].params["cog_order"] == 6
+    m = harness.run_case(harness.Case(**{**case.__dict__, "unit": "m"}), chain=False,
+                         state_lead=False).diagnosis
+    cog = next(c for c in m.candidates if c.effect == "cogging")
+    assert m.verdict.effect != "cogging" and cog.testable is False
+    assert "not an angle" in cog.why
+
+
+def test_cli_position_unit_options(tmp_path, capsys):
+    f = DEV_DIR / "diag_b.csv"
+    if not f.exists():
+        pytest.skip("dev data not present (../shared/datasets/dev)")
+    with pytest.raises(SystemExit) as exc:
+        main(["diagnose", str(f), "--position-unit", "furlong"])
+    assert exc.value.code == 2 and "invalid choice" in capsys.readouterr().err
+
+
+# ------------------------------------------------ item 4: compliance vs the truth
+def test_shaft_under_an_ordinary_multisine_is_testable_and_found():
+    """A two-mass resonance (~40 Hz) under a 0.3-6 Hz multisine: the former rule
+    (excitation bandwidth must reach half the resonance) called it untestable and
+    named another effect; the true structure closes a significant part of the gap on
+    held-out data, so it is testable and it is named."""
+    case = harness.Case("shaft_compliance", "moderate", "multisine", 0,
+                        harness.INJECTIONS["shaft_compliance"][1])
+    d = harness.run_case(case, chain=False).diagnosis
+    sc = next(c for c in d.candidates if c.effect == "shaft_compliance")
+    assert sc.testable and sc.significant and sc.shrink > 0.3
+    assert d.verdict.effect == "shaft_compliance"
+    wn = np.sqrt(case.changes["shaft_stiffness"] / harness.DISK_KGM2["shaft_compliance"])
+    assert abs(sc.params["wn_rad_s"] / wn - 1) < 0.1
+
+
+def test_slow_ramp_cannot_show_a_shaft():
+    from gearbench.analysis.diagnose import simerror, testability
+    from gearbench.analysis.diagnose.nominal import (fit_model, fit_windows, kt_over_j,
+                                                     nominal_terms, prepare)
+    sig = prepare(harness.blind_trace(harness.Case(None, "-", "sweep_slow", 0, {}))[0])
+    win = fit_windows(sig, np.ones(len(sig), bool))
+    floor = simerror.noise_floor(sig, kt_over_j(fit_model(sig, nominal_terms(), win)[0]), 100)
+    t = testability.assess(sig, floor, win, 100, False)["shaft_compliance"]
+    assert not t.testable and t.min_amplitude["highest_resonance_hz"] < testability.F_SHAFT_MIN
+
+
+# ------------------------------------------------ simulator friction options
+def _steady_current(motor, speed):
+    from gearbench.sim import simulate_motor
+    tr = simulate_motor(motor, np.full(3000, speed), mode="velocity", seed=3,
+                        include_truth=True)
+    return tr, np.asarray(tr["true_current_a"])[1500:]
+
+
+def test_sim_direction_dependent_friction_option():
+    """Tc_asym / D_asym: the steady current forward and back differ by exactly the
+    asymmetry (true current; cogging and other effects off); off by default."""
+    from dataclasses import replace
+    from gearbench.sim import MotorParams
+
+    assert MotorParams().Tc_asym == 0.0 and MotorParams().D_asym == 0.0
+    m = replace(harness.clean_motor(0), Tc=0.005, Tc_asym=0.002, D=2e-6, D_asym=5e-7)
+    w = 100.0
+    fwd = float(np.mean(_steady_current(m, w)[1]))
+    back = float(np.mean(_steady_current(m, -w)[1]))
+    # forward: Kt i = Tc + Tc_asym + (D + D_asym) w; back: Kt i = -(Tc - Tc_asym) - (D - D_asym) w
+    assert (fwd + back) * m.Kt == pytest.approx(2 * (0.002 + 5e-7 * w), rel=0.03)
+    assert (fwd - back) * m.Kt == pytest.approx(2 * (0.005 + 2e-6 * w), rel=0.03)
+
+
+def test_sim_position_dependent_friction_option():
+    """Tc_pos_amp / Tc_pos_order: at (nearly) constant speed the friction torque
+    Kt i - J w' - D w follows Tc (1 + amp sin(order theta)) over the angle."""
+    from dataclasses import replace
+    from gearbench.sim import MotorParams
+
+    assert MotorParams().Tc_pos_amp == 0.0
+    m = replace(harness.clean_motor(0), Tc=0.008, Tc_pos_amp=0.5, Tc_pos_order=3)
+    tr, i = _steady_current(m, 20.0)
+    th = np.asarray(tr["position_rad"])[1500:]
+    w = np.asarray(tr["true_velocity_rad_s"])
+    acc = np.gradient(w, 1e-3)[1500:]
+    friction = m.Kt * i - m.J * acc - m.D * w[1500:]
+    X = np.column_stack([np.ones_like(th), np.sin(3 * th), np.cos(3 * th)])
+    c = np.linalg.lstsq(X, friction, rcond=None)[0]
+    assert c[0] == pytest.approx(0.008, rel=0.05)
+    assert c[1] == pytest.approx(0.008 * 0.5, rel=0.1)
+    assert abs(c[2]) < 0.1 * 0.008 * 0.5

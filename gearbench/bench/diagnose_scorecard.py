@@ -1,11 +1,15 @@
-"""Scorecard of the sim-to-real diagnoser on injected effects (issue 6).
+"""Scorecard of the sim-to-real diagnoser on injected effects (issues 6 and 13).
 
-    python -m gearbench.bench diagnose_scorecard [--quick] [--seeds N] [--broadband] [--json FILE]
-    python -m gearbench.bench.diagnose_scorecard ...
+    python -m gearbench.bench diagnose_scorecard [--quick | --full] [--cases LIST]
+        [--sections single,composite,units,bench] [--seeds N] [--json FILE]
 
-Prints the confusion matrix (true effect x verdict), the detection rate against
-amplitude, the false-alarm rate on clean controls, the shrink of the true effect, and
-detection over the cases the diagnoser judged testable (from the trace alone) vs all.
+Default (a few minutes of CPU): every effect once at moderate amplitude under a
+reversing multisine, clean controls, the composite cases, a units subset and the
+reducer-bench effects.  ``--quick``: a smaller subset of each section.  ``--full``:
+every amplitude and excitation (long).  ``--cases``: only these cases (effect names,
+``clean``, composites as ``a+b``).  Prints false alarms, detection and isolation per
+effect, testability judged from the trace vs the truth, composite recall and order of
+size, units consistency and the bench effects.
 """
 from __future__ import annotations
 
@@ -18,11 +22,22 @@ from collections import Counter, defaultdict
 import numpy as np
 
 NAME = "diagnose_scorecard"
-HELP = "diagnoser scorecard: confusion matrix, detection vs amplitude, false alarms, shrink"
+HELP = "diagnoser scorecard: false alarms, detection/isolation per effect, composites, units, bench"
+
+SECTIONS = ("single", "composite", "units", "bench")
+#: --quick: effects kept in the single and composite sections.
+QUICK_EFFECTS = ("coulomb_friction", "current_offset", "time_delay", "cogging",
+                 "shaft_compliance", "direction_friction")
 
 
 def _abbrev(name):
     return "none" if name is None else "".join(w[:3] for w in name.split("_"))[:7]
+
+
+def _wanted(args, name: str | None) -> bool:
+    if not args.cases:
+        return True
+    return (name or "clean") in args.cases
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -30,24 +45,33 @@ def main(argv: list[str] | None = None) -> int:
     from ..analysis.diagnose.effects import NAMES
 
     ap = argparse.ArgumentParser(prog="diagnose_scorecard", description=HELP)
-    ap.add_argument("--quick", action="store_true", help="moderate amplitude, one excitation")
+    size = ap.add_mutually_exclusive_group()
+    size.add_argument("--quick", action="store_true", help="a small subset of every section")
+    size.add_argument("--full", action="store_true",
+                      help="every amplitude and excitation, three clean seeds (long)")
+    ap.add_argument("--cases", type=lambda v: [c.strip() for c in v.split(",") if c.strip()],
+                    help="only these cases: effect names, 'clean', composites as a+b")
+    ap.add_argument("--sections", type=lambda v: [c.strip() for c in v.split(",")],
+                    default=list(SECTIONS), help=f"comma list of {', '.join(SECTIONS)}")
     ap.add_argument("--seeds", type=int, default=1, help="seeds per injected case")
     ap.add_argument("--json", help="write per-case results to this file")
     ap.add_argument("--broadband", action="store_true",
-                    help="add the broadband (chirp to 80 Hz) excitation to the case set")
-    ap.add_argument("--no-single", action="store_true",
-                    help="skip the single-effect cases (composite, units and bench only)")
-    ap.add_argument("--no-bench", action="store_true", help="skip the reducer-bench cases")
-    ap.add_argument("--no-units", action="store_true", help="skip the units-variant cases")
+                    help="with --full: add the broadband (chirp to 80 Hz) excitation")
     args = ap.parse_args(argv)
+    bad = [s for s in args.sections if s not in SECTIONS]
+    if bad:
+        ap.error(f"unknown section(s) {', '.join(bad)}; choose from {', '.join(SECTIONS)}")
     report: dict = {}
-    if not args.no_single:
+    t0 = time.perf_counter()
+    if "single" in args.sections:
         report["single"] = _single(args, harness, NAMES)
-    report["composite"] = _composite(args, harness)
-    if not args.no_units:
+    if "composite" in args.sections:
+        report["composite"] = _composite(args, harness)
+    if "units" in args.sections:
         report["units"] = _units(args, harness)
-    if not args.no_bench:
+    if "bench" in args.sections:
         report["bench"] = _bench(args)
+    print(f"\nScorecard done in {time.perf_counter() - t0:.0f} s")
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(report, fh, indent=1, default=str)
@@ -62,20 +86,28 @@ def _composite(args, harness) -> list[dict]:
     seeds = tuple(range(args.seeds))
     rows = []
     t0 = time.perf_counter()
-    for effects in harness.COMPOSITES:
+    comps = [c for c in harness.COMPOSITES if _wanted(args, "+".join(c))]
+    if args.quick and not args.cases:
+        comps = comps[:2]
+    for effects in comps:
         for seed in seeds:
             case = harness.composite_case(effects, seed=seed)
             out = harness.run_case(case)
             solo = {e: nominal_gap(harness.blind_trace(harness.composite_case((e,), seed=seed))[0])
                     for e in effects}
             truth_order = sorted(effects, key=lambda e: -solo[e])
-            found = [e for e in out.chain if e in effects]
+            # the diagnosis's order of size: what removing each effect from the final
+            # model reopens (drop-one, held-out) — not the order of addition
+            size = {c["effect"]: c["size_rank"] for c in out.diagnosis.chain}
+            found = sorted((e for e in out.chain if e in effects), key=lambda e: size[e])
             rem = out.diagnosis.remaining
             rows.append({"effects": list(effects), "seed": seed, "chain": out.chain,
                          "found": {e: e in out.chain for e in effects},
                          "shrink": [round(c["shrink_heldout"], 3) for c in out.diagnosis.chain],
                          "cumulative": [round(c["cumulative_shrink"], 3) for c in out.diagnosis.chain],
                          "order_ok": found == [e for e in truth_order if e in found],
+                         "size_rank": size, "truth_order": truth_order,
+                         "dropped": [d["effect"] for d in out.diagnosis.dropped],
                          "solo_gap_rad_s": solo, "extra": [e for e in out.chain if e not in effects],
                          "remaining_gap_ratio": rem.get("gap_ratio"),
                          "at_floor": rem.get("at_noise_floor"),
@@ -86,23 +118,27 @@ def _composite(args, harness) -> list[dict]:
     hit = sum(sum(r["found"].values()) for r in rows)
     print(f"\nComposite cases (moderate levels, reversing multisine) — {len(rows)} cases, "
           f"{time.perf_counter() - t0:.0f} s")
-    print(f"{'injected':48s}{'chain (held-out shrink per step)':56s}{'order':>6s}{'left':>7s}")
+    print(f"{'injected':48s}{'chain (held-out shrink per step) [size rank]':52s}{'order':>6s}{'left':>7s}  dropped")
     for r in rows:
-        ch = ", ".join(f"{_abbrev(e)} {s:.0%}" for e, s in zip(r["chain"], r["shrink"]))
-        print(f"{'+'.join(r['effects']):48s}{ch:56s}{('ok' if r['order_ok'] else 'NO'):>6s}"
-              f"{r['remaining_gap_ratio']:6.1f}x" + (" floor" if r["at_floor"] else
-                                                      " unknown" if r["unknown_effect"] else ""))
+        ch = ", ".join(f"{_abbrev(e)} {s:.0%} [{r['size_rank'][e]}]"
+                       for e, s in zip(r["chain"], r["shrink"]))
+        print(f"{'+'.join(r['effects']):48s}{ch:52s}{('ok' if r['order_ok'] else 'NO'):>6s}"
+              f"{r['remaining_gap_ratio']:6.2f}x" + (" floor" if r["at_floor"] else
+                                                       " unknown" if r["unknown_effect"] else " ")
+              + "  " + (",".join(map(_abbrev, r["dropped"])) or "-"))
     print(f"Composite recall: {hit}/{n_eff} injected effects named in the chain "
           f"({hit / max(n_eff, 1):.0%}); all named in {sum(all(r['found'].values()) for r in rows)}"
           f"/{len(rows)} cases; order of size right in {sum(r['order_ok'] for r in rows)}/{len(rows)}; "
-          f"extra effects named: {sum(len(r['extra']) for r in rows)}; remainder at the noise floor "
-          f"in {sum(bool(r['at_floor']) for r in rows)}/{len(rows)}")
+          f"extra effects named: {sum(len(r['extra']) for r in rows)} "
+          f"({', '.join(e for r in rows for e in r['extra']) or 'none'}); remainder at the noise "
+          f"floor in {sum(bool(r['at_floor']) for r in rows)}/{len(rows)}, within 1.5x in "
+          f"{sum((r['remaining_gap_ratio'] or 9) <= 1.5 for r in rows)}/{len(rows)}")
     return rows
 
 
 #: Cases re-run in other position units (the same physics): clean, one effect, composite.
 UNIT_CASES = ((None, "reversing"), (("coulomb_friction",), "reversing"),
-              (("direction_friction",), "reversing"), (("time_delay",), "multisine"),
+              (("cogging",), "sweep_slow"), (("time_delay",), "multisine"),
               (("coulomb_friction", "current_offset"), "reversing"))
 
 
@@ -112,7 +148,10 @@ def _units(args, harness) -> list[dict]:
 
     rows = []
     t0 = time.perf_counter()
-    for effects, ex in UNIT_CASES:
+    todo = [(e, x) for e, x in UNIT_CASES if _wanted(args, "+".join(e or ()) or None)]
+    if args.quick and not args.cases:
+        todo = todo[1:3]
+    for effects, ex in todo:
         res = {}
         for unit in harness.UNITS:
             case = (harness.composite_case(effects, ex, 0, unit) if effects else
@@ -120,7 +159,8 @@ def _units(args, harness) -> list[dict]:
             try:
                 out = harness.run_case(case)
                 res[unit] = {"chain": out.chain, "verdict": out.called,
-                             "shrink": [round(c["shrink_heldout"], 3) for c in out.diagnosis.chain]}
+                             "shrink": [round(c["shrink_heldout"], 3) for c in out.diagnosis.chain],
+                             "params": [c.get("params_final", c["params"]) for c in out.diagnosis.chain]}
             except GearbenchError as exc:
                 res[unit] = {"refused": str(exc)}
         same = all(r.get("chain") == res["rad"].get("chain") and
@@ -129,7 +169,8 @@ def _units(args, harness) -> list[dict]:
                              for r in res.values())
         rows.append({"effects": list(effects or ()), "excitation": ex, "by_unit": res,
                      "same_chain": same, "same_shrink": close})
-    print(f"\nUnits consistency (rad / deg / m of the same trace) — {time.perf_counter() - t0:.0f} s")
+    print(f"\nUnits consistency (rad / deg / m with a 2.5 mm lead, of the same trace; unit "
+          f"stated) — {time.perf_counter() - t0:.0f} s")
     for r in rows:
         name = "+".join(r["effects"]) or "clean"
         print(f"{name:40s}" + "  ".join(f"{u}: {', '.join(map(_abbrev, v.get('chain', []))) or ('refused' if 'refused' in v else 'none')}"
@@ -147,14 +188,15 @@ def _bench(args) -> list[dict]:
 
     rows = []
     t0 = time.perf_counter()
-    for seed in range(max(args.seeds, 2)):
-        for eff in (None, *BENCH_INJECTIONS):
+    effs = [e for e in (None, *BENCH_INJECTIONS) if _wanted(args, e)]
+    for seed in range(1 if args.quick else max(args.seeds, 2)):
+        for eff in effs:
             d = diagnose_bench(bench_case_trace(eff, seed))
             rows.append({"effect": eff, "seed": seed, "chain": [c["effect"] for c in d.chain],
                          "shrink": [round(c["shrink_heldout"], 3) for c in d.chain]})
     print(f"\nReducer bench effects (simulated bench, blind) — {len(rows)} cases, "
           f"{time.perf_counter() - t0:.0f} s")
-    for eff in (None, *BENCH_INJECTIONS):
+    for eff in effs:
         rs = [r for r in rows if r["effect"] == eff]
         first = sum(bool(r["chain"]) and r["chain"][0] == eff for r in rs)
         named = sum(eff in r["chain"] for r in rs) if eff else sum(not r["chain"] for r in rs)
@@ -169,13 +211,25 @@ def _bench(args) -> list[dict]:
 def _single(args, harness, NAMES) -> list[dict]:
 
     seeds = tuple(range(args.seeds))
-    if args.quick:
-        cs = harness.cases(levels=("moderate",), excitations=("multisine", "reversing"),
-                           seeds=seeds, clean_seeds=(0, 1))
-    else:
+    if args.full:
         ex = harness.EXCITATIONS + ((harness.BROADBAND,) if args.broadband else ())
         cs = harness.cases(excitations=ex, seeds=seeds,
                            clean_seeds=tuple(range(max(3, 3 * args.seeds))))
+    else:
+        # each effect once at moderate amplitude under the reversing multisine (it has
+        # reversals, speed and current variation); clean controls under both multisines
+        cs = harness.cases(levels=("moderate",), excitations=("reversing",), seeds=seeds,
+                           clean_seeds=())
+        cs += [harness.Case(None, "-", ex, s, {}) for ex in ("reversing", "multisine")
+               for s in seeds]
+        # item 4 of issue 13: shafts under an ordinary (<= 6 Hz) multisine, every level —
+        # the testability rule checked against the truth
+        cs += [harness.Case("shaft_compliance", lev, "multisine", s,
+                            harness.INJECTIONS["shaft_compliance"][li])
+               for li, lev in enumerate(harness.LEVELS) for s in seeds]
+        if args.quick:
+            cs = [c for c in cs if c.effect in (None, *QUICK_EFFECTS)]
+    cs = [c for c in cs if _wanted(args, c.effect)]
     t0 = time.perf_counter()
     outs = []
     for k, c in enumerate(cs):
@@ -243,6 +297,31 @@ def _single(args, harness, NAMES) -> list[dict]:
               f"of testable cases vs {tot['all'] / tot['n']:.0%} of all; isolation "
               f"{tot['iso'] / max(tot['te'], 1):.0%} of testable")
 
+    # the testability rules checked against the truth: does the injected effect's own
+    # structure, fitted on the trace, close a significant part of the gap on held-out
+    # data (t, dBIC and shrink, before the testability gate)?  "untestable but shows"
+    # means a rule hides a real effect; "testable, does not show" is allowed (too small)
+    from ..analysis.diagnose import verdict as vd
+
+    print("\nTestability vs truth (shows = the true effect's fit closes >= 10 % of the gap on "
+          "held-out data, t > 2, dBIC < -10)")
+    print(f"{'effect':22s}{'test+shows':>12s}{'test+not':>10s}{'UNTEST+shows':>14s}{'untest+not':>12s}")
+    wrong = 0
+    for eff in NAMES:
+        tally = Counter()
+        for o in outs:
+            if o.case.effect != eff:
+                continue
+            c = next((c for c in o.diagnosis.candidates if c.effect == eff), None)
+            shows = bool(c is not None and c.t_stat > vd.T_CRIT and c.delta_bic < -vd.BIC_STRONG
+                         and c.shrink >= 0.1)
+            tally[(bool(o.testable), shows)] += 1
+        if tally:
+            wrong += tally[(False, True)]
+            print(f"{eff:22s}{tally[(True, True)]:>12d}{tally[(True, False)]:>10d}"
+                  f"{tally[(False, True)]:>14d}{tally[(False, False)]:>12d}")
+    print(f"Cases where a testability rule hid an effect that shows: {wrong}")
+
     clean = [o for o in outs if o.case.effect is None]
     fa = [o for o in clean if o.called is not None]
     print(f"\nFalse alarms on clean controls: {len(fa)}/{len(clean)}"
@@ -267,6 +346,9 @@ def _single(args, harness, NAMES) -> list[dict]:
           f"more than one effect named in {len(extra)}/{len(inj)}; remainder at the floor in "
           f"{floor}/{named} where named; clean controls with a non-empty chain: "
           f"{len(chain_fa)}/{len(clean)}")
+    print("Chains per case: " + "; ".join(
+        f"{o.case.effect or 'clean'}/{o.case.excitation[:4]} -> {','.join(map(_abbrev, o.chain)) or '-'}"
+        for o in outs))
     return [{"effect": o.case.effect, "level": o.case.level,
              "excitation": o.case.excitation, "seed": o.case.seed,
              "called": o.called, "confused_with": o.diagnosis.verdict.confused_with,

@@ -23,6 +23,13 @@ def add_arguments(p) -> None:
                         "and current): where the simulated reducer and the bench disagree")
     p.add_argument("--model", metavar="MODEL.json",
                    help='nominal model {"Kt":..,"J":..,"D":..} instead of identifying it on the trace')
+    p.add_argument("--position-unit", default="rad", choices=("rad", "deg", "rev", "m", "mm", "um"),
+                   help="unit of the trace's position column (default rad): patterns per "
+                        "motor revolution (cogging, ripple) are tested only in a known angle")
+    p.add_argument("--travel-per-rev", type=float, metavar="LEAD",
+                   help="travel per motor revolution in the position unit (a linear axis's "
+                        "screw lead, e.g. 0.0025 for 2.5 mm in m): lets a linear axis be "
+                        "tested for cogging and ripple")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--report", metavar="DIR", help="write PNG residual maps to DIR")
     p.add_argument("--rrd", metavar="FILE", help="log residuals to a Rerun .rrd file")
@@ -52,7 +59,8 @@ def run(args) -> int:
         raise TraceError(f"{p}: is a folder, not a trace file; pass a .csv or .parquet file")
     trace = Trace.read(p)
     model = load_model(args.model) if args.model else None
-    result = diagnose(trace, model)
+    result = diagnose(trace, model, position_unit=args.position_unit,
+                      travel_per_rev=args.travel_per_rev)
     out = _jsonable(result.as_dict())
     if args.report:
         out["report"] = write_report(result, Path(args.report))
@@ -137,6 +145,11 @@ def summary(d: dict, name: str) -> str:
             lines.append(f"  {k}. {c['effect']:22s} shrink {c['shrink_heldout']:6.0%}  cumulative "
                          f"{c['cumulative_shrink']:6.0%}  ({c['gap_ratio_after']:.2f}x floor after)"
                          + (f"  [alike: {', '.join(c['confused_with'])}]" if c["confused_with"] else ""))
+        lines.append("  size (error reopened without it, held-out): " + ", ".join(
+            f"{c['effect']} {c['drop_one_gap_rad_s']:.3g}" for c in
+            sorted(chain, key=lambda c: c["size_rank"])))
+    for x in d.get("dropped") or []:
+        lines.append(f"  dropped {x['effect']}: {x['why']}")
     if rem:
         state = ("at the noise floor" if rem["at_noise_floor"] else
                  "UNKNOWN EFFECT: a significant gap that no candidate explains"

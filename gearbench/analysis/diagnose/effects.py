@@ -136,6 +136,9 @@ class Effect:
 class CoulombTerm(Term):
     """-Tc/J * tanh(omega/eps): Coulomb friction, smoothed sign."""
 
+    #: simulated semi-implicitly (simerror.simulate): stops motion, never reverses it
+    opposes_motion = True
+
     names: tuple[str, ...] = ("tc_over_j",)
     eps: float = 0.3
 
@@ -146,6 +149,9 @@ class CoulombTerm(Term):
 @dataclass(frozen=True)
 class StribeckTerm(Term):
     """-Ts/J * tanh(omega/eps) exp(-(omega/ws)^2): static friction above Coulomb."""
+
+    #: simulated semi-implicitly (simerror.simulate): stops motion, never reverses it
+    opposes_motion = True
 
     names: tuple[str, ...] = ("ts_over_j",)
     ws: float = 5.0
@@ -225,7 +231,8 @@ class CoggingTerm(Term):
     order: int = 6
 
     def simulate(self, sig, theta, omega, idx, state):
-        return [np.sin(self.order * theta), np.cos(self.order * theta)]
+        a = self.order * sig.rad_per_unit * theta
+        return [np.sin(a), np.cos(a)]
 
 
 @dataclass(frozen=True)
@@ -237,7 +244,8 @@ class RippleTerm(Term):
 
     def simulate(self, sig, theta, omega, idx, state):
         i = sig.current_a[idx]
-        return [i * np.sin(self.order * theta), i * np.cos(self.order * theta)]
+        a = self.order * sig.rad_per_unit * theta
+        return [i * np.sin(a), i * np.cos(a)]
 
 
 MAX_ORDER = 36
@@ -247,6 +255,10 @@ class Cogging(Effect):
     name = "cogging"
 
     def grid(self, sig, base):
+        # orders are per motor revolution: only where the position unit is known as an
+        # angle (or a lead was given) — see Signals.rad_per_unit
+        if sig.rad_per_unit is None:
+            return []
         return [{"cog_order": n} for n in range(1, MAX_ORDER + 1)]
 
     def extra(self, hp):
@@ -261,6 +273,8 @@ class TorqueRipple(Effect):
     name = "torque_ripple"
 
     def grid(self, sig, base):
+        if sig.rad_per_unit is None:
+            return []
         return [{"ripple_order": n} for n in range(1, MAX_ORDER + 1)]
 
     def extra(self, hp):
@@ -597,7 +611,8 @@ class PositionFrictionTerm(Term):
     def simulate(self, sig, theta, omega, idx, state):
         s = np.tanh(omega / self.eps)
         if self.order:
-            return [-s * np.sin(self.order * theta), -s * np.cos(self.order * theta)]
+            a = self.order * sig.rad_per_unit * theta
+            return [-s * np.sin(a), -s * np.cos(a)]
         x = 2.0 * (theta - self.lo) / self.span - 1.0
         return [-s * x, -s * (1.5 * x * x - 0.5)]
 
@@ -614,6 +629,8 @@ class PositionFriction(Effect):
         eps = _chosen_eps(sig, base) or _eps_grid(sig)[1]
         lo, span = float(np.min(sig.position_rad)), float(np.ptp(sig.position_rad)) or 1.0
         g = [{"order": 0, "eps_rad_s": eps, "lo": lo, "span": span}]
+        if sig.rad_per_unit is None:    # rotor-angle orders need an angle (see Signals)
+            return g
         return g + [{"order": n, "eps_rad_s": eps, "lo": lo, "span": span}
                     for n in range(1, POS_FRICTION_ORDERS + 1)]
 

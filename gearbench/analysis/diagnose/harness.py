@@ -109,6 +109,9 @@ class Case:
 
 #: Position unit -> factor from radians.
 UNITS = {"rad": 1.0, "deg": 180.0 / np.pi, "m": 0.0025 / (2 * np.pi)}
+#: What a user states about each unit: the travel per motor revolution (a linear axis's
+#: lead), None for angles.
+LEAD = {"rad": None, "deg": None, "m": 0.0025}
 
 #: Composite cases: effects injected together (moderate levels), reversing excitation.
 COMPOSITES: tuple[tuple[str, ...], ...] = (
@@ -216,6 +219,10 @@ def blind_trace(case: Case) -> tuple[Trace, GivenModel | None]:
     return blind, given
 
 
-def run_case(case: Case, chain: bool = True) -> Outcome:
+def run_case(case: Case, chain: bool = True, state_lead: bool = True) -> Outcome:
+    """Diagnose a case blind, stating its position unit (and, for a linear unit, the
+    lead unless ``state_lead`` is False) as a user would."""
     trace, given = blind_trace(case)
-    return Outcome(case, diagnose(trace, given, chain=chain))
+    lead = LEAD[case.unit] if state_lead else None
+    return Outcome(case, diagnose(trace, given, chain=chain, position_unit=case.unit,
+                                  travel_per_rev=lead))

@@ -41,6 +41,11 @@ class Signals:
     current_a: np.ndarray
     dt_s: float
     source: str = "<array>"
+    #: radians of rotor angle per position unit (1 for rad, pi/180 for deg, 2 pi / lead
+    #: for a linear axis with a known lead); None: the unit is not an angle and no lead
+    #: was given, so nothing periodic in the rotor angle (cogging, ripple orders) can be
+    #: tested — never assumed
+    rad_per_unit: float | None = 1.0
     # per-trace memo (current maps, window rows, disk tracks): tied to this object, so
     # nothing computed for one trace can leak into another's diagnosis
     cache: dict = field(default_factory=dict, compare=False, repr=False)
@@ -49,8 +54,31 @@ class Signals:
         return len(self.time_s)
 
 
-def prepare(trace: Trace) -> Signals:
-    """Validate a single-motor trace and estimate velocity (SG derivative, order 2)."""
+#: Position units the diagnoser accepts -> radians of motor angle per unit (None: a
+#: length, whose relation to the motor angle only a lead can give).
+POSITION_UNITS: dict[str, float | None] = {
+    "rad": 1.0, "deg": np.pi / 180.0, "rev": 2.0 * np.pi,
+    "m": None, "mm": None, "um": None}
+
+
+def angle_scale(unit: str = "rad", travel_per_rev: float | None = None) -> float | None:
+    """Radians of motor angle per position unit, from what the user stated: the unit
+    and, for a linear axis (or a gear between motor and encoder), the travel per motor
+    revolution in that unit.  None when the unit is a length and no lead is given."""
+    if unit not in POSITION_UNITS:
+        raise TraceError(f"position unit {unit!r} unknown; use one of "
+                         f"{', '.join(POSITION_UNITS)}")
+    if travel_per_rev is not None:
+        if not (np.isfinite(travel_per_rev) and travel_per_rev > 0):
+            raise TraceError(f"travel per revolution must be a positive number of {unit} "
+                             f"per motor revolution (got {travel_per_rev!r})")
+        return 2.0 * np.pi / float(travel_per_rev)
+    return POSITION_UNITS[unit]
+
+
+def prepare(trace: Trace, rad_per_unit: float | None = 1.0) -> Signals:
+    """Validate a single-motor trace and estimate velocity (SG derivative, order 2).
+    ``rad_per_unit``: see ``Signals`` (from the user's stated position unit)."""
     trace.validate(("position_rad", "current_a"), min_samples=200)
     dt = trace.dt_s
     theta = np.asarray(trace["position_rad"], float)
@@ -62,7 +90,7 @@ def prepare(trace: Trace) -> Signals:
         raise TraceError(f"{trace.source}: column 'current_a' is constant; check the current "
                          f"channel and its scaling")
     omega = savgol_filter(theta, VELOCITY_WINDOW, 2, deriv=1, delta=dt)
-    return Signals(trace.time_s, theta, omega, current, dt, trace.source)
+    return Signals(trace.time_s, theta, omega, current, dt, trace.source, rad_per_unit)
 
 
 # --------------------------------------------------------------------- model terms

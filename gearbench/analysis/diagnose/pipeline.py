@@ -10,8 +10,9 @@ from scipy.optimize import minimize
 from ...trace import Trace
 from . import simerror, testability, verdict as vd, where as wh
 from .effects import LIBRARY, Base, Effect, EncoderQuantization, InertiaMismatch
-from .nominal import (GivenModel, Model, Signals, fit_model, fit_windows, hold_fraction,
-                      integrated_rows, measured_features, physical, prepare, scan_rss)
+from .nominal import (GivenModel, Model, Signals, Term, angle_scale, fit_model, fit_windows,
+                      hold_fraction, integrated_rows, measured_features, physical, prepare,
+                      scan_rss)
 
 
 @dataclass(frozen=True)
@@ -25,12 +26,43 @@ class Diagnosis:
     residuals: dict = field(repr=False, default_factory=dict)   # arrays for plots/rerun
     chain: list[dict] = field(default_factory=list)   # effects in the order added
     remaining: dict = field(default_factory=dict)     # what the chain leaves unexplained
+    #: effects added and later removed (backward elimination: no longer significant
+    #: once later effects were in the model)
+    dropped: list[dict] = field(default_factory=list)
 
     def as_dict(self) -> dict:
         return {"nominal": self.nominal, "where": self.where,
                 "candidates": [c.as_dict() for c in self.candidates],
                 "verdict": self.verdict.as_dict(),
-                "chain": self.chain, "remaining": self.remaining}
+                "chain": self.chain, "dropped": self.dropped, "remaining": self.remaining}
+
+
+@dataclass(frozen=True)
+class NullTerm(Term):
+    """Two random smooth torques with no physics in them: the chain's null candidate.
+    What fitting them closes on held-out data is what any flexible regressor would;
+    an effect must do significantly better than that to be added."""
+
+    names: tuple[str, ...] = ("null_1", "null_2")
+    seed: int = 0
+
+    def _cols(self, sig):
+        key = ("null", self.seed)
+        if key not in sig.cache:
+            rng = np.random.default_rng(self.seed)
+            n = len(sig)
+            # varies on the scale of half a horizon, like the effects' signatures
+            width = max(3, int(round(0.5 * simerror.HORIZON_S / sig.dt_s)))
+            k = np.ones(width) / width
+            cols = []
+            for _ in self.names:
+                x = np.convolve(rng.standard_normal(n + width), k, mode="valid")[:n]
+                cols.append(x / (np.std(x) or 1.0))
+            sig.cache[key] = cols
+        return sig.cache[key]
+
+    def simulate(self, sig, theta, omega, idx, state):
+        return [c[idx] for c in self._cols(sig)]
 
 
 #: Most trace samples x grid columns featurised at once in a batched scan (memory).
@@ -223,7 +255,47 @@ def _evaluate(sig, sp, wins, win_all, st: _State, floor, v_rms, ov, order, given
         after = np.maximum(_held_out(sig, sp, models, order) - st.noise_removed, 0.0)
         refined_folds[sc.effect] = models
         ranked[i] = vd.rescore(sc, st.mse, after, floor.mse, v_rms)
+    # the null: random smooth regressors fitted and scored the same way; a candidate is
+    # significant only if it beats them too (paired t on held-out horizons, and a
+    # larger shrink) — flexible candidates soak up structure any regressor would
+    null_mse = _null_mse(sig, sp, wins, st, order)
+    null = vd.score("null", {}, st.mse, null_mse, 2, floor.mse, v_rms, overlap=ov)
+    ranked = vd.rank([sc if sc.effect == "encoder_quantization" else
+                      vd.against_null(sc, null_mse, null.shrink) for sc in ranked])
     return ranked, refits, refined_folds
+
+
+def _fit_bases(sig, sp, wins, bases, order, noise_removed: float = 0.0):
+    """Per-fold models for ``bases`` (fitted on each fold, refined on simulation error)
+    and their held-out per-horizon MSE."""
+    folds = []
+    for b, w, f in zip(bases, wins, sp.folds):
+        m = fit_model(sig, b.terms(), w, b.fixed())[0]
+        folds.append(simerror.refine(sig, m, f.fit_starts, sp.horizon, tuple(b.fixed())))
+    mse = np.maximum(_held_out(sig, sp, folds, order) - noise_removed, 0.0)
+    return folds, mse
+
+
+def _null_mse(sig, sp, wins, st: _State, order) -> np.ndarray:
+    bases = [_NullBase(b) for b in st.bases]
+    return _fit_bases(sig, sp, wins, bases, order, st.noise_removed)[1]
+
+
+@dataclass(frozen=True)
+class _NullBase:
+    """A base with the null's random regressors appended."""
+
+    base: Base
+
+    def terms(self):
+        return self.base.terms() + [NullTerm(seed=0)]
+
+    def fixed(self):
+        return self.base.fixed()
+
+
+def _without(base: Base, name: str) -> Base:
+    return Base(base.given, base.spring, tuple(c for c in base.chosen if c[0].name != name))
 
 
 def _gate(ranked, tests):
@@ -235,8 +307,15 @@ def _gate(ranked, tests):
 
 
 def diagnose(trace: Trace, model: GivenModel | None = None, *, chain: bool = True,
-             max_chain: int = MAX_CHAIN) -> Diagnosis:
+             max_chain: int = MAX_CHAIN, position_unit: str = "rad",
+             travel_per_rev: float | None = None) -> Diagnosis:
     """Diagnose one single-motor trace (columns position_rad, current_a).
+
+    ``position_unit`` is the unit of the position column as the user states it (rad,
+    deg, rev, m, mm, um) and ``travel_per_rev`` the travel per motor revolution in that
+    unit (a screw's lead): patterns per motor revolution (cogging, ripple, rotor-angle
+    friction orders) are tested only where the motor angle is known from them.
+    Everything else is unit-free (thresholds from the data).
 
     1. nominal: the paper's model (C = 0 unless a spring shows on held-out data),
        identified by integrated equation error, or ``model``;
@@ -247,11 +326,14 @@ def diagnose(trace: Trace, model: GivenModel | None = None, *, chain: bool = Tru
     4. the chain (``chain=True``): forward selection — the best significant effect is
        added to the model, every remaining candidate is scored again against the
        augmented model (all chosen effects' coefficients refitted together), until
-       the held-out error reaches the noise floor or no candidate is significant.
+       the held-out error reaches the noise floor or no candidate is significant;
+       a candidate must also beat a null (random smooth regressors fitted and scored
+       alike), and after each addition earlier effects no longer significant are
+       dropped (backward elimination, reported in ``dropped``).
 
     A pure function of its inputs: every memo lives on this call's ``Signals``.
     """
-    sig = prepare(trace)
+    sig = prepare(trace, angle_scale(position_unit, travel_per_rev))
     sp = simerror.split(sig)
     H = sp.horizon
     wins = [fit_windows(sig, f.fit_mask) for f in sp.folds]
@@ -311,19 +393,27 @@ def diagnose(trace: Trace, model: GivenModel | None = None, *, chain: bool = Tru
            "spring_kept": bool(base.spring), "given_model": model is not None}
     nominal = {"params": {**nominal_phys, **_sigmas(nom, model)}, "fit": fit}
 
-    steps, st = _chain(sig, sp, wins, win_all, st, floor, v_rms, ov, order, model, tests,
-                       ranked, refits, refined_folds, max_chain if chain else 1)
+    steps, st, dropped = _chain(sig, sp, wins, win_all, st, floor, v_rms, ov, order, model,
+                                tests, ranked, refits, refined_folds, max_chain if chain else 1)
     remaining = _remaining(sig, st, mse_nom, floor, starts, H, steps, where_cells, ov,
                            max_chain if chain else 1)
-    return Diagnosis(nominal, where_cells, ranked, verdict, maps, steps, remaining)
+    return Diagnosis(nominal, where_cells, ranked, verdict, maps, steps, remaining, dropped)
 
 
 def _chain(sig, sp, wins, win_all, st, floor, v_rms, ov, order, model, tests, ranked,
            refits, refined_folds, max_steps):
-    """Forward selection: add the best significant effect, rescore the rest."""
+    """Stepwise selection: add the best significant effect (forward), then drop any
+    earlier effect no longer significant with the later ones in the model (backward
+    elimination), rescore the rest; finally size each kept effect by what removing it
+    from the final model reopens (drop-one, held-out)."""
     gap0 = vd.excess(float(np.mean(st.mse)), floor.mse)
     steps: list[dict] = []
+    dropped: list[dict] = []
     H = sp.horizon
+    # held-out MSE of every model visited, by the names in it (settings are fixed once
+    # an effect is chosen, so the names identify the model)
+    seen = {(): st.mse}
+    quant = {}                       # encoder quantisation step -> noise variance removed
     for k in range(max_steps):
         best = next((sc for sc in ranked if sc.significant), None)
         if best is None:
@@ -332,9 +422,10 @@ def _chain(sig, sp, wins, win_all, st, floor, v_rms, ov, order, model, tests, ra
         name = v.effect
         best = next(sc for sc in ranked if sc.effect == name)
         if name == "encoder_quantization":
+            removed = float(np.mean(st.mse - best.mse_h))
+            quant[name] = removed
             st = _State(st.bases, st.base_all, st.folds, best.mse_h, st.model_all,
-                        st.noise_removed + float(np.mean(st.mse - best.mse_h)))
-            params = best.params
+                        st.noise_removed + removed)
         else:
             effect, fits = refits[name]
             folds = refined_folds.get(name) or [m for _, m, _ in fits]
@@ -342,15 +433,36 @@ def _chain(sig, sp, wins, win_all, st, floor, v_rms, ov, order, model, tests, ra
             base_all = st.base_all.with_effect(effect, fits[0][0])
             m_all, _ = fit_model(sig, base_all.terms(), win_all, base_all.fixed())
             st = _State(bases, base_all, folds, best.mse_h, m_all, st.noise_removed)
-            params = best.params
-        gap = vd.excess(float(np.mean(st.mse)), floor.mse)
-        steps.append({"effect": name, "params": params,
+        steps.append({"effect": name, "params": best.params,
                       "shrink_heldout": float(best.shrink),
-                      "cumulative_shrink": float(1.0 - gap / gap0) if gap0 > 0 else 0.0,
                       "significant": bool(best.significant), "delta_bic": float(best.delta_bic),
                       "t_stat": float(best.t_stat),
-                      "gap_ratio_after": float(np.sqrt(np.mean(st.mse) / floor.mse)),
+                      "t_vs_null": best.t_vs_null, "null_shrink": best.null_shrink,
                       "confused_with": v.confused_with, "experiment": v.experiment})
+        seen[_key(steps)] = st.mse
+        # backward elimination: is every earlier effect still significant given the rest?
+        for e, hp in list(st.base_all.chosen[:-1]):
+            if not _droppable(e.name, st.base_all):
+                continue
+            bases = [_without(b, e.name) for b in st.bases]
+            folds_wo, mse_wo = _fit_bases(sig, sp, wins, bases, order, st.noise_removed)
+            k_e = max(1, sum(len(t.names) for t in e.chain_terms(hp)[0])
+                      + _n_settings(e, sig, st.bases[0]))
+            keep = vd.score(e.name, {}, mse_wo, st.mse, k_e, floor.mse, v_rms, overlap=ov)
+            if keep.significant:
+                continue
+            base_all = _without(st.base_all, e.name)
+            m_all, _ = fit_model(sig, base_all.terms(), win_all, base_all.fixed())
+            st = _State(bases, base_all, folds_wo, mse_wo, m_all, st.noise_removed)
+            gone = next(s for s in steps if s["effect"] == e.name)
+            steps.remove(gone)
+            seen[_key(steps)] = st.mse
+            dropped.append({"effect": e.name, "params": gone["params"],
+                            "shrink_heldout_when_added": gone["shrink_heldout"],
+                            "dropped_after": name, "t_stat_to_keep": float(keep.t_stat),
+                            "delta_bic_to_keep": float(keep.delta_bic),
+                            "why": f"not significant once {name} was in the model "
+                                   f"(t {keep.t_stat:.1f}, dBIC {keep.delta_bic:.0f})"})
         at_floor = float(np.mean(st.mse)) <= (1.0 + vd.MATERIAL) * floor.mse
         if at_floor or k + 1 >= max_steps:
             break
@@ -358,14 +470,51 @@ def _chain(sig, sp, wins, win_all, st, floor, v_rms, ov, order, model, tests, ra
         err_cur = simerror.simulate(sig, st.model_all, starts, H)
         ranked, refits, refined_folds = _evaluate(
             sig, sp, wins, win_all, st, floor, v_rms, ov, order, model, err_cur,
-            exclude=_excluded(st.base_all, steps, model))
+            exclude=_excluded(st.base_all, steps, model) + tuple(d["effect"] for d in dropped))
         ranked = _gate(ranked, tests)
+
+    def mse_of(names: tuple) -> np.ndarray:
+        """Held-out MSE of the model with the chosen effects ``names`` only."""
+        if names not in seen:
+            bases = [Base(b.given, b.spring, tuple(c for c in b.chosen if c[0].name in names))
+                     for b in st.bases]
+            removed = sum(v for q, v in quant.items() if q in names)
+            seen[names] = _fit_bases(sig, sp, wins, bases, order, removed)[1]
+        return seen[names]
+
+    # cumulative shrink along the final chain (nested models in the order added), and
+    # each effect's size: the excess error removing it from the final model reopens
+    names = [s["effect"] for s in steps]
+    prev = gap0
+    for j, s in enumerate(steps):
+        gap = vd.excess(float(np.mean(mse_of(tuple(names[:j + 1])))), floor.mse)
+        s["shrink_heldout"] = float(1.0 - gap / prev) if prev > 0 else 0.0
+        s["cumulative_shrink"] = float(1.0 - gap / gap0) if gap0 > 0 else 0.0
+        s["gap_ratio_after"] = float(np.sqrt(np.mean(mse_of(tuple(names[:j + 1]))) / floor.mse))
+        prev = gap
+        wo = tuple(n for n in names if n != s["effect"])
+        s["drop_one_gap_rad_s"] = float(np.sqrt(max(
+            float(np.mean(mse_of(wo))) - float(np.mean(st.mse)), 0.0)))
+    for r, s in enumerate(sorted(steps, key=lambda s: -s["drop_one_gap_rad_s"]), 1):
+        s["size_rank"] = r
     # every chosen effect's parameters, refitted together in the final model
     for s in steps:
         for effect, hp in st.base_all.chosen:
             if effect.name == s["effect"]:
                 s["params_final"] = effect.describe(st.model_all, st.base_all, hp)
-    return steps, st
+    return steps, st, dropped
+
+
+def _key(steps) -> tuple:
+    return tuple(s["effect"] for s in steps)
+
+
+def _droppable(name: str, base: Base) -> bool:
+    """A Coulomb term that a later direction/position friction builds on stays."""
+    if name != "coulomb_friction":
+        return True
+    return not any(e.name == "position_friction" or (e.name == "direction_friction"
+                   and not hp.get("with_coulomb", True)) for e, hp in base.chosen)
 
 
 def _excluded(base: Base, steps, model) -> tuple[str, ...]:
@@ -445,7 +594,8 @@ def _score_quantization(sig: Signals, floor: simerror.NoiseFloor, mse_nom, v_rms
     part is the smaller of b and the current-noise estimate (real high-frequency current
     from the drive reacting to coarse counts inflates the latter)."""
     q = simerror.lattice_step(sig.position_rad)
-    params = {"step_rad": q, "counts_per_rev": (2 * np.pi / q) if q else None}
+    k = sig.rad_per_unit
+    params = {"step_rad": q, "counts_per_rev": (2 * np.pi / (q * k)) if q and k else None}
     if not q:
         return vd.score("encoder_quantization", params, mse_nom, mse_nom, 1, floor.mse, v_rms,
                         overlap=ov)

@@ -97,11 +97,27 @@ def simulate(sig: Signals, model: Model, starts: np.ndarray, horizon: int) -> np
         idx = np.minimum(starts + m, n - 2)
         alpha = np.zeros_like(omega)
         j = 0
+        friction = []
         for t, st in zip(model.terms, states):
-            for f in t.simulate(sig, theta, omega, idx, st):
-                alpha += coef[j] * f
-                j += 1
+            k = len(t.names)
+            if getattr(t, "opposes_motion", False):
+                friction.append((t, st, coef[j:j + k]))
+            else:
+                for c, f in zip(coef[j:j + k], t.simulate(sig, theta, omega, idx, st)):
+                    alpha += c * f
+            j += k
         new = omega + dt * alpha
+        if friction:
+            # friction evaluated at the velocity the other torques reach (semi-implicit):
+            # a near-sign friction can stop the motion within a step but not reverse it
+            # (explicit Euler would chatter through every reversal: Tc/J dt >> eps)
+            free = new
+            fr = np.zeros_like(omega)
+            for t, st, cs in friction:
+                for c, f in zip(cs, t.simulate(sig, theta, free, idx, st)):
+                    fr += c * f
+            new = free + dt * fr
+            new = np.where((new * free < 0) & (fr * free < 0), 0.0, new)
         j = 0
         for ti, t in enumerate(model.terms):   # rigid contacts (a disk in a gap)
             if hasattr(t, "couple"):

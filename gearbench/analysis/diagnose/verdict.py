@@ -94,6 +94,10 @@ class Score:
     testable: bool | None = None     # can this trace reveal the effect (testability.py)
     why: str = ""
     min_detectable: dict | None = None   # smallest amplitude this trace shows (testability)
+    #: paired t of this candidate's held-out errors against the null's (random smooth
+    #: regressors fitted and scored alike; see pipeline.NullTerm) and the null's shrink
+    t_vs_null: float | None = None
+    null_shrink: float | None = None
 
     def as_dict(self) -> dict:
         return {"effect": self.effect, "params": self.params,
@@ -102,7 +106,8 @@ class Score:
                 "significant": self.significant, "t_stat": self.t_stat,
                 "nominal_shift": self.nominal_shift,
                 "testable": self.testable, "why": self.why,
-                "min_detectable": self.min_detectable}
+                "min_detectable": self.min_detectable,
+                "t_vs_null": self.t_vs_null, "null_shrink": self.null_shrink}
 
 
 def paired_t(before_h: np.ndarray, after_h: np.ndarray, overlap: int = 1) -> float:
@@ -165,6 +170,17 @@ def score(effect: str, params: dict, before_h: np.ndarray, after_h: np.ndarray,
     return Score(effect, params, float(np.sqrt(b)) / velocity_rms,
                  float(np.sqrt(a)) / velocity_rms, float(shrink), float(dbic), sig, float(t),
                  after_h, nominal_shift or {}, overlap, extra_params)
+
+
+def against_null(s: Score, null_h: np.ndarray, null_shrink: float) -> Score:
+    """``s`` is significant only if it also beats the null candidate: held-out errors
+    lower than the null's (paired t > T_CRIT) and a larger shrink."""
+    from dataclasses import replace
+
+    t = paired_t(null_h, s.mse_h, s.overlap)
+    beats = bool(t > T_CRIT and s.shrink > null_shrink)
+    return replace(s, t_vs_null=float(t), null_shrink=float(null_shrink),
+                   significant=bool(s.significant and beats))
 
 
 def rescore(s: Score, before_h: np.ndarray, after_h: np.ndarray, floor_mse: float,

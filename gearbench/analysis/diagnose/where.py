@@ -88,7 +88,9 @@ def breakdown(sig: Signals, nom: Model, err_score, score_starts, floor: simerror
     F = measured_features(sig, nom.terms)
     r = acc_all - F @ nom.coef
     r = r[VELOCITY_WINDOW:-VELOCITY_WINDOW - 1]
-    theta = sig.position_rad[VELOCITY_WINDOW:-VELOCITY_WINDOW - 1]
+    # rotor angle in radians (orders are per revolution); none when the unit is unknown
+    k_ang = sig.rad_per_unit
+    theta = sig.position_rad[VELOCITY_WINDOW:-VELOCITY_WINDOW - 1] * (k_ang or 0.0)
     kt_j = abs(Base(given=None).kt_over_j(nom)) if "scale" not in nom.names else abs(
         nom.terms[0].kt_over_j * nom.params()["scale"])
     h2 = savgol_filter(np.eye(VELOCITY_WINDOW)[VELOCITY_WINDOW // 2], VELOCITY_WINDOW, 2,
@@ -111,15 +113,15 @@ def breakdown(sig: Signals, nom: Model, err_score, score_starts, floor: simerror
         c = 2 * np.mean(r * np.exp(-1j * N * theta))
         amps.append(abs(c))
     amps = np.array(amps)
-    for N in np.argsort(amps)[::-1][:5] + 1:
+    for N in (np.argsort(amps)[::-1][:5] + 1 if k_ang else ()):
         cells.append(_cell("angle_order", f"order {N}", [amps[N - 1] ** 2], [expected ** 2]))
 
     maps = {"horizon_error_rad_s": err,
-            "speed_angle_rms": _map2(np.abs(w), np.mod(th, 2 * np.pi), e2, 24, 36),
+            "speed_angle_rms": _map2(np.abs(w), np.mod(th * (k_ang or 1.0), 2 * np.pi), e2, 24, 36),
             "speed_current_rms": _map2(np.abs(w), i, e2, 24, 24),
             "floor_rad_s": np.sqrt(floor.mse),
             # value ranges the map bins span (axes of the report's heat maps)
-            "speed_range_rad_s": _range(np.abs(w)), "angle_range_rad": _range(np.mod(th, 2 * np.pi)),
+            "speed_range_rad_s": _range(np.abs(w)), "angle_range_rad": _range(np.mod(th * (k_ang or 1.0), 2 * np.pi)),
             "current_range_a": _range(i),
             "sample_index": idx, "error_flat": err.ravel(), "time_s": sig.time_s[idx],
             "equation_error": r, "ee_time_s": sig.time_s[VELOCITY_WINDOW:-VELOCITY_WINDOW - 1]}
