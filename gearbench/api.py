@@ -355,7 +355,12 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
 
             simbench = stack.enter_context(SimBench(profile, seed=seed))
             fixture, bus = fixture or simbench, simbench.bus_spec()
-        net = open_network(bus, profile)
+        try:
+            net = open_network(bus, profile)
+        except GearbenchError as exc:   # the bench never started: still a record of the attempt
+            Sequencer(profile, _NoDrives(), emit=stream.emit, operator=operator, serial=serial,
+                      out_dir=str(out), sim_truth=sim_plant, method=method).record_failed_start(exc)
+            raise
         stack.callback(net.close)
         if sim and callable(getattr(net, "watch_process", None)):
             net.watch_process(simbench.proc.pid)   # the emulated drives share this host's CPUs
@@ -380,6 +385,24 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
         bench.finish()
     if stream.errors:
         print("gearbench: warning: output problems: " + "; ".join(stream.errors), file=sys.stderr)
+
+
+class _NoDrives(DriveNetwork):
+    """Stands in for a network that could not be opened, so a failed start is recorded."""
+
+    family = "none"
+
+    def open(self) -> None: ...
+
+    def add_drive(self, config):
+        raise GearbenchError("no drive network")
+
+    def start(self, period_s: float) -> None: ...
+
+    def _sample(self):
+        raise GearbenchError("no drive network")
+
+    def _close(self) -> None: ...
 
 
 def _check_writable(out: Path) -> None:

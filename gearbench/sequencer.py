@@ -262,6 +262,12 @@ class Sequencer:
         gc.collect()
         gc.freeze()
 
+    def record_failed_start(self, error: Exception) -> dict:
+        """The drives could not be configured (no answer, wrong drive...): nothing moved,
+        but the attempt is recorded like any run (result.json, junit.xml, station database)."""
+        self.begin()
+        return self.finish(error=error if isinstance(error, BenchFault) else BenchFault(f"bench did not start: {error}"))
+
     def run_step(self, step) -> None:
         """Run one profile step (calibrate / load / efficiency). A fault quick-stops
         the drives and raises BenchFault (samples so far are already emitted)."""
