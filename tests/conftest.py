@@ -76,6 +76,14 @@ def cvt_sim_run(tmp_path_factory):
     import subprocess
     import sys
 
+    given = os.environ.get("GEARBENCH_TEST_CVT_RUN")
+    if given:   # a finished cvt run folder with run.rrd (developers on a loaded host)
+        out = tmp_path_factory.mktemp("given") / "cvt-run"
+        shutil.copytree(given, out)
+        (out / "report.html").unlink(missing_ok=True)
+        p = subprocess.run([sys.executable, "-m", "gearbench", "report", str(out)], capture_output=True, text=True)
+        assert p.returncode == 0 and (out / "run.rrd").is_file(), p.stderr
+        return out
     # These tests look at the outputs, not at the bench: a bench fault (exit 3, e.g. the
     # emulator starved of CPU on a loaded host until the heartbeat watchdog trips) is
     # retried once with a new folder; its own tests are in test_run / test_cia402.
