@@ -29,7 +29,7 @@ def test_report_renders_in_chromium(cvt_sim_run, browser_factory):  # noqa: F811
     images = b.evaluate("[...document.images].map(i => ({alt: i.alt, w: i.naturalWidth, "
                         "h: i.naturalHeight, done: i.complete}))")
     text = b.evaluate("document.body.innerText")
-    shot = b.screenshot(SCREENSHOTS / "report.png", full_page=True)
+    shot = b.screenshot(SCREENSHOTS / f"report-{res['serial']}.png", full_page=True)
     print(f"\nreport: {len(images)} images, browser {time.monotonic() - t0:.1f} s, screenshot {shot}")
 
     assert b.errors == [], b.errors
