@@ -223,14 +223,16 @@ def _testable(excitation, seed=0, given=False):
 
 def test_testability_follows_the_excitation():
     """Judged from the trace alone: a constant-acceleration ramp cannot show a constant
-    torque or saturation, one-way motion no Stribeck friction, slow excitations no
-    shaft resonance; reversals show friction, slow angles cogging."""
+    torque or saturation, one-way motion no Stribeck friction, a slow ramp no shaft
+    resonance (no jerk), while an ordinary multisine shows one well below its
+    frequency (issue 13, checked against injected shafts); reversals show friction,
+    slow angles cogging."""
     ramp, rev, ms = _testable("sweep_slow"), _testable("reversing"), _testable("multisine")
     assert not ramp["current_offset"] and not ramp["coulomb_friction"]
     assert not ramp["kt_saturation"] and not ramp["time_delay"] and ramp["cogging"]
     assert rev["coulomb_friction"] and rev["stribeck_friction"] and rev["cogging"]
     assert not ms["stribeck_friction"] and not ms["cogging"] and ms["kt_saturation"]
-    assert not any(t["shaft_compliance"] for t in (ramp, rev, ms))
+    assert not ramp["shaft_compliance"] and ms["shaft_compliance"]
     assert _testable("chirp")["shaft_compliance"]
     assert not rev["inertia_mismatch"] and _testable("reversing", given=True)["inertia_mismatch"]
 

@@ -267,6 +267,26 @@ def test_real_emps_metres_and_radians_agree():
     assert m.value(TC_J) * mass == pytest.approx(20.39, rel=0.05)
 
 
+def test_cogging_orders_are_per_revolution_in_any_stated_unit():
+    """Real data (EMPS pulses): cogging orders are per motor revolution, so the metre
+    file with its lead (2.5 mm) gives the motor-radian file's orders and physics;
+    without a lead no cogging is fitted (a length is not an angle) instead of orders
+    of a 'revolution' of 2 pi metres."""
+    if not (EMPS / "emps_pulses_m.csv").exists():
+        pytest.skip("real EMPS data not present (../shared/datasets/real-emps)")
+    m_tr = Trace.read(EMPS / "emps_pulses_m.csv")
+    r_tr = Trace.read(EMPS / "emps_pulses_motor_rad.csv")
+    r = identify_default(r_tr.time_s, r_tr["position_rad"], r_tr["current_a"])
+    m = identify_default(m_tr.time_s, m_tr["position_rad"], m_tr["current_a"],
+                         rad_per_unit=K_EMPS)
+    assert sorted(m.extras["cogging"]) == sorted(r.extras["cogging"])
+    assert m.b2 * K_EMPS == pytest.approx(r.b2, rel=1e-3)
+    assert m.value(TC_J) * K_EMPS == pytest.approx(r.value(TC_J), rel=1e-3)
+    none = identify_default(m_tr.time_s, m_tr["position_rad"], m_tr["current_a"],
+                            rad_per_unit=None)
+    assert none.extras["cogging"] == {}
+
+
 def test_a_fit_far_below_what_the_noise_allows_is_refused():
     from gearbench.analysis.identify import check_fit_quality
 

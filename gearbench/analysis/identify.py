@@ -176,7 +176,8 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
                      friction_width_rad_s: float = 0.0, bias: bool | None = None,
                      lag: bool = True, eiv_correction: bool = True,
                      cogging: bool | tuple[int, ...] = True, check: bool = True,
-                     source: str = "<array>") -> IdentificationResult:
+                     source: str = "<array>",
+                     rad_per_unit: float | None = 1.0) -> IdentificationResult:
     """Bias-reduced equation-error fit of ``θ'' = b2 i − (D/J)θ' − (Tc/J)s(θ') [− (C/J)θ] [+ c]``.
 
     Parameters
@@ -204,6 +205,9 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
         statistic W (block covariance) beats the Bayesian information criterion's price
         for two parameters, W > 2 ln n_eff (n_eff: independent-sample equivalent), and
         ``COGGING_MIN_WALD``.
+        Orders are per motor revolution: ``rad_per_unit`` is the motor angle in radians
+        per position unit (1 for rad, pi/180 for deg, 2 pi / lead for a linear axis);
+        None (a length with no lead given): no cogging terms — never assumed.
         At low speed, near reversals, cogging sits inside the filter's band and, left
         out, moves b2 by percent. A tuple fits exactly those orders; ``False``: none.
         Kept orders and amplitudes (rad/s², i.e. N m per kg m²) go to
@@ -273,17 +277,19 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
     beta, Xt, G, Gc, shift_s = _solve(cols, **solve)
 
     cog_orders: tuple[int, ...] = ()
-    if cogging is not False and cogging is not None:
+    if cogging is not False and cogging is not None and rad_per_unit is not None:
         half = (len(taps) - 1) // 2
         at = slice(half + 1, half + 1 + n)          # raw samples under the filtered ones
+        ang = th * rad_per_unit                     # motor angle, rad: orders per revolution
         if cogging is True:
-            scores = cogging_order_scores(th[at], w_smooth[at], y - beta @ Xt, cutoff_hz=cutoff_hz)
+            scores = cogging_order_scores(ang[at], w_smooth[at] * rad_per_unit, y - beta @ Xt,
+                                          cutoff_hz=cutoff_hz)
             cog_orders = cogging_candidates(scores)
         else:
             cog_orders = tuple(int(k) for k in cogging)
         moving_cog = moving if not friction_width_rad_s else np.ones_like(th)
         while cog_orders:
-            harm = np.vstack([f(k * th) * moving_cog for k in cog_orders for f in (np.sin, np.cos)])
+            harm = np.vstack([f(k * ang) * moving_cog for k in cog_orders for f in (np.sin, np.cos)])
             filt = dv.matched_filter(harm, taps)
             cog_cols = [(f"cog{k}_{p}", filt[2 * j + q], 1.0)
                         for j, k in enumerate(cog_orders) for q, p in enumerate(("sin", "cos"))]

@@ -149,7 +149,7 @@ def _units(args, harness) -> list[dict]:
     rows = []
     t0 = time.perf_counter()
     todo = [(e, x) for e, x in UNIT_CASES if _wanted(args, "+".join(e or ()) or None)]
-    if args.quick and not args.cases:
+    if not args.full and not args.cases:   # one friction and one angle-order case
         todo = todo[1:3]
     for effects, ex in todo:
         res = {}
@@ -189,7 +189,7 @@ def _bench(args) -> list[dict]:
     rows = []
     t0 = time.perf_counter()
     effs = [e for e in (None, *BENCH_INJECTIONS) if _wanted(args, e)]
-    for seed in range(1 if args.quick else max(args.seeds, 2)):
+    for seed in range(max(args.seeds, 2) if args.full else args.seeds):
         for eff in effs:
             d = diagnose_bench(bench_case_trace(eff, seed))
             rows.append({"effect": eff, "seed": seed, "chain": [c["effect"] for c in d.chain],
