@@ -262,8 +262,15 @@ class RecordStream:
         that failed on it still makes result.json say fault), then the best-effort ones."""
         self.flush()
         record = self._mark_fault(record)
+        failed_before = self.failure
         self.required.put(record, block=True)
         self.required.join()
+        if self.failure and not failed_before:
+            # a required output failed on the RunStop itself (result.json on a folder gone
+            # read-only): the ones that already stored "passed" store the fault instead
+            # (RunStop handling is idempotent: files rewritten, database rows replaced)
+            self.required.put(self._mark_fault(record), block=True)
+            self.required.join()
         self.best_effort.put(self._mark_fault(record), block=True)
         self.best_effort.join()
 

@@ -108,3 +108,19 @@ def test_a_writer_that_cannot_keep_up_is_a_fault_against_real_drives(monkeypatch
     assert time.monotonic() - t0 < 1.0, "emit must not block on a slow writer in real time"
     release.set()
     stream.close()
+
+
+def test_an_output_failing_on_the_run_stop_is_amended_in_the_ones_before_it():
+    """The station database stored 'passed', then result.json could not be written (folder
+    gone read-only): the database is told again, with the fault."""
+    stored = []
+
+    class Database(Subscriber):
+        def on_run_stop(self, rec):
+            stored.append(rec.result["status"])
+
+    stop = run_stop()
+    stream = RecordStream(required=[Database(), Breaks("run_stop")])
+    stream.emit(stop)
+    stream.close()
+    assert stored == ["passed", "fault"] and stop.result["exit_code"] == 3
