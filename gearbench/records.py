@@ -212,6 +212,7 @@ class RecordStream:
     """
 
     REQUIRED_QUEUE = 4000     # records (a SampleBatch is 200 samples: ~13 min at 1 kHz)
+    LOCKSTEP_QUEUE = 10       # lockstep waits for the writer instead: a failure is seen within ~2000 samples
     BEST_EFFORT_QUEUE = 200
     DROPPABLE = ("sample_batch", "progress")
 
@@ -219,11 +220,22 @@ class RecordStream:
                  required: Iterable[Callable[[Record], None]] = (), realtime: bool = False):
         self.errors: list[str] = []
         self.failure: str | None = None
-        self.realtime = realtime
         self._raised = False
         self._lock = threading.Lock()
         self.required = _Lane("required", list(required), self.REQUIRED_QUEUE, True, self._failed)
         self.best_effort = _Lane("best-effort", list(subscribers), self.BEST_EFFORT_QUEUE, False, self._failed)
+        self.realtime = realtime
+
+    @property
+    def realtime(self) -> bool:
+        return self._realtime
+
+    @realtime.setter
+    def realtime(self, on: bool) -> None:
+        """Real drives: a deep queue absorbs disk hiccups, overflow is a fault. Lockstep: a
+        shallow one that emit waits on, so an output failure stops the bench promptly."""
+        self._realtime = bool(on)
+        self.required.queue.maxsize = self.REQUIRED_QUEUE if on else self.LOCKSTEP_QUEUE
 
     @property
     def subscribers(self) -> list:
