@@ -34,7 +34,7 @@ VCAN = os.environ.get("GEARBENCH_VCAN", "")
 BUS = f"socketcan:{VCAN or 'vcan0'}"
 ID = f"socketcan-{VCAN or 'vcan0'}"
 # generous for a software-emulated guest; a drive silent this long is still a fault
-NET = dict(heartbeat_ms=500, timeout_s=3.0, sdo_timeout_s=1.0, state_timeout_s=3.0)
+NET = dict(heartbeat_ms=500, timeout_s=10.0, sdo_timeout_s=1.0, state_timeout_s=3.0)   # a TCG guest runs Python ~20x slower
 
 
 @pytest.fixture(scope="module", autouse=True)
