@@ -212,7 +212,7 @@ class RecordStream:
     """
 
     REQUIRED_QUEUE = 4000     # records (a SampleBatch is 200 samples: ~13 min at 1 kHz)
-    LOCKSTEP_QUEUE = 10       # lockstep waits for the writer instead: a failure is seen within ~2000 samples
+    LOCKSTEP_QUEUE = 2        # lockstep waits for the writer instead: a failure is seen within ~600 samples
     BEST_EFFORT_QUEUE = 200
     DROPPABLE = ("sample_batch", "progress")
 
