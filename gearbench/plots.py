@@ -60,17 +60,20 @@ def torque_fit_png(runs: Sequence[tuple[str, object]], *, motor: str, kt: float,
     return _png(fig)
 
 
-def efficiency_map_png(points: Iterable[dict], limits: Sequence[dict] = ()) -> bytes:
+def efficiency_map_png(points: Iterable[dict], limits: Sequence[dict] = (),
+                       keys: Sequence[str] = ("eta_incremental", "eta_absolute")) -> bytes:
     """Incremental and absolute efficiency versus output torque, one line per input
     speed, 95 % intervals as error bars, the profile's limits as dashed lines.
 
     ``points``: result.json ``efficiency`` entries; ``limits``: result.json ``limits``
     (those on ``efficiency.eta_*`` are drawn on their panel)."""
     pts = [p for p in points if _finite(p.get("torque_out_nm")) is not None]
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.6), squeeze=False)
+    titles = {"eta_incremental": "incremental efficiency (eq. 18)",
+              "eta_absolute": "absolute efficiency P_out / P_in"}
+    fig, axes = plt.subplots(1, len(keys), figsize=(5 * len(keys), 4.6), squeeze=False)
     speeds = sorted({round(float(p.get("speed_setpoint_rad_s") or p["speed_in_rad_s"]), 6) for p in pts})
-    for ax, key, title in ((axes[0, 0], "eta_incremental", "incremental efficiency (eq. 18)"),
-                           (axes[0, 1], "eta_absolute", "absolute efficiency P_out / P_in")):
+    for ax, key in zip(axes[0], keys):
+        title = titles.get(key, key)
         for k, s in enumerate(speeds):
             row = sorted((p for p in pts if round(float(p.get("speed_setpoint_rad_s") or p["speed_in_rad_s"]), 6) == s
                           and _finite(p.get(key)) is not None), key=lambda p: p["torque_out_nm"])

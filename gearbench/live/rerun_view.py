@@ -259,7 +259,8 @@ class RerunView(Subscriber):
         from ..plots import efficiency_map_png
 
         limits = [{"quantity": lim.quantity, "low": lim.low, "high": lim.high} for lim in self.limits]
-        png = efficiency_map_png([self._raw_points[id(p)] for p in pts], limits)
+        # the incremental map alone: one readable plot in a screen panel (the report has both)
+        png = efficiency_map_png([self._raw_points[id(p)] for p in pts], limits, keys=("eta_incremental",))
         self._map_drawn_at = now
         self.rec.log(P.EFFICIENCY_MAP, rr.EncodedImage(contents=png, media_type="image/png"))
         if not self._has_map:
