@@ -376,6 +376,10 @@ def diagnose(trace: Trace, model: GivenModel | None = None, *, chain: bool = Tru
     ranked, refits, refined_folds = _evaluate(sig, sp, wins, win_all, st, floor, v_rms, ov,
                                               order, model, err_nom,
                                               exclude=("direction_friction",))
+    # listed, not scored: it refines a Coulomb term the chain has chosen (see _excluded)
+    ranked = ranked + [vd.score("direction_friction", {
+        "note": "scored once Coulomb friction is in the chain (it refines that term)"},
+        mse_nom, mse_nom, 1, floor.mse, v_rms, overlap=ov)]
     ranked = _gate(ranked, tests)
     gap_open = float(np.mean(mse_nom)) > (1.0 + vd.MATERIAL) * floor.mse
     verdict = vd.verdict(ranked, gap_open, {k: t.experiment for k, t in tests.items()
