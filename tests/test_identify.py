@@ -160,10 +160,10 @@ def test_identification_of_a_million_samples_is_fast():
     identify_default(t[:20000], th[:20000], i[:20000], check=False)
     best = np.inf
     for _ in range(2):
-        t0 = time.perf_counter()
+        t0 = time.process_time()     # CPU seconds: what the code costs, whatever else the host runs
         identify_default(t, th, i, check=False)
-        best = min(best, time.perf_counter() - t0)
-    # target 0.3 s (see the accuracy benchmark); leave headroom for a shared CI machine
+        best = min(best, time.process_time() - t0)
+    # target 0.3 s (see the accuracy benchmark); headroom for a slower CPU
     assert best < 0.6
 
 

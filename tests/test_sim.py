@@ -494,13 +494,13 @@ def test_speed_budget():
     t = wf.time_base(60.0)
     cin, cout = np.full(t.size, 200.0), wf.staircase(t, levels=[0.0, -1.0, 0.0], dwell_s=20.0)
     simulate_bench(PlantParams(), cin[:10], cout[:10])          # compile / load cache
-    t0 = time.perf_counter()
+    t0 = time.process_time()     # CPU seconds: the code's cost, not the host's load
     simulate_bench(PlantParams(), cin, cout)
-    assert time.perf_counter() - t0 < 2.0
+    assert time.process_time() - t0 < 2.0
     w = BenchWorld(PlantParams())
     w.mount(coupling="reducer")
     w.set_mode("in", "velocity")
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     for _ in range(5000):
         w.step()
-    assert time.perf_counter() - t0 < 1.0
+    assert time.process_time() - t0 < 1.0
