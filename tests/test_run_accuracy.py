@@ -17,22 +17,30 @@ from gearbench.bench.robustness import TARGETS
 from gearbench.sim.truth import simulation_truth
 
 PROFILE = Path(__file__).resolve().parents[1] / "profiles" / "cvt.yaml"
-WALL_LIMIT_S = 60.0
 
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     out = tmp_path_factory.mktemp("cvt-sim")
-    t0 = time.monotonic()
+    cpu0 = time.process_time() + _children_cpu_s()
     result = run_profile(str(PROFILE), sim=True, out_dir=out / "run", serial="T1", yes=True,
                          db=out / "station.sqlite")
-    return result, time.monotonic() - t0
+    return result, time.process_time() + _children_cpu_s() - cpu0
 
 
-def test_run_completes_within_the_wall_time_budget(run):
-    result, wall_s = run
+def _children_cpu_s() -> float:
+    import resource
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)   # the emulator child, once it has exited
+    return r.ru_utime + r.ru_stime
+
+
+def test_run_costs_less_cpu_than_real_time(run):
+    """The simulated run (master + emulator) costs less CPU than twice its bench time, i.e.
+    it runs faster than real time on each of two cores. CPU seconds, not wall time: a busy
+    CI neighbour slows the wall clock, not the cost (~25 CPU s quiet, ~75 s on a loaded host)."""
+    result, cpu_s = run
     assert result["status"] == "passed", result.get("reason")
-    assert wall_s <= WALL_LIMIT_S
+    assert cpu_s <= 2 * result["bench_time_s"], f"{cpu_s:.0f} CPU s for {result['bench_time_s']:.0f} s of bench time"
 
 
 def test_torque_constants_within_0p2_percent(run):
