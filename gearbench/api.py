@@ -29,7 +29,7 @@ from typing import Callable, Iterable
 
 from .drives.base import AxisConfig, DriveNetwork
 from .drives.registry import network_class
-from .errors import Aborted, BenchFault, GearbenchError
+from .errors import Aborted, GearbenchError
 from .profile import load_profile
 from .records import RecordStream
 from .sequencer import AutoOperator

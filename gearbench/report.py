@@ -13,6 +13,17 @@ from pathlib import Path
 from .records import RunStop, Subscriber
 
 
+def finite_or_none(v) -> float | None:
+    """A finite float, or None (missing, NaN, a boolean, not a number)."""
+    if v is None or isinstance(v, bool) or type(v).__name__ == "bool_":
+        return None
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return None
+    return f if math.isfinite(f) else None
+
+
 def _clean(o):
     """JSON-safe: numpy scalars to Python, NaN/inf to null (strict JSON)."""
     if isinstance(o, dict):

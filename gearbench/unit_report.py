@@ -9,12 +9,12 @@ from __future__ import annotations
 import base64
 import html
 import json
-import math
 import re
 from pathlib import Path
 
 from . import __version__
 from .errors import GearbenchError
+from .report import finite_or_none
 
 _CSS = """
 body{font-family:system-ui,-apple-system,'Segoe UI',Roboto,sans-serif;margin:24px auto;max-width:1050px;color:#222}
@@ -35,14 +35,7 @@ def _e(x) -> str:
     return html.escape("" if x is None else str(x))
 
 
-def _num(v) -> float | None:
-    if isinstance(v, bool) or v is None:
-        return None
-    try:
-        f = float(v)
-    except (TypeError, ValueError):
-        return None
-    return f if math.isfinite(f) else None
+_num = finite_or_none
 
 
 def _f(v, fmt: str = ".5g", scale: float = 1.0) -> str:

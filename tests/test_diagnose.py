@@ -78,7 +78,7 @@ def test_equation_error_smoothing_matches_the_velocity_estimate():
     """The features are smoothed exactly as the SG velocity smooths the motion: for a
     cubic angle (its SG derivative is biased), dw_sg equals the smoothed, integrated
     acceleration."""
-    from gearbench.analysis.diagnose.nominal import (Signals, Windows, integrated_rows,
+    from gearbench.analysis.diagnose.nominal import (Windows, integrated_rows,
                                                      prepare, sg_interval_kernel)
     c = sg_interval_kernel()
     assert abs(c.sum() - 1.0) < 1e-12 and np.allclose(c, c[::-1])

@@ -8,11 +8,9 @@ import math
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
-import can
 import pytest
 from canopen import Network
 from canopen.profiles.p402 import BaseNode402

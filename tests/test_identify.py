@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from gearbench.analysis.calibration import calibrate_motor
-from gearbench.analysis.identify import (D_J, KT_J, TC_J, identify, identify_default,
+from gearbench.analysis.identify import (D_J, TC_J, identify, identify_default,
                                          identify_paper, t_quantile)
 from gearbench.bench._data import DEV_DIR
 from gearbench.errors import ExcitationError

@@ -7,7 +7,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 
 from gearbench.recorder import ParquetRecorder, load_step_trace
-from gearbench.records import LimitResult, RunStop, SampleBatch, StepStart, StepStop
+from gearbench.records import RunStop, SampleBatch, StepStart, StepStop
 from gearbench.report import ResultWriter
 from gearbench.station_db import StationDatabase, history
 

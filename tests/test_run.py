@@ -3,7 +3,6 @@ child process): results folder, exit codes, limit failure, bad profile, bench fa
 operator abort. The bus used is printed by the emulator tests; here it is the
 profile's (udp_multicast on a private port)."""
 import json
-import os
 import signal
 import subprocess
 import sys

@@ -20,10 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
-
-def _spin() -> None:
-    while True:
-        pass
+from .drives_can import _spin
 
 
 def main(argv: list[str] | None = None) -> int:

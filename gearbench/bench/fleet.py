@@ -176,7 +176,7 @@ def reanalysis(dirs: list[Path]) -> list[dict]:
             cluster.close()
         assert not any(s["error"] for s in out), [s["error"] for s in out if s["error"]]
         cpu = sum(s["cpu_s"] for s in out) / len(out)
-        rows.append(dict(how=f"Dask LocalCluster", workers=workers, wall_s=wall, runs_per_s=len(dirs) / wall,
+        rows.append(dict(how="Dask LocalCluster", workers=workers, wall_s=wall, runs_per_s=len(dirs) / wall,
                          cpu_per_run_s=cpu, startup_s=startup))
     return rows
 

@@ -57,7 +57,6 @@ from __future__ import annotations
 import struct
 import threading
 import time
-from pathlib import Path
 
 import canopen
 from canopen.emcy import EmcyError
@@ -454,6 +453,7 @@ class CiA402Network(DriveNetwork):
         self.heartbeat_gaps = 0         # heartbeats overdue while the drive was otherwise heard
         self.starved_deferrals = 0      # silence verdicts deferred: the emulating process was runnable
         self._sync_sent_wall = 0.0
+        self._ready: dict = {}          # SYNC number -> its complete answers, not yet taken by the sample loop
         self._started = False
 
     # ----------------------------------------------------------------- lifecycle
@@ -516,9 +516,7 @@ class CiA402Network(DriveNetwork):
         run-queue waits are host stalls, not drive silence."""
         from .supervision import RunQueueMonitor
 
-        monitor = RunQueueMonitor(pid).start()
-        self.liveness.drive_monitors.append(monitor)
-        self._drive_monitors = getattr(self, "_drive_monitors", []) + [monitor]
+        self.liveness.drive_monitors.append(RunQueueMonitor(pid).start())
 
     def acquisition_threads(self) -> list[int]:
         notifier = getattr(self.network, "notifier", None)
@@ -716,7 +714,6 @@ class CiA402Network(DriveNetwork):
     # -- paced mode: SYNC from a producer (gearbench.drives.sync_producer), option sync: auto|kernel|thread|loop
     sync_producer = None
     _sync_number = 0
-    _ready: dict = {}          # SYNC number -> its complete answers, not yet taken by the sample loop
 
     def _paced_by_producer(self) -> bool:
         """Paced and not ``sync: loop``: start the producer once (kernel BCM on socketcan, else a thread)."""
@@ -796,7 +793,7 @@ class CiA402Network(DriveNetwork):
 
     def _close(self) -> None:
         self.stalls.stop()
-        for m in getattr(self, "_drive_monitors", []):
+        for m in self.liveness.drive_monitors:
             m.stop()
         if self.sync_producer is not None:
             self.sync_producer.stop()

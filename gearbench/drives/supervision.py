@@ -23,17 +23,9 @@ timeout, and a starved host does not abort a good unit.
 from __future__ import annotations
 
 import bisect
+import os
 import threading
 import time
-from dataclasses import dataclass
-
-
-@dataclass(frozen=True)
-class Stall:
-    """A period during which this process was not scheduled."""
-
-    start_s: float      # time.monotonic() when the monitor should have woken
-    duration_s: float   # how much later it actually woke
 
 
 class HostStallMonitor:
@@ -117,8 +109,6 @@ class RunQueueMonitor(HostStallMonitor):
         self._poll_lock = threading.Lock()
 
     def _read(self) -> dict[str, int]:
-        import os
-
         out = {}
         try:
             for tid in os.listdir(f"/proc/{self.pid}/task"):
@@ -138,8 +128,6 @@ class RunQueueMonitor(HostStallMonitor):
 
         Linux accounts a run-queue wait only when the wait ends, so a process starved
         at this very moment shows no stall yet; its state says it is alive."""
-        import os
-
         try:
             for tid in os.listdir(f"/proc/{self.pid}/task"):
                 with open(f"/proc/{self.pid}/task/{tid}/stat") as f:

@@ -13,7 +13,6 @@ one-line notice on stderr, never an exception into the run.
 """
 from __future__ import annotations
 
-import math
 import os
 import shutil
 import socket
@@ -26,6 +25,7 @@ from urllib.parse import urlparse
 import numpy as np
 import rerun as rr
 
+from ..report import finite_or_none
 from ..records import (Calibration, EfficiencyPoint, LimitResult, Message, Progress,
                        RunStart, RunStop, SampleBatch, StepStart, StepStop, Subscriber)
 from . import paths as P
@@ -412,15 +412,7 @@ def _nearest(centres: list[float], v: float) -> int:
     return int(np.argmin([abs(c - v) for c in centres]))
 
 
-def _num(v) -> float | None:
-    """A finite float, or None (missing, NaN, not a number)."""
-    if isinstance(v, (bool, np.bool_)):
-        return None
-    try:
-        f = float(v)
-    except (TypeError, ValueError):
-        return None
-    return f if math.isfinite(f) else None
+_num = finite_or_none
 
 
 def _interval(center: float | None, ci) -> tuple[float | None, float | None]:

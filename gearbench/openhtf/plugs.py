@@ -12,7 +12,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from ..api import AutoOperator, Bench, RunResult, open_bench
-from ..errors import Aborted, BenchFault, GearbenchError
+from ..errors import Aborted, GearbenchError
 from ._compat import htf
 
 
