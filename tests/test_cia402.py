@@ -10,7 +10,7 @@ from gearbench.drives.base import AxisConfig, Mode
 from gearbench.drives.buses import BusSpec, parse_bus
 from gearbench.drives.cia402 import CiA402Network, load_eds
 from gearbench.drives.registry import network_class
-from gearbench.drives.scaling import DriveScaling, unwrap_int32, wrap_int32
+from gearbench.drives.scaling import AxisUnits, unwrap_int32, wrap_int32
 from gearbench.emulate.bench import EmulatedBench
 from gearbench.emulate.canopen_server import start_canopen_server
 from gearbench.errors import BenchFault, DriveError
@@ -199,10 +199,13 @@ def test_malformed_eds_names_file_and_field(tmp_path):
 
 
 def test_scaling_round_trips_and_wraps():
-    s = DriveScaling(counts_per_rev=10000, rated_current_a=2.0)
+    # a CiA 402 axis: 10,000 counts/rev, velocity in inc/s, current in per-mille of 2 A rated
+    s = AxisUnits(counts_per_rev=10000, velocity_rad_s_per_unit=2 * math.pi / 10000,
+                  current_a_per_unit=2.0 / 1000, torque_a_per_unit=2.0 / 1000)
     assert s.position_rad(s.position_counts(1.0)) == pytest.approx(1.0, abs=s.rad_per_count)
-    assert s.current_permille(1.0) == 500 and s.current_a(500) == 1.0
-    assert s.velocity_counts_s(2 * math.pi) == 10000
+    assert s.current_raw(1.0) == 500 and s.current_a(500) == 1.0
+    assert s.velocity_raw(2 * math.pi) == 10000
+    assert s.current_raw(1e6) == 2**15 - 1 and s.torque_raw(-1e6) == -2**15   # INTEGER16 clamps
     assert unwrap_int32(2**31 - 10, wrap_int32(2**31 + 5)) == 2**31 + 5
 
 

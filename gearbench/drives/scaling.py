@@ -16,9 +16,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-INT16_MAX = 32767
-INT32_MAX = 2**31 - 1
-
 
 def wrap_int32(value: int) -> int:
     return (value + 2**31) % 2**32 - 2**31
@@ -27,46 +24,6 @@ def wrap_int32(value: int) -> int:
 def unwrap_int32(previous: int, raw: int) -> int:
     """Continue a multi-turn count from ``previous`` with the wrapped reading ``raw``."""
     return previous + wrap_int32(raw - previous)
-
-
-def _clamp(value: int, limit: int) -> int:
-    return max(-limit - 1, min(limit, value))
-
-
-@dataclass(frozen=True)
-class DriveScaling:
-    """Conversion factors of one axis; build it from what the drive reports."""
-
-    counts_per_rev: int = 10000
-    rated_current_a: float = 1.0
-
-    def __post_init__(self):
-        if self.counts_per_rev <= 0 or self.rated_current_a <= 0:
-            raise ValueError(f"scaling needs counts_per_rev > 0 and rated_current_a > 0, "
-                             f"got {self.counts_per_rev} and {self.rated_current_a}")
-
-    @property
-    def rad_per_count(self) -> float:
-        return 2.0 * math.pi / self.counts_per_rev
-
-    def position_rad(self, counts: int) -> float:
-        return counts * self.rad_per_count
-
-    def position_counts(self, position_rad: float) -> int:
-        """Counts as an INTEGER32 register holds them: wraps around, like an encoder."""
-        return wrap_int32(round(position_rad / self.rad_per_count))
-
-    def velocity_rad_s(self, counts_per_s: int) -> float:
-        return counts_per_s * self.rad_per_count
-
-    def velocity_counts_s(self, velocity_rad_s: float) -> int:
-        return _clamp(round(velocity_rad_s / self.rad_per_count), INT32_MAX)
-
-    def current_a(self, permille: int) -> float:
-        return permille * self.rated_current_a / 1000.0
-
-    def current_permille(self, current_a: float) -> int:
-        return _clamp(round(current_a / self.rated_current_a * 1000.0), INT16_MAX)
 
 
 def _clamp_bits(value: float, bits: int, signed: bool = True) -> int:
