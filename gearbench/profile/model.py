@@ -82,6 +82,7 @@ class WaveformSpec:
     name: str
     kind: str                        # one of gearbench.profile.waveforms.KINDS
     params: dict
+    design: object = None            # design: optimal: the excitation_design.Design behind params
 
     def render(self, time_s: np.ndarray) -> np.ndarray:
         """The command (rad/s in velocity mode, A in current mode) at each time."""

@@ -207,6 +207,7 @@ def build_profile(doc: MarkedDoc, path: Path, sha256: str, base_dir: Path) -> Pr
     disks = _disks(c, top)
     waveforms = _waveforms(c, top, bench.period_s)
     steps = _steps(c, top, motors, reducer, disks, waveforms, bench.period_s)
+    waveforms = _design_waveforms(c, waveforms, steps, motors, disks, bench.period_s)
     limits = _limits(c, top, motors, reducer, steps)
     simulation = _simulation(c, top, bench)
     return Profile(path=path, sha256=sha256, name=name, description=description, bench=bench, motors=motors,
@@ -394,9 +395,18 @@ def _waveforms(c: _Checker, top, period_s: float) -> dict[str, WaveformSpec]:
         kind = c.string(d, wp, "kind", choices=wf.KINDS)
         table = wf.PARAMS[kind]
         c.keys(d, wp, ("kind",) + tuple(table))
+        designed = kind == "multisine" and d.get("design") == "optimal"
+        for key in (wf.DESIGNED_KEYS if designed else wf.DESIGN_ONLY_KEYS if kind == "multisine" else ()):
+            if key in d:
+                c.fail(wp + (key,), "is chosen by the design (design: optimal)" if designed
+                       else "is a design setting, used only with 'design: optimal'",
+                       f"remove '{key}'" if designed else f"remove '{key}' or add 'design: optimal'")
         params = {}
         for key, spec in table.items():
             default = _MISSING if spec.default is wf.REQUIRED else spec.default
+            if designed and key in wf.DESIGNED_KEYS:
+                params[key] = None if default is _MISSING else default   # filled by _design_waveforms
+                continue
             if key not in d and default is _MISSING:
                 c.fail(wp, f"a {kind} waveform needs '{key}'", f"add '{key}:' ({spec.meaning})")
             meaning = f"'{key}' ({spec.meaning})"
@@ -411,7 +421,7 @@ def _waveforms(c: _Checker, top, period_s: float) -> dict[str, WaveformSpec]:
                 params[key] = c.boolean(d, wp, key, default)
             else:
                 params[key] = c.string(d, wp, key, default, choices=spec.choices)
-        problem = wf.check(kind, params, period_s)
+        problem = None if designed else wf.check(kind, params, period_s)
         if problem:
             key, text, fix = problem
             c.fail(wp + (key,), text, fix)
@@ -483,16 +493,58 @@ def _calibrate(c, d, sp, motors, disks, waveforms, period_s, loaded) -> Calibrat
                "lengthen the run")
     mode = c.string(d, sp, "mode", "velocity", choices=("velocity", "torque"))
     wave, mspec, dspec = waveforms[wname], motors[motor], disks[disk]
-    natural = wave.natural_period_s
-    if natural is not None and duration < natural * (1 - 1e-9):
-        c.fail(sp + ("duration_s",), f"is shorter than one period of waveform '{wname}' ({natural:g} s)",
-               f"set duration_s >= {natural:g} or shorten the waveform's period")
-    _check_command(c, sp, wave, mspec, dspec, duration, period_s, mode)
+    if wave.params.get("design") == "optimal":
+        if mode != "velocity":
+            c.fail(sp + ("mode",), f"waveform '{wname}' is a designed speed command (design: optimal)",
+                   "remove 'mode: torque', or use a hand-written waveform for current mode")
+    else:
+        _check_run(c, sp, wave, mspec, dspec, duration, period_s, mode)
     prompt = c.string(d, sp, "prompt", f"Mount inertia disk '{disk}' ({dspec.inertia_kgm2:g} kg m^2) "
                                         f"on motor '{motor}'")
     remove = c.string(d, sp, "remove_prompt", f"Remove inertia disk '{disk}' from motor '{motor}'")
     return CalibrateStep(motor=motor, disk=disk, waveform=wname, duration_s=duration, prompt=prompt,
                          name=c.string(d, sp, "name", f"calibrate-{motor}"), mode=mode, remove_prompt=remove)
+
+
+def _check_run(c, sp, wave: WaveformSpec, mspec: MotorSpec, dspec: DiskSpec, duration, period_s, mode):
+    natural = wave.natural_period_s
+    if natural is not None and duration < natural * (1 - 1e-9):
+        c.fail(sp + ("duration_s",), f"is shorter than one period of waveform '{wave.name}' ({natural:g} s)",
+               f"set duration_s >= {natural:g} or shorten the waveform's period")
+    _check_command(c, sp, wave, mspec, dspec, duration, period_s, mode)
+
+
+def _design_waveforms(c: _Checker, waveforms, steps, motors, disks, period_s):
+    """Fill each ``design: optimal`` multisine from the calibrate steps that use it
+    (``gearbench.profile.design``), then check those runs like any other."""
+    from .design import DesignProblem, design_waveform
+
+    out = dict(waveforms)
+    for name, wave in waveforms.items():
+        if wave.params.get("design") != "optimal":
+            continue
+        wp = ("waveforms", name)
+        users = [(i, s) for i, s in enumerate(steps) if isinstance(s, CalibrateStep) and s.waveform == name]
+        if not users:
+            c.fail(wp + ("design",), "a designed waveform needs a calibrate step that uses it",
+                   f"use it in a calibrate step ('waveform: {name}') or remove 'design: optimal'")
+        try:
+            params, design = design_waveform(
+                wave.params, [(motors[s.motor], disks[s.disk], s.duration_s) for _, s in users], period_s,
+                also_fit_s=[s.min_s for _, s in users if getattr(s, "min_s", None)])
+        except DesignProblem as exc:
+            path = exc.path if exc.path[0] == "motors" else wp + exc.path
+            if path not in c.doc.key_marks and path not in c.doc.value_marks:
+                path = wp
+            c.fail(path, exc.problem, exc.fix)
+        problem = wf.check("multisine", params, period_s)
+        if problem:   # a design bug, but say it in the profile's words
+            c.fail(wp + ("design",), f"the designed {problem[0]} {problem[1]}", problem[2])
+        out[name] = WaveformSpec(name=name, kind="multisine", params=params, design=design)
+        for i, s in users:
+            _check_run(c, ("steps", i), out[name], motors[s.motor], disks[s.disk], s.duration_s,
+                       period_s, s.mode)
+    return out
 
 
 def _check_command(c, sp, wave: WaveformSpec, motor: MotorSpec, disk: DiskSpec, duration, period_s, mode):

@@ -70,9 +70,32 @@ PARAMS: dict[str, dict[str, Param]] = {
         "f_min_hz": Param("number", _OPTIONAL, gt=0.0, meaning="lowest tone in Hz (with f_max_hz)"),
         "f_max_hz": Param("number", _OPTIONAL, gt=0.0, meaning="highest tone in Hz (with f_min_hz)"),
         "freqs_hz": Param("list", _OPTIONAL, gt=0.0, meaning="explicit tones in Hz, multiples of 1/period_s"),
-        "phases": Param("choice", "schroeder", choices=("schroeder", "random"),
-                        meaning="tone phases (Schroeder: low crest factor)"),
+        "phases": Param("choice", "schroeder", choices=("schroeder", "random", "clipped"),
+                        meaning="tone phases (Schroeder: low crest factor; clipped: lower still, "
+                                "for the acceleration)"),
         "seed": Param("int", 0, ge=0, meaning="seed for random phases"),
+        "spectrum": Param("choice", "speed", choices=("speed", "acceleration"),
+                          meaning="equal tone amplitudes of the speed, or of its derivative "
+                                  "(speed tones ~ 1/f: the same current per tone)"),
+        "design": Param("choice", "none", choices=("none", "optimal"),
+                        meaning="optimal: band, amplitude, offset, period and phases designed from "
+                                "the motors' limits (docs/excitation-design.md)"),
+        "peak_current_fraction": Param("number", 0.8, gt=0.0, le=1.0,
+                                       meaning="design: peak current as a share of current_limit_a"),
+        "rms_current_fraction": Param("number", 1.0, gt=0.0, le=2.0,
+                                      meaning="design: rms current as a share of rated_current_a"),
+        "min_speed_rad_s": Param("number", _OPTIONAL, gt=0.0,
+                                 meaning="design: lowest speed (default 10 % of speed_limit_rad_s)"),
+        "max_speed_rad_s": Param("number", _OPTIONAL, gt=0.0,
+                                 meaning="design: highest speed (default 90 % of speed_limit_rad_s)"),
+        "friction_nm": Param("number", _OPTIONAL, ge=0.0,
+                             meaning="design: expected friction torque (default 10 % of kt_datasheet "
+                                     "x rated_current_a)"),
+        "current_noise_a": Param("number", 0.004, gt=0.0,
+                                 meaning="design: expected current-measurement noise, std in A"),
+        "max_tone_hz": Param("number", 10.0, gt=0.0,
+                             meaning="design: highest tone (keep it inside the drive's speed-loop "
+                                     "bandwidth)"),
     },
     "chirp": {
         "offset": Param("number", 0.0, meaning="mean command"),
@@ -96,6 +119,12 @@ for _table in PARAMS.values():
 
 KINDS = tuple(PARAMS)
 MAX_TONES = 200   # more tones add nothing to an identification run and cost render time
+# Multisine keys a designed waveform (``design: optimal``) chooses itself, and the keys
+# that only mean something to the design.
+DESIGNED_KEYS = ("offset", "amplitude", "period_s", "f_min_hz", "f_max_hz", "freqs_hz", "phases",
+                 "seed", "spectrum")
+DESIGN_ONLY_KEYS = ("peak_current_fraction", "rms_current_fraction", "min_speed_rad_s",
+                    "max_speed_rad_s", "friction_nm", "current_noise_a", "max_tone_hz")
 
 
 def natural_period_s(kind: str, p: dict) -> float | None:
@@ -210,31 +239,90 @@ def multisine_harmonics(p: dict) -> np.ndarray:
     return np.arange(k_lo, k_hi + 1) if k_hi >= k_lo else np.arange(0)
 
 
-def _multisine_phases(p: dict, n: int) -> np.ndarray:
+def multisine_weights(p: dict, harmonics: np.ndarray) -> np.ndarray:
+    """Relative speed amplitude of each tone: 1 (``spectrum: speed``) or k_min/k
+    (``spectrum: acceleration``: every tone asks the same acceleration, so the same current)."""
+    k = np.asarray(harmonics, float)
+    if p.get("spectrum", "speed") == "acceleration" and len(k):
+        return k.min() / k
+    return np.ones(len(k))
+
+
+def multisine_phases(p: dict, harmonics: np.ndarray) -> np.ndarray:
+    """Tone phases (speed tones are sin(2 pi k t / period + phi_k); their derivatives
+    cos(... + phi_k) share them)."""
+    n = len(harmonics)
     if p["phases"] == "random":
         return np.random.default_rng(p["seed"]).uniform(-np.pi, np.pi, n)
+    if p["phases"] == "clipped":
+        k = tuple(int(x) for x in harmonics)
+        w = multisine_weights(p, harmonics) * np.asarray(harmonics, float)   # acceleration amplitudes
+        return np.array(clipped_phases(k, tuple(float(x) for x in w / w.max())))
     k = np.arange(1, n + 1)
     return -np.pi * k * (k - 1) / n    # Schroeder (1970), low crest factor
 
 
+def schroeder_phases(power: np.ndarray) -> np.ndarray:
+    """Schroeder (1970) phases for tones with relative powers ``power`` (any spectrum):
+    phi_k = -2 pi sum_{l<k} (k - l) p_l, p normalised to sum 1 (flat: -pi k (k-1)/n)."""
+    p = np.asarray(power, float) / np.sum(power)
+    n = len(p)
+    return np.array([-2 * np.pi * sum((k - l) * p[l] for l in range(k)) for k in range(n)])
+
+
+@functools.lru_cache(maxsize=256)
+def clipped_phases(harmonics: tuple, amplitudes: tuple, iterations: int = 300) -> tuple:
+    """Phases minimising the crest factor of ``sum a_k cos(2 pi k u + phi_k)`` by iterative
+    clipping (Van der Ouderaa, Schoukens & Renneboog 1988; Pintelon & Schoukens,
+    *System Identification: A Frequency Domain Approach*, 2nd ed., sec. 5.4): start at
+    Schroeder's phases, clip the signal at a level just below its peak, keep the phases
+    of the clipped signal's excited harmonics (amplitudes unchanged), repeat; the best
+    iterate is kept. Deterministic, so a profile renders the same command everywhere."""
+    k = np.asarray(harmonics, int)
+    a = np.asarray(amplitudes, float)
+    if len(k) < 2:
+        return tuple(0.0 for _ in k)
+    m = int(2 ** np.ceil(np.log2(max(1024, 16 * int(k.max())))))
+    phi = schroeder_phases(a * a)
+    best, best_cf = phi.copy(), np.inf
+    spec = np.zeros(m // 2 + 1, complex)
+    level = 0.95
+    for _ in range(iterations):
+        spec[:] = 0
+        spec[k] = a * np.exp(1j * phi) * (m / 2)
+        x = np.fft.irfft(spec, m)
+        peak = float(np.max(np.abs(x)))
+        cf = peak / float(np.sqrt(np.mean(x * x)))
+        if cf < best_cf - 1e-9:
+            best, best_cf = phi.copy(), cf
+        else:
+            level = max(0.7, level - 0.01)   # stalled: clip harder
+        phi = np.angle(np.fft.rfft(np.clip(x, -level * peak, level * peak))[k])
+    return tuple(float(x) for x in best)
+
+
 @functools.lru_cache(maxsize=64)
-def _multisine_peak(harmonics: tuple, phases: tuple) -> float:
-    """Peak of sum_k sin(2 pi k u + phi_k) over one period u in [0, 1) (independent of period_s)."""
+def _multisine_peak(harmonics: tuple, phases: tuple, weights: tuple | None = None) -> float:
+    """Peak of sum_k w_k sin(2 pi k u + phi_k) over one period u in [0, 1) (independent of period_s)."""
     u = np.linspace(0.0, 1.0, min(200_000, max(4096, 40 * max(harmonics))), endpoint=False)
     acc = np.zeros_like(u)
-    for k, ph in zip(harmonics, phases):
-        acc += np.sin(2 * np.pi * k * u + ph)
+    weights = weights or (1.0,) * len(harmonics)
+    for k, ph, w in zip(harmonics, phases, weights):
+        acc += w * np.sin(2 * np.pi * k * u + ph)
     return float(np.max(np.abs(acc)))
 
 
 def _multisine_unit(p, t):
-    """Sum of equal-amplitude tones, scaled so its peak over one period is 1."""
+    """Sum of the tones (relative amplitudes ``multisine_weights``), scaled so its peak
+    over one period is 1."""
     k = multisine_harmonics(p)
-    phi = _multisine_phases(p, len(k))
-    peak = _multisine_peak(tuple(int(x) for x in k), tuple(float(x) for x in phi))
+    phi = multisine_phases(p, k)
+    w = multisine_weights(p, k)
+    wt = None if np.all(w == 1.0) else tuple(float(x) for x in w)
+    peak = _multisine_peak(tuple(int(x) for x in k), tuple(float(x) for x in phi), wt)
     acc = np.zeros_like(t)
-    for kk, ph in zip(k, phi):   # loop over tones: memory stays O(len(t))
-        acc += np.sin(2 * np.pi * kk * t / p["period_s"] + ph)
+    for kk, ph, ww in zip(k, phi, w):   # loop over tones: memory stays O(len(t))
+        acc += ww * np.sin(2 * np.pi * kk * t / p["period_s"] + ph)
     return acc / peak
 
 
