@@ -317,7 +317,7 @@ def test_missing_vendor_eds_says_to_bring_the_vendors_file(tmp_path):
 def test_register_map_problems_are_listed_all_at_once(tmp_path):
     """validate checks a Modbus map whole: bad type, word order, a gap in the sample
     block and an enable sequence that never sets the mode, in one report."""
-    from gearbench.drives.map_check import check_register_map
+    from gearbench.drives.register_map import check_register_map
 
     text = (REPO / "drivers" / "generic-modbus-servo.yaml").read_text()
     text = text.replace("word_order: big", "word_order: middle")

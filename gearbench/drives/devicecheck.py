@@ -55,7 +55,7 @@ def check_profile(profile) -> DeviceReport:
     if bus.family == "cia402":
         _check_canopen(profile, report)
     elif bus.family == "modbus":
-        from .map_check import check_register_map
+        from .register_map import check_register_map
         for path in sorted({str(m.drive) for m in profile.motors.values()}):
             report.errors += check_register_map(path)
     return report

@@ -229,8 +229,8 @@ def resolve_description(path: str | Path) -> Path:
     return fallback if fallback.exists() else p
 
 
-def load_register_map(path: str | Path) -> RegisterMap:
-    """Read and validate a register-map YAML; ProfileError names file, key and fix."""
+def _read_map(path: str | Path):
+    """The map file's parsed YAML (keys remember their lines) and its resolved path."""
     p = resolve_description(path)
     try:
         text = p.read_text()
@@ -238,126 +238,172 @@ def load_register_map(path: str | Path) -> RegisterMap:
         raise ProfileError(f"{path}: cannot read register map ({exc.strerror}); "
                            f"give a path to a YAML file in drivers/") from None
     try:
-        data = yaml.load(text, Loader=_LineLoader)
+        return yaml.load(text, Loader=_LineLoader), p
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"{p}:{mark.line + 1}" if mark else str(p)
         raise ProfileError(f"{where}: not valid YAML ({getattr(exc, 'problem', exc)}); "
                            f"fix the syntax") from None
+
+
+def load_register_map(path: str | Path) -> RegisterMap:
+    """Read and validate a register-map YAML; ProfileError names file, key and fix."""
+    data, p = _read_map(path)
     return parse_register_map(data, str(p))
 
 
-def parse_register_map(data, where: str = "register map") -> RegisterMap:
-    """Validate an already-parsed map (``where`` names it in errors)."""
+def check_register_map(path: str | Path) -> list[str]:
+    """Every problem of a register-map file at once (``gearbench validate``), each
+    naming file, line, key and fix; [] for a valid map."""
+    try:
+        data, p = _read_map(path)
+    except ProfileError as exc:
+        return [str(exc)]
+    return register_map_problems(data, str(p))[1]
 
-    def fail(m, key, msg, fix):
-        raise ProfileError(f"{where}{_line(m, key)}: {msg}; {fix}")
+
+def parse_register_map(data, where: str = "register map") -> RegisterMap:
+    """Validate an already-parsed map (``where`` names it in errors); the first problem
+    is raised (the driver needs a valid map or nothing)."""
+    regmap, problems = register_map_problems(data, where)
+    if problems:
+        raise ProfileError(problems[0])
+    return regmap
+
+
+def register_map_problems(data, where: str = "register map") -> tuple[RegisterMap | None, list[str]]:
+    """Check a parsed map whole: register types, addresses, access, overlaps, word order,
+    the contiguous sample block, the sample counter, modes, control values, the status
+    word and the enable sequence. Returns the map (None if any problem) and every problem."""
+    out: list[str] = []
+
+    def bad(m, key, msg, fix):
+        out.append(f"{where}{_line(m, key)}: {msg}; {fix}")
 
     if not isinstance(data, dict):
-        fail(data, None, "top level is not a mapping", "write `registers:`, `word_order:`, ... as keys")
+        return None, [f"{where}: top level is not a mapping; write `registers:`, `word_order:`, ... as keys"]
     word_order = data.get("word_order", "big")
     if word_order not in WORD_ORDERS:
-        fail(data, "word_order", f"word_order: '{word_order}' is not a word order",
-             "use 'big' (high word at the lower address) or 'little'")
+        bad(data, "word_order", f"word_order: '{word_order}' is not a word order",
+            "use 'big' (high word at the lower address) or 'little'")
 
     regs_in = data.get("registers")
     if not isinstance(regs_in, dict) or not regs_in:
-        fail(data, "registers", "registers: missing or not a mapping",
-             "add `registers:` with name: {address, type, scale, unit, access}")
+        bad(data, "registers", "registers: missing or not a mapping",
+            "add `registers:` with name: {address, type, scale, unit, access}")
+        regs_in = {}
     registers: dict[str, Register] = {}
     for name, spec in regs_in.items():
         key = f"registers.{name}"
         if not isinstance(spec, dict):
-            fail(regs_in, name, f"{key}: not a mapping", "write {address: N, type: int16, scale: 1, unit: '', access: r}")
+            bad(regs_in, name, f"{key}: not a mapping", "write {address: N, type: int16, scale: 1, unit: '', access: r}")
+            continue
+        n_before = len(out)
         for field in ("address", "type"):
             if field not in spec:
-                fail(spec, None, f"{key}.{field}: missing", f"add `{field}:` to register '{name}'")
-        addr = spec["address"]
-        if isinstance(addr, bool) or not isinstance(addr, int) or not 0 <= addr <= 65535:
-            fail(spec, "address", f"{key}.address: '{addr}' is not a register address",
-                 "use a 0-based PDU address 0..65535")
-        rtype = spec["type"]
-        if rtype not in TYPES:
-            fail(spec, "type", f"{key}.type: unknown type '{rtype}'", f"use one of {', '.join(TYPES)}")
+                bad(spec, None, f"{key}.{field}: missing", f"add `{field}:` to register '{name}'")
+        addr, rtype = spec.get("address"), spec.get("type")
+        if "address" in spec and (isinstance(addr, bool) or not isinstance(addr, int) or not 0 <= addr <= 65535):
+            bad(spec, "address", f"{key}.address: '{addr}' is not a register address",
+                "use a 0-based PDU address 0..65535")
+        if "type" in spec and rtype not in TYPES:
+            bad(spec, "type", f"{key}.type: unknown type '{rtype}'", f"use one of {', '.join(TYPES)}")
         try:
             scale = _number(spec.get("scale", 1))
         except (ValueError, SyntaxError, ZeroDivisionError, TypeError):
             scale = float("nan")
         if not math.isfinite(scale) or scale == 0:
-            fail(spec, "scale", f"{key}.scale: '{spec.get('scale')}' is not a non-zero number",
-                 "give SI units per count, e.g. 0.001 or 2*pi/10000")
+            bad(spec, "scale", f"{key}.scale: '{spec.get('scale')}' is not a non-zero number",
+                "give SI units per count, e.g. 0.001 or 2*pi/10000")
         access = spec.get("access", "r")
         if access not in ACCESS:
-            fail(spec, "access", f"{key}.access: '{access}' is not an access mode", "use r, w or rw")
-        registers[name] = Register(str(name), addr, rtype, scale, str(spec.get("unit", "")), access)
+            bad(spec, "access", f"{key}.access: '{access}' is not an access mode", "use r, w or rw")
+        if len(out) == n_before:
+            registers[name] = Register(str(name), addr, rtype, scale, str(spec.get("unit", "")), access)
 
     for name, need in REQUIRED.items():
-        if name not in registers:
-            fail(regs_in, None, f"registers.{name}: missing (required register)",
-                 f"add `{name}: {{address: N, type: ..., scale: ..., unit: ..., access: {need}}}`")
-        if need not in registers[name].access:
-            fail(regs_in[name], "access", f"registers.{name}.access: '{registers[name].access}' "
-                 f"but gearbench must {'read' if need == 'r' else 'write'} it", f"set access: {need} or rw")
+        if name not in regs_in:
+            bad(regs_in, None, f"registers.{name}: missing (required register)",
+                f"add `{name}: {{address: N, type: ..., scale: ..., unit: ..., access: {need}}}`")
+        elif name in registers and need not in registers[name].access:
+            bad(regs_in[name], "access", f"registers.{name}.access: '{registers[name].access}' "
+                f"but gearbench must {'read' if need == 'r' else 'write'} it", f"set access: {need} or rw")
     if "sync" in registers and not registers["sync"].writable:
-        fail(regs_in["sync"], "access", "registers.sync.access: sync is written by the master", "set access: w")
-    if registers["sample_counter"].scale <= 0 or registers["sample_counter"].unit != "s":
-        fail(regs_in["sample_counter"], "scale", "registers.sample_counter: scale must be the counter "
-             "period in seconds", "set scale: <period, e.g. 0.001> and unit: s")
+        bad(regs_in["sync"], "access", "registers.sync.access: sync is written by the master", "set access: w")
+    counter = registers.get("sample_counter")
+    if counter is not None and (counter.scale <= 0 or counter.unit != "s"):
+        bad(regs_in["sample_counter"], "scale", "registers.sample_counter: scale must be the counter "
+            "period in seconds (the drive's time base)", "set scale: <period, e.g. 0.001> and unit: s")
 
     # overlapping addresses
     ordered = sorted(registers.values(), key=lambda r: r.address)
     for a, b in zip(ordered, ordered[1:]):
         if b.address < a.address + a.words:
-            fail(regs_in[b.name], "address", f"registers.{b.name}.address: {b.address} overlaps "
-                 f"registers.{a.name} ({a.type} at {a.address}..{a.address + a.words - 1})",
-                 "move one of them to a free address")
+            bad(regs_in[b.name], "address", f"registers.{b.name}.address: {b.address} overlaps "
+                f"registers.{a.name} ({a.type} at {a.address}..{a.address + a.words - 1})",
+                "move one of them to a free address")
     # the sampled registers form one contiguous block -> one read, one instant
-    sampled = sorted((registers[n] for n in SAMPLED), key=lambda r: r.address)
+    sampled = sorted((registers[n] for n in SAMPLED if n in registers), key=lambda r: r.address)
     for a, b in zip(sampled, sampled[1:]):
         if b.address != a.address + a.words:
-            fail(regs_in[b.name], "address", f"registers.{b.name}.address: {b.address} leaves a gap "
-                 f"after registers.{a.name}; {', '.join(SAMPLED)} must be contiguous",
-                 f"place {b.name} at {a.address + a.words} so one request reads them at one instant")
+            bad(regs_in[b.name], "address", f"registers.{b.name}.address: {b.address} leaves a gap "
+                f"after registers.{a.name}; {', '.join(SAMPLED)} must be contiguous",
+                f"place {b.name} at {a.address + a.words} so one request reads them at one instant")
+    if sampled and sampled[-1].address + sampled[-1].words - sampled[0].address > MAX_READ_WORDS:
+        bad(regs_in, None, "the sample block is longer than one Modbus read",
+            f"keep it within {MAX_READ_WORDS} words")
 
     modes = data.get("modes")
     if not isinstance(modes, dict) or any(not isinstance(modes.get(m), int) for m in MODES):
-        fail(data, "modes", "modes: needs integer values for velocity and torque",
-             "add `modes: {velocity: 3, torque: 4}` (the mode register values)")
+        bad(data, "modes", "modes: needs integer values for velocity and torque",
+            "add `modes: {velocity: 3, torque: 4}` (the mode register values); a drive without "
+            "a torque mode cannot be the output motor")
     cv = data.get("control_values")
     if not isinstance(cv, dict) or any(not isinstance(cv.get(k), int) for k in CONTROL_VALUES):
-        fail(data, "control_values", f"control_values: needs integers for {', '.join(CONTROL_VALUES)}",
-             "add e.g. `control_values: {quick_stop: 2, disable: 0, fault_reset: 128}`")
+        bad(data, "control_values", f"control_values: needs integers for {', '.join(CONTROL_VALUES)}",
+            "add e.g. `control_values: {quick_stop: 2, disable: 0, fault_reset: 128}`")
     sw = data.get("status_word", {})
     if not isinstance(sw, dict):
-        fail(data, "status_word", "status_word: not a mapping", "write {fault_bit: 3, enabled_mask: 0x6F, enabled_value: 0x27}")
+        bad(data, "status_word", "status_word: not a mapping",
+            "write {fault_bit: 3, enabled_mask: 0x6F, enabled_value: 0x27}")
+        sw = {}
     fault_bit = sw.get("fault_bit", 3)
-    if not isinstance(fault_bit, int) or not 0 <= fault_bit <= 15:
-        fail(sw, "fault_bit", f"status_word.fault_bit: '{fault_bit}' is not a bit number", "use 0..15 (CiA 402: 3)")
+    if isinstance(fault_bit, bool) or not isinstance(fault_bit, int) or not 0 <= fault_bit <= 15:
+        bad(sw, "fault_bit", f"status_word.fault_bit: '{fault_bit}' is not a bit number", "use 0..15 (CiA 402: 3)")
 
     seq_in = data.get("enable_sequence")
     if not isinstance(seq_in, list) or not seq_in:
-        fail(data, "enable_sequence", "enable_sequence: missing or empty",
-             "list the writes, e.g. - {register: control, value: 6}")
+        bad(data, "enable_sequence", "enable_sequence: missing or empty",
+            "list the writes, e.g. - {register: control, value: 6}")
+        seq_in = []
     seq = []
     for i, step in enumerate(seq_in):
         key = f"enable_sequence[{i}]"
         if not isinstance(step, dict) or "register" not in step or "value" not in step:
-            fail(data, "enable_sequence", f"{key}: needs register and value", "write - {register: control, value: 6}")
+            bad(data, "enable_sequence", f"{key}: needs register and value", "write - {register: control, value: 6}")
+            continue
         reg = registers.get(step["register"])
         if reg is None or not reg.writable:
-            fail(step, "register", f"{key}.register: '{step['register']}' is not a writable register of this map",
-                 "name a register with access w or rw")
+            bad(step, "register", f"{key}.register: '{step['register']}' is not a writable register of this map",
+                "name a register with access w or rw")
         value = step["value"]
         if value != "mode" and (isinstance(value, bool) or not isinstance(value, int)):
-            fail(step, "value", f"{key}.value: '{value}' is not a raw integer", "give the raw register value, or 'mode'")
-        seq.append(Write(reg.name, value))
+            bad(step, "value", f"{key}.value: '{value}' is not a raw integer", "give the raw register value, or 'mode'")
+        seq.append(Write(str(step["register"]), value))
+    if seq and not any(w.value == "mode" for w in seq):
+        bad(data, "enable_sequence", "enable_sequence never writes the mode", "add - {register: mode, value: mode}")
+    if seq and seq[-1].register != "control":
+        bad(data, "enable_sequence", "enable_sequence does not end with a control write",
+            "end with the enable-operation controlword, e.g. - {register: control, value: 15}")
 
     timeout = data.get("enable_timeout_s", 1.0)
-    if not isinstance(timeout, (int, float)) or timeout <= 0:
-        fail(data, "enable_timeout_s", f"enable_timeout_s: '{timeout}' is not a positive number", "use e.g. 1.0")
+    if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or timeout <= 0:
+        bad(data, "enable_timeout_s", f"enable_timeout_s: '{timeout}' is not a positive number", "use e.g. 1.0")
+    if out:
+        return None, out
     return RegisterMap(
         path=where, model=str(data.get("model", Path(where).stem)), word_order=word_order,
         registers=MappingProxyType(registers), modes=MappingProxyType({m: modes[m] for m in modes}),
         control_values=MappingProxyType({k: cv[k] for k in cv}), enable_sequence=tuple(seq),
         fault_bit=fault_bit, enabled_mask=int(sw.get("enabled_mask", 0x6F)),
-        enabled_value=int(sw.get("enabled_value", 0x27)), enable_timeout_s=float(timeout))
+        enabled_value=int(sw.get("enabled_value", 0x27)), enable_timeout_s=float(timeout)), []
