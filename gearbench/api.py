@@ -286,7 +286,7 @@ class Bench:
     def run(self) -> RunResult:
         """Every profile step in order, then ``finish()``; a fault ends the run (status fault)."""
         try:
-            for step in self.profile.steps:
+            for step in self.sequencer.step_groups():   # parallel calibration: a tuple of steps
                 self.run_step(step)
         except GearbenchError:
             pass   # recorded in self.error; finish() reports it
@@ -303,7 +303,7 @@ class Bench:
 def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str = "",
                operator=None, subscribers: Iterable[Callable] = (), db=None, seed=None,
                method: str = "default", quiet: bool = True, live: bool = False, rrd=None,
-               connect=None, fixture=None):
+               connect=None, fixture=None, central: str | None = None):
     """Open the bench for ``profile`` (a path or a loaded Profile); yields a ``Bench``.
 
     ``sim=True`` starts the emulated bench (the profile's ``simulation:`` plant) in a
@@ -314,9 +314,15 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
     emulator with ``sim``, or the drive network itself if it has ``mount()``, as an
     in-process simulated drive family does). On leaving, an unfinished run is
     finished (a GearbenchError inside the block makes it a fault), drives are
-    disabled and the outputs closed.
+    disabled and the outputs closed. Every run copies its profile into the run folder
+    and, when a central database is configured (``central`` URL, else
+    ``$GEARBENCH_CENTRAL`` or the station config), is pushed to it after it ends —
+    whoever opens the bench (CLI, script, OpenHTF).
     """
+    from .central.config import central_url
+    from .central.push import CentralPush
     from .console import ProgressDisplay
+    from .reanalysis import ProfileSnapshot
     from .recorder import ParquetRecorder
     from .report import ResultWriter
     from .sequencer import Sequencer
@@ -334,7 +340,11 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
     db_path = Path(db) if db else out.resolve().parent / "station.sqlite"
     # required outputs: a unit cannot pass without them (the result writer last, so it sees
     # a failure of the others); best-effort: the progress display, the live view, callers' extras
-    stream = RecordStream([ProgressDisplay(sys.stderr, quiet=quiet), *subscribers],
+    extras: list = [ProfileSnapshot()]   # profile.yaml in the run folder, for re-analysis
+    url = central_url(central, db_path)
+    if url:
+        extras.append(CentralPush(db_path, url, quiet=quiet))
+    stream = RecordStream([ProgressDisplay(sys.stderr, quiet=quiet), *extras, *subscribers],
                           required=[ParquetRecorder(out), StationDatabase(db_path), ResultWriter(out)])
     if operator is None:
         operator = AutoOperator() if sim else TerminalOperator()
@@ -420,7 +430,7 @@ def _check_writable(out: Path) -> None:
 def run_profile(profile_path, *, sim: bool = False, out_dir="results/run", serial: str = "",
                 db=None, yes: bool = False, rrd=None, live: bool = False, connect=None,
                 method: str = "default", seed=None, quiet: bool = True, subscribers=(),
-                operator=None) -> dict:
+                operator=None, central: str | None = None) -> dict:
     """Run a whole profile; returns the result dict (what result.json holds).
 
     Writes the run folder (Parquet traces, result.json, junit.xml) and a row in the
@@ -430,6 +440,6 @@ def run_profile(profile_path, *, sim: bool = False, out_dir="results/run", seria
         operator = AutoOperator() if yes else TerminalOperator()
     with open_bench(profile_path, sim=sim, out_dir=out_dir, serial=serial, operator=operator,
                     subscribers=subscribers, db=db, seed=seed, method=method, quiet=quiet,
-                    live=live, rrd=rrd, connect=connect) as bench:
+                    live=live, rrd=rrd, connect=connect, central=central) as bench:
         result = bench.run()
     return result.raw

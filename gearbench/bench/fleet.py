@@ -111,14 +111,13 @@ def ingest(template: dict, *, stations: int, runs: int, outage_s: float, tmp: Pa
 
 def _real_runs(profile: str, n: int, tmp: Path) -> list[Path]:
     from gearbench.api import run_profile
-    from gearbench.reanalysis import ProfileSnapshot
 
     dirs = []
     for k in range(n):
         for attempt in range(3):         # the emulated bench on a loaded host can stall
             out = tmp / f"real-{k}-{attempt}"
             res = run_profile(profile, sim=True, out_dir=out, serial=f"REAL-{k}", yes=True, seed=k,
-                              quiet=True, subscribers=[ProfileSnapshot()])
+                              quiet=True)   # the run folder gets profile.yaml itself
             if res["status"] == "passed":
                 dirs.append(out)
                 break

@@ -5,10 +5,7 @@ import sys
 from datetime import datetime, timezone
 from pathlib import Path
 
-from ..central.config import central_url
-from ..central.push import CentralPush
 from ..errors import GearbenchError
-from ..reanalysis import ProfileSnapshot
 
 NAME = "run"
 HELP = "Run a test profile on the bench (or on the simulated bench with --sim)."
@@ -53,10 +50,6 @@ def run(args) -> int:
         raise GearbenchError("no operator terminal to answer the mounting prompts; "
                              "run from a terminal or pass --yes for an unattended run")
     db = Path(args.db) if args.db else out.resolve().parent / "station.sqlite"  # as open_bench
-    subscribers = [ProfileSnapshot()]   # profile.yaml in the run folder, for re-analysis
-    url = central_url(args.central, db)
-    if url:
-        subscribers.append(CentralPush(db, url, quiet=args.quiet))
     if args.golden:
         from ..golden import mark_golden
         from ..profile import load_profile
@@ -65,7 +58,7 @@ def run(args) -> int:
     result = run_profile(args.profile, sim=args.sim, out_dir=out, serial=serial,
                          db=db, yes=args.yes or args.sim, rrd=args.rrd, live=args.live,
                          connect=args.connect, method=args.method, seed=args.seed,
-                         quiet=args.quiet, subscribers=subscribers)
+                         quiet=args.quiet, central=args.central)
     if args.report:
         _report(out)
     if args.golden:
