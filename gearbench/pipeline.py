@@ -56,16 +56,25 @@ def calibrate(unloaded: Trace, loaded: Trace, *, motor: str, disk_kgm2: float,
 
 
 def efficiency(step: Trace, motor_in: dict, motor_out: dict, *, ratio: float | None,
-               settle_s: float, skip_samples: int = 0) -> dict:
+               settle_s: float, skip_samples: int = 0,
+               windows: list[tuple[int, int]] | None = None, incremental: str = "secant") -> dict:
     """Efficiency points of one recorded efficiency segment (eq. 18 and P_out/P_in).
 
     ``motor_in``/``motor_out`` are calibration dicts, or ``{"Kt": ...}`` alone (datasheet
-    value, no loss model) for a motor the profile does not calibrate."""
+    value, no loss model) for a motor the profile does not calibrate. ``windows``: the
+    steady ranges as drive sample-counter values [first, last) (an adaptive run's
+    settled levels); they survive filled-in lost samples."""
     filled = fill_lost_samples(step)
-    bench = bench_trace(filled.slice(skip_samples, None))
+    trimmed = filled.slice(skip_samples, None)
+    ranges = None
+    if windows is not None:
+        counter = np.asarray(trimmed["sample"], dtype=np.int64)
+        ranges = [(int(np.searchsorted(counter, a)), int(np.searchsorted(counter, b))) for a, b in windows]
+    bench = bench_trace(trimmed)
     bench.source = f"step {step.source}"
     m_in, m_out = _calibration(motor_in, "motor in"), _calibration(motor_out, "motor out")
-    out = _efficiency(bench, m_in, m_out, ratio=ratio, settle_s=settle_s).to_dict()
+    out = _efficiency(bench, m_in, m_out, ratio=ratio, settle_s=settle_s, windows=ranges,
+                      incremental=incremental).to_dict()
     for pt in out.get("points", []):
         pt["interpolated_samples"] = filled.meta.get("interpolated_samples", 0)
     return out

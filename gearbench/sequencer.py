@@ -69,6 +69,15 @@ class Segment:
     commands: dict[str, tuple[Mode, np.ndarray]]
     description: str = ""
     meta: dict = field(default_factory=dict)
+    # adaptive segment (gearbench.adaptive): gives each sample's setpoints and decides when
+    # the segment ends; ``commands`` then hold (mode, None)
+    controller: object = None
+
+    @property
+    def max_samples(self) -> int:
+        if self.controller is not None:
+            return int(self.controller.max_samples)
+        return len(next(iter(self.commands.values()))[1])
 
 
 def now_utc() -> str:
@@ -105,6 +114,8 @@ class Sequencer:
         self.lost: dict[str, list[int]] = {}     # step -> sample counter values that never arrived
         self.priority_granted = ""
         self._output_failure: str | None = None     # a required output failed on a path that went on
+        self.measurements: list[dict] = []         # adaptive measurements: duration, interval, stopped_by
+        self.adaptive: dict[str, object] = {}      # segment name -> its finished controller
 
     def emit(self, record) -> None:
         """Emit a record; a required output that failed becomes a bench fault."""
@@ -154,14 +165,35 @@ class Sequencer:
     def plan(self) -> list:
         """The profile's steps as a flat list of actions: Segment, ("prompt", text,
         mount kwargs) and ("analyse", what, args). Plain data, easy to print and test."""
-        return [a for step in self.profile.steps for a in self.plan_step(step)]
+        return [a for group in self.step_groups() for a in self.plan_step(group)]
+
+    def step_groups(self) -> list:
+        """The profile's steps as run: each step alone, except that with
+        ``bench.parallel_calibration`` calibrate steps of different motors next to each
+        other form one tuple, calibrated at once (the motors are independent before the
+        reducer is mounted)."""
+        from .profile import CalibrateStep
+
+        groups: list = []
+        for step in self.profile.steps:
+            last = groups[-1] if groups else None
+            if (self.profile.bench.parallel_calibration and isinstance(step, CalibrateStep)
+                    and isinstance(last, tuple) and step.motor not in {s.motor for s in last}):
+                groups[-1] = last + (step,)
+            elif self.profile.bench.parallel_calibration and isinstance(step, CalibrateStep):
+                groups.append((step,))
+            else:
+                groups.append(step)
+        return [g[0] if isinstance(g, tuple) and len(g) == 1 else g for g in groups]
 
     def plan_step(self, step) -> list:
-        """The actions of one profile step."""
+        """The actions of one profile step (or of a tuple of calibrate steps run at once)."""
         from .profile import CalibrateStep, EfficiencyStep, LoadStep
 
         p = self.profile
         actions: list = []
+        if isinstance(step, tuple) or (isinstance(step, CalibrateStep) and step.adaptive):
+            return self._plan_calibration(step if isinstance(step, tuple) else (step,))
         if isinstance(step, CalibrateStep):
             m = step.motor
             disk = p.disks[step.disk]
@@ -191,10 +223,102 @@ class Sequencer:
                             dict(coupling="reducer", disk_kgm2={})))
         elif isinstance(step, EfficiencyStep):
             for k, speed in enumerate(step.speeds_in_rad_s):
+                if step.adaptive:
+                    actions.append(self._staircase_segment(step, k, speed))
+                    actions.append(("analyse", "efficiency", dict(segment=f"efficiency-{k}",
+                                                                   speed=speed, adaptive=True)))
+                    continue
                 actions.append(self._efficiency_segment(step, k, speed))
                 actions.append(("analyse", "efficiency", dict(segment=f"efficiency-{k}",
                                                                speed=speed)))
         return actions
+
+    def _plan_calibration(self, steps: tuple) -> list:
+        """Calibrate steps run at once (or one adaptive step): every motor alone, then every
+        motor with its disk, one prompt each. Adaptive steps stop each motor's run on
+        ``targets.kt_rel`` (gearbench.adaptive); fixed ones play ``duration_s``."""
+        from .adaptive import CalibrationRuns
+
+        p = self.profile
+        motors = [s.motor for s in steps]
+        disks = {s.motor: p.disks[s.disk] for s in steps}
+        who = " and ".join(f"'{m}'" for m in motors)
+        tag = "+".join(motors)
+        actions: list = [("prompt", f"Motor{'s' if len(motors) > 1 else ''} {who}: shafts free, no disk, "
+                                    f"no reducer", dict(coupling="none", disk_kgm2={}))]
+        mount = " and ".join(f"disk '{disks[m].name}' on motor '{m}'" for m in motors)
+        prompt = steps[0].prompt if len(steps) == 1 else f"Mount {mount}"
+        names = {}
+        for run in ("unloaded", "loaded"):
+            seg_name = (f"calibrate-{tag}-unloaded" if run == "unloaded" else
+                        f"calibrate-{tag}-{'+'.join(disks[m].name for m in motors)}")
+            names[run] = seg_name
+            if run == "loaded":
+                actions.append(("prompt", prompt, dict(coupling="none",
+                                                       disk_kgm2={m: disks[m].inertia_kgm2 for m in motors})))
+            actions.append(self._calibration_segment(steps, run, seg_name, names))
+        remove = " and ".join(f"disk '{disks[m].name}' from motor '{m}'" for m in motors)
+        actions.append(("prompt", steps[0].remove_prompt if len(steps) == 1 else f"Remove {remove}",
+                        dict(coupling="none", disk_kgm2={})))
+        for s in steps:
+            d = disks[s.motor]
+            actions.append(("analyse", "calibrate", dict(motor=s.motor, disk=d.inertia_kgm2,
+                            disk_std=d.inertia_std_kgm2, disk_name=d.name,
+                            unloaded=names["unloaded"], loaded=names["loaded"])))
+        return actions
+
+    def _calibration_segment(self, steps: tuple, run: str, seg_name: str, names: dict) -> Segment:
+        from .adaptive import CalibrationRuns
+        from .analysis.streaming import kt_share_loaded, kt_share_unloaded
+
+        p = self.profile
+        modes, runs = {}, {}
+        for s in steps:
+            m = s.motor
+            wave = p.waveforms[s.waveform]
+            n = int(round(s.duration_s / self.period_s))
+            cmd = np.asarray(wave.render(np.arange(n) * self.period_s), dtype=float)
+            modes[m] = Mode.TORQUE if s.mode in ("current", "torque") else Mode.VELOCITY
+            if run == "unloaded":
+                share = (lambda b2, kt=p.motors[m].kt_datasheet, j=p.disks[s.disk].inertia_kgm2:
+                         kt_share_unloaded(b2, kt, j))
+            else:
+                share = (lambda b2, m=m: kt_share_loaded(self._b2_unloaded(names["unloaded"], m), b2))
+            runs[m] = dict(command=cmd, velocity=modes[m] is Mode.VELOCITY, share=share,
+                           label="unloaded" if run == "unloaded" else p.disks[s.disk].name)
+        if not all(s.adaptive for s in steps):   # fixed-length runs played together
+            lo = hi = max(s.duration_s for s in steps)
+            kt_rel = 0.0
+        else:
+            lo, hi = max(s.min_s for s in steps), max(s.max_s for s in steps)
+            kt_rel = p.targets.kt_rel
+        ctl = CalibrationRuns(runs, period_s=self.period_s, min_s=lo, max_s=hi, kt_rel=kt_rel,
+                              ramp_rad_s2=RAMP_RAD_S2, segment=seg_name)
+        what = "without disk" if run == "unloaded" else "with disk"
+        return Segment(seg_name, "calibrate", {m: (modes[m], None) for m in runs},
+                       f"motor{'s' if len(runs) > 1 else ''} {', '.join(runs)} {what}", controller=ctl)
+
+    def _b2_unloaded(self, segment: str, motor: str) -> float:
+        """The unloaded run's streaming b2 of ``motor`` (for the disk run's share of Kt)."""
+        return self.adaptive[segment].b2.get(motor, float("nan"))
+
+    def _staircase_segment(self, step, k: int, speed: float) -> Segment:
+        """Adaptive efficiency at one speed: a continuous staircase (gearbench.adaptive)."""
+        from .adaptive import Staircase
+
+        p = self.profile
+        kt_out = self._kt("out")
+        ctl = Staircase(speed=speed, currents_out_a=[-abs(t) / kt_out for t in step.torques_out_nm],
+                        torques_out_nm=list(step.torques_out_nm), period_s=self.period_s,
+                        min_s=step.min_s, max_s=step.max_s, eta_pp=p.targets.eta_pp,
+                        kt_in=self._kt("in"), kt_out=kt_out,
+                        eta_prior=p.reducer.efficiency_range[1] if p.reducer else 1.0,
+                        ratio_prior=p.reducer.ratio if p.reducer else None,
+                        ramp_rad_s2=RAMP_RAD_S2, segment=f"efficiency-{k}")
+        return Segment(f"efficiency-{k}", "efficiency",
+                       {"in": (Mode.VELOCITY, None), "out": (Mode.TORQUE, None)},
+                       f"input {speed:g} rad/s, staircase of {len(step.torques_out_nm)} braking torques",
+                       meta=dict(speed=speed, settle_s=0.0, n_ramp=ctl.n_ramp), controller=ctl)
 
     def _efficiency_segment(self, step, k: int, speed: float) -> Segment:
         """Input motor at ``speed`` (velocity mode, ramped); output motor in current
@@ -236,7 +360,7 @@ class Sequencer:
         """Run every step; return the result dict (also emitted in RunStop)."""
         self.begin()
         try:
-            for step in self.profile.steps:
+            for step in self.step_groups():
                 self.run_step(step)
         except GearbenchError as exc:
             return self.finish(error=exc)
@@ -251,8 +375,7 @@ class Sequencer:
         p = self.profile
         self._started = now_utc()
         self._wall0 = time.monotonic()
-        self._samples_total = max(1, sum(len(next(iter(a.commands.values()))[1])
-                                         for a in self.plan() if isinstance(a, Segment)))
+        self._samples_total = max(1, sum(a.max_samples for a in self.plan() if isinstance(a, Segment)))
         self.emit(RunStart(self.run_id, self.serial, p.name, str(p.path), p.sha256, self._started,
                            self.sim_truth is not None, tuple(p.motors), self.period_s,
                            str(self.out_dir)))
@@ -331,7 +454,8 @@ class Sequencer:
         drive that does not disable is a fault and no further segment starts."""
         net = self.net
         motors = list(seg.commands)
-        n = len(next(iter(seg.commands.values()))[1])
+        n = seg.max_samples
+        ctl = seg.controller
         self.emit(StepStart(seg.name, seg.step_kind, seg.description, n))
         drives = {m: net.drives[m] for m in motors}
         for m, (mode, cmd) in seg.commands.items():
@@ -356,8 +480,9 @@ class Sequencer:
                 for k in range(n):
                     if self._abort_reason:
                         raise self._abort()
+                    step_sp = ctl.setpoints(k) if ctl is not None else None
                     for m in motors:
-                        sp = float(seg.commands[m][1][k])
+                        sp = step_sp[m] if ctl is not None else float(seg.commands[m][1][k])
                         if sp != last_sp[m]:
                             drives[m].set_setpoint(sp)
                             last_sp[m] = sp
@@ -376,6 +501,8 @@ class Sequencer:
                         self._flush(seg.name, buf_idx, buf_t, cols, flushed, done)
                         flushed = done
                         self._progress(seg, done, n)
+                    if ctl is not None and ctl.update(done, cols):
+                        break
         except BenchFault as exc:
             status = "aborted" if isinstance(exc, Aborted) else "fault"
             raise self._stop_drives(exc) from None   # first the drives, within this sample period; then the books
@@ -392,9 +519,29 @@ class Sequencer:
             self.traces[seg.name] = Trace(buf_t[:done], {"sample": buf_idx[:done],
                                           **{c: v[:done] for c, v in cols.items()}},
                                           {"step": seg.name, **seg.meta}, seg.name)
+            if ctl is not None and status == "ok":
+                self._adaptive_done(seg, ctl, cols, buf_idx, done)
         if end_fault is not None:
             raise end_fault
         return self.traces[seg.name]
+
+    def _adaptive_done(self, seg: Segment, ctl, cols: dict, buf_idx: np.ndarray, done: int) -> None:
+        """Keep what an adaptive segment measured (for the analysis and result.json) and
+        say it: one line per measurement, how long, the interval reached, why it stopped."""
+        if hasattr(ctl, "finish"):
+            ctl.finish(cols, done)
+            seg.meta["windows"] = ctl.windows(buf_idx[:done])
+            self.traces[seg.name].meta["windows"] = seg.meta["windows"]
+        self.adaptive[seg.name] = ctl
+        for rec in ctl.measurements():
+            self.measurements.append(rec)
+            reached = rec.get("interval_reached")
+            unit = "%" if rec["kind"] == "calibrate" else "pp"
+            scale = 100.0 if rec["kind"] == "calibrate" else 1.0
+            shown = "n/a" if reached is None else f"{scale * reached:.3g} {unit}"
+            self._emit_quiet(Message(f"{rec['name']}: {rec['duration_s']:.2f} s, stopped by "
+                                     f"{rec['stopped_by']} (95 % statistical half-width {shown}, "
+                                     f"target {scale * rec['target']:.3g} {unit})", step=seg.name))
 
     def _end_segment(self, seg: Segment, drives: dict) -> BenchFault | None:
         """Zero setpoints and disable, verified; a drive that stays enabled is a fault."""
@@ -451,7 +598,10 @@ class Sequencer:
 
         if what == "calibrate":
             m = args["motor"]
-            cal = pipeline.calibrate(self.traces[args["unloaded"]], self.traces[args["loaded"]],
+            unloaded, loaded = self.traces[args["unloaded"]], self.traces[args["loaded"]]
+            # runs played together: each motor's own run, up to the end of its stop ramp
+            unloaded, loaded = (self._motor_run(tr, m) for tr in (unloaded, loaded))
+            cal = pipeline.calibrate(unloaded, loaded,
                                      motor=m, disk_kgm2=args["disk"], method=self.method,
                                      disk_std_kgm2=args.get("disk_std", 0.0),
                                      disk_name=args.get("disk_name", ""))
@@ -460,15 +610,24 @@ class Sequencer:
         elif what == "efficiency":
             seg = self.traces[args["segment"]]
             ratio = self.profile.reducer.ratio if self.profile.reducer else None
+            adaptive = "windows" in seg.meta
             res = pipeline.efficiency(seg, self.motors_result.get("in") or {"Kt": self._kt("in")},
                                       self.motors_result.get("out") or {"Kt": self._kt("out")},
                                       ratio=ratio, settle_s=seg.meta["settle_s"],
-                                      skip_samples=seg.meta["n_ramp"])
+                                      skip_samples=seg.meta["n_ramp"],
+                                      windows=seg.meta.get("windows"),
+                                      incremental="slope" if adaptive else "secant")
             self.ratio = res["ratio"]
             for pt in res["points"]:
                 pt.setdefault("speed_setpoint_rad_s", args["speed"])
                 self.efficiency.append(pt)
                 self.emit(EfficiencyPoint(pt))
+
+    def _motor_run(self, trace: Trace, motor: str) -> Trace:
+        ctl = self.adaptive.get(trace.source)
+        if ctl is None or not hasattr(ctl, "end_sample") or len(ctl.runs) < 2:
+            return trace
+        return trace.slice(0, min(ctl.end_sample(motor), len(trace)))
 
     # ---------------------------------------------------------------- limits
     def _quantity(self, q: str):
@@ -525,6 +684,7 @@ class Sequencer:
             "supervision": {**self.net.supervision(), "acquisition_priority": self.priority_granted},
             "steps": {name: len(t) for name, t in self.traces.items()},
             "lost_samples_by_step": dict(self.lost_by_step),
+            "measurements": self.measurements,
             "out_dir": str(self.out_dir),
         }
         if self.sim_truth is not None:

@@ -86,10 +86,20 @@ class EfficiencyPoint:
     eta_incremental_dof: float = DOF_MAX
     eta_absolute_std: float = 0.0
     eta_absolute_dof: float = DOF_MAX
+    # "secant": eq. 18 against the zero-load reference (this point alone); "slope": eq. 18
+    # as the regression slope of input on output current over the speed's staircase,
+    # the secant then kept beside it (a load-dependent efficiency shows as their difference)
+    incremental_method: str = "secant"
+    eta_incremental_secant: float | None = None
+    eta_incremental_secant_ci95: tuple[float, float] | None = None
 
     def to_dict(self) -> dict:
         w = self.window
-        return {"eta_incremental": self.eta_incremental,
+        extra = {} if self.incremental_method == "secant" else {
+            "incremental_method": self.incremental_method,
+            "eta_incremental_secant": self.eta_incremental_secant,
+            "eta_incremental_secant_ci95": _as_list(self.eta_incremental_secant_ci95)}
+        return {**extra,"eta_incremental": self.eta_incremental,
                 "eta_incremental_std": self.eta_incremental_std,
                 "eta_incremental_dof": self.eta_incremental_dof,
                 "eta_incremental_ci95": list(self.eta_incremental_ci95),
@@ -214,9 +224,13 @@ def _mean_sem(x: np.ndarray, blocks: int = 10) -> tuple[float, float, float]:
     return m, inflate * float(np.std(bm, ddof=1) / np.sqrt(nb)), float(nb - 1)
 
 
-def measure_windows(trace: Trace, *, settle_s: float = 0.5) -> list[SteadyWindow]:
+def measure_windows(trace: Trace, *, settle_s: float = 0.5,
+                    ranges: list[tuple[int, int]] | None = None) -> list[SteadyWindow]:
+    """Steady windows from the command levels minus ``settle_s``, or exactly ``ranges``
+    (index pairs; an adaptive run knows where each level settled and ended)."""
     t = trace.time_s
-    ranges = steady_windows(t, trace["in_command"], trace["out_command"], settle_s=settle_s)
+    if ranges is None:
+        ranges = steady_windows(t, trace["in_command"], trace["out_command"], settle_s=settle_s)
     res = []
     for s, e in ranges:
         ci, ci_sem, ci_dof = _mean_sem(trace["in_current_a"][s:e])
@@ -268,12 +282,21 @@ def absolute_efficiency(current_in_a: float, current_out_a: float, speed_in_rad_
 
 # ------------------------------------------------------------------------ the job
 def efficiency(trace: Trace, motor_in: MotorCalibration, motor_out: MotorCalibration, *,
-               ratio: float | None = None, settle_s: float = 0.5) -> EfficiencyResult:
-    """Efficiency points of a bench trace (see module docstring)."""
+               ratio: float | None = None, settle_s: float = 0.5,
+               windows: list[tuple[int, int]] | None = None,
+               incremental: str = "secant") -> EfficiencyResult:
+    """Efficiency points of a bench trace (see module docstring).
+
+    ``windows``: the steady index ranges (else found from the commands and ``settle_s``).
+    ``incremental="slope"``: eq. 18 as the weighted regression slope of input on output
+    current over all levels at the same speed (``incremental_slope``), one value per
+    speed; every point keeps its own secant beside it."""
     trace.validate(BENCH_COLUMNS, min_samples=100)
     if ratio is not None and not (np.isfinite(ratio) and ratio > 0):
         raise GearbenchError(f"--ratio must be a positive number, got {ratio}")
-    wins = measure_windows(trace, settle_s=settle_s)
+    if incremental not in ("secant", "slope"):
+        raise GearbenchError(f"incremental must be 'secant' or 'slope', got {incremental!r}")
+    wins = measure_windows(trace, settle_s=settle_s, ranges=windows)
     refs = [w for w in wins if w.is_reference]
     loaded = [w for w in wins if not w.is_reference]
     if not refs:
@@ -294,7 +317,53 @@ def efficiency(trace: Trace, motor_in: MotorCalibration, motor_out: MotorCalibra
         ref = _reference(w, refs, trace.source)
         p = _point(w, ref, motor_in, motor_out, n_signed, n_rel_std, trace.source)
         points.append(p)
+    if incremental == "slope":
+        points = [_with_slope(p, [w for w in wins if np.isclose(w.in_command, p.window.in_command,
+                                                                  rtol=1e-6, atol=1e-9)],
+                              motor_in, motor_out, n_signed, n_rel_std, trace.source)
+                  for p in points]
     return EfficiencyResult(n_abs, sign, abs(n_meas), tuple(points), tuple(refs))
+
+
+def incremental_slope(windows: list[SteadyWindow]) -> tuple[float, float, float]:
+    """Eq. 18 as a slope: weighted straight line of the input current's window means on
+    the output current's over one speed's levels (zero load included); the reducer's
+    no-load loss is the intercept. Returns (slope dI_in/dI_out, its standard error, dof:
+    the smallest window dof, as each mean's error is known from its own blocks)."""
+    from .streaming import slope_fit
+
+    x = np.array([w.current_out_a for w in windows])
+    y = np.array([w.current_in_a for w in windows])
+    _, b, sb = slope_fit(x, y, np.array([w.current_in_sem for w in windows]),
+                         np.array([w.current_out_sem for w in windows]))
+    dof = min(min(w.current_in_dof for w in windows), min(w.current_out_dof for w in windows))
+    return b, sb, float(dof)
+
+
+def _with_slope(p: EfficiencyPoint, same_speed: list[SteadyWindow], m_in, m_out, n_signed,
+                n_rel_std, source) -> EfficiencyPoint:
+    """``p`` with its incremental efficiency from the speed's slope, η = −K_out/(n_s K_in b):
+    variance = the slope's + the Kt ratio's (shared-disk covariance included) + the ratio's."""
+    from dataclasses import replace
+
+    if len(same_speed) < 2:
+        raise TraceError(f"{source}: one level at in_command = {p.window.in_command:g}; a slope "
+                         f"needs the zero-load level and at least one braking level")
+    b, sb, dof_b = incremental_slope(same_speed)
+    if not (np.isfinite(b) and b * np.sign(p.window.speed_in_rad_s or 1.0) < 0):
+        raise ExcitationError(f"{source}: input current does not rise with braking at in_command = "
+                              f"{p.window.in_command:g} (slope {b:.4g}); check the current signs")
+    eta = -m_out.Kt / (n_signed * m_in.Kt * b)
+    rel_b = (sb / b) ** 2
+    rel_k = ((m_in.Kt_std / m_in.Kt) ** 2 + (m_out.Kt_std / m_out.Kt) ** 2
+             - 2 * shared_disk_covariance(m_in, m_out) / (m_in.Kt * m_out.Kt) + n_rel_std ** 2)
+    parts = [abs(eta) ** 2 * rel_b, abs(eta) ** 2 * max(rel_k, 0.0)]
+    std = float(np.sqrt(sum(parts)))
+    dof = effective_dof(parts, [dof_b, min(m_in.Kt_dof, m_out.Kt_dof)])
+    return replace(p, eta_incremental=float(eta), eta_incremental_ci95=interval(eta, std, dof),
+                   eta_incremental_std=std, eta_incremental_dof=float(dof), incremental_method="slope",
+                   eta_incremental_secant=p.eta_incremental,
+                   eta_incremental_secant_ci95=p.eta_incremental_ci95)
 
 
 def _reference(w: SteadyWindow, refs: list[SteadyWindow], source: str):

@@ -14,12 +14,12 @@ from pathlib import Path
 
 from ..errors import ProfileError
 from .model import (BenchSpec, BusSpec, CalibrateStep, DiskSpec, EfficiencyStep, LimitSpec, LoadStep, MotorSpec,
-                    Profile, ReducerSpec, Step, WaveformSpec)
+                    Profile, ReducerSpec, Step, Targets, WaveformSpec)
 from .parse import build_profile
 from .yamlmarks import load_with_marks
 
 __all__ = ["load_profile", "parse_profile_text", "Profile", "BenchSpec", "BusSpec", "MotorSpec", "ReducerSpec",
-           "DiskSpec", "WaveformSpec", "CalibrateStep", "LoadStep", "EfficiencyStep", "Step", "LimitSpec",
+           "DiskSpec", "WaveformSpec", "CalibrateStep", "LoadStep", "EfficiencyStep", "Step", "LimitSpec", "Targets",
            "ProfileError"]
 
 

@@ -30,6 +30,10 @@ class BenchSpec:
     name: str
     bus: BusSpec
     period_s: float = 1e-3           # sample (SYNC) period
+    # Before the reducer is mounted the motors are mechanically independent: calibrate
+    # steps of different motors next to each other run at once (one unloaded run for
+    # both, one prompt to mount both disks, one run with both disks).
+    parallel_calibration: bool = False
 
 
 @dataclass(frozen=True)
@@ -107,10 +111,19 @@ class CalibrateStep:
     name: str = ""
     mode: str = "velocity"           # the waveform is a velocity (rad/s) or a current (A) command
     remove_prompt: str = ""
+    # Adaptive (both set, with profile ``targets.kt_rel``): each run lasts until Kt's
+    # statistical 95 % interval meets the target, at least ``min_s``, at most ``max_s``;
+    # ``duration_s`` is then ``max_s``.
+    min_s: float | None = None
+    max_s: float | None = None
+
+    @property
+    def adaptive(self) -> bool:
+        return self.min_s is not None and self.max_s is not None
 
     @property
     def bench_time_s(self) -> float:
-        return 2.0 * self.duration_s
+        return 2.0 * (self.max_s if self.adaptive else self.duration_s)
 
 
 @dataclass(frozen=True)
@@ -131,6 +144,13 @@ class EfficiencyStep:
 
     For each speed: a zero-load level, each braking torque, zero-load again (when
     ``include_zero_load``); every level is held ``settle_s`` then measured ``measure_s``.
+
+    Adaptive (``min_s``/``max_s`` set, with profile ``targets.eta_pp``): per speed one
+    continuous staircase — zero load, then each braking torque — each level held until
+    its settling is seen in the data and its mean is known well enough for the speed's
+    incremental-efficiency slope to meet the target (at least ``min_s``, at most
+    ``max_s`` per level, settling included); eq. 18 becomes the regression slope of
+    input on output torque over the staircase (``gearbench.analysis.efficiency``).
     """
 
     speeds_in_rad_s: list[float]
@@ -139,13 +159,21 @@ class EfficiencyStep:
     measure_s: float
     include_zero_load: bool = True
     name: str = "efficiency"
+    min_s: float | None = None
+    max_s: float | None = None
+
+    @property
+    def adaptive(self) -> bool:
+        return self.min_s is not None and self.max_s is not None
 
     def levels(self) -> list[tuple[float, float]]:
         """The (input speed rad/s, output braking torque N m) levels in run order."""
         out = []
         for speed in self.speeds_in_rad_s:
             seq = list(self.torques_out_nm)
-            if self.include_zero_load:
+            if self.adaptive:
+                seq = [0.0] + seq                  # staircase: one zero-load level first
+            elif self.include_zero_load:
                 seq = [0.0] + seq + [0.0]
             out += [(speed, torque) for torque in seq]
         return out
@@ -156,6 +184,8 @@ class EfficiencyStep:
 
     @property
     def bench_time_s(self) -> float:
+        if self.adaptive:                          # upper bound: every level at max_s
+            return len(self.levels()) * self.max_s
         return len(self.levels()) * (self.settle_s + self.measure_s)
 
 
@@ -183,6 +213,17 @@ class LimitSpec:
 
 
 @dataclass(frozen=True)
+class Targets:
+    """What an adaptive measurement stops on (95 % half-widths of the statistical part,
+    the part acquisition time shrinks): ``kt_rel`` relative on Kt, ``eta_pp`` on the
+    incremental efficiency in percentage points. Fixed terms (the disk's tolerance, the
+    b2 model term) are not shrunk by time and are not targeted (docs/profile-format.md)."""
+
+    kt_rel: float | None = None
+    eta_pp: float | None = None
+
+
+@dataclass(frozen=True)
 class Profile:
     path: Path
     sha256: str
@@ -197,6 +238,7 @@ class Profile:
     limits: list[LimitSpec]
     simulation: dict | None
     raw: dict
+    targets: Targets = Targets()
 
     @property
     def operating_points(self) -> int:

@@ -18,7 +18,7 @@ import numpy as np
 from ..errors import ProfileError
 from . import waveforms as wf
 from .model import (BenchSpec, BusSpec, CalibrateStep, DiskSpec, EfficiencyStep, LimitSpec, LoadStep,
-                    MotorSpec, Profile, ReducerSpec, WaveformSpec)
+                    MotorSpec, Profile, ReducerSpec, Targets, WaveformSpec)
 from .yamlmarks import MarkedDoc, did_you_mean, one_line
 
 _MISSING = object()
@@ -26,7 +26,7 @@ _NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_.-]{0,63}$")
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 TOP_KEYS = ("name", "description", "bench", "motors", "reducer", "disks", "waveforms", "steps", "limits",
-            "simulation")
+            "simulation", "targets")
 MOTOR_NAMES = ("in", "out")
 CAN_EXAMPLE_CHANNELS = {"socketcan": "can0", "pcan": "PCAN_USBBUS1", "kvaser": 0, "ixxat": 0, "vector": 0}
 STEP_KINDS = ("calibrate", "load", "efficiency")
@@ -69,6 +69,12 @@ MEANING = {
     "low": "the lower limit", "high": "the upper limit", "nominal": "the nominal value",
     "tolerance_rel": "the relative tolerance, e.g. 0.02 for +/-2 %",
     "quantity": "what is limited, e.g. motors.in.Kt_rel_datasheet",
+    "min_s": "the shortest an adaptive measurement may stop, in s",
+    "max_s": "the longest an adaptive measurement may run, in s",
+    "kt_rel": "the target 95 % statistical half-width of Kt, relative, e.g. 0.001 for 0.1 %",
+    "eta_pp": "the target 95 % statistical half-width of the incremental efficiency in "
+              "percentage points, e.g. 0.1",
+    "parallel_calibration": "true (calibrate both motors at once before the reducer is mounted) or false",
 }
 
 
@@ -208,11 +214,43 @@ def build_profile(doc: MarkedDoc, path: Path, sha256: str, base_dir: Path) -> Pr
     waveforms = _waveforms(c, top, bench.period_s)
     steps = _steps(c, top, motors, reducer, disks, waveforms, bench.period_s)
     waveforms = _design_waveforms(c, waveforms, steps, motors, disks, bench.period_s)
+    targets = _targets(c, top, steps)
+    _check_parallel(c, bench, steps)
     limits = _limits(c, top, motors, reducer, steps)
     simulation = _simulation(c, top, bench)
     return Profile(path=path, sha256=sha256, name=name, description=description, bench=bench, motors=motors,
                    reducer=reducer, disks=disks, waveforms=waveforms, steps=steps, limits=limits,
-                   simulation=simulation, raw=top)
+                   simulation=simulation, raw=top, targets=targets)
+
+
+def _targets(c: _Checker, top, steps) -> Targets:
+    """``targets: {kt_rel, eta_pp}``; an adaptive step needs the target it stops on."""
+    p = ("targets",)
+    t = c.mapping(top.get("targets") or {}, p, "targets: {kt_rel: 0.001, eta_pp: 0.1}")
+    c.keys(t, p, ("kt_rel", "eta_pp"))
+    targets = Targets(kt_rel=c.number(t, p, "kt_rel", None, gt=0.0, lt=1.0),
+                      eta_pp=c.number(t, p, "eta_pp", None, gt=0.0, le=100.0))
+    for i, s in enumerate(steps):
+        if isinstance(s, CalibrateStep) and s.adaptive and targets.kt_rel is None:
+            c.fail(("steps", i, "min_s"), "an adaptive calibrate step (min_s/max_s) needs targets.kt_rel",
+                   f"add 'targets: {{kt_rel: 0.001}}' ({MEANING['kt_rel']}) or use duration_s")
+        if isinstance(s, EfficiencyStep) and s.adaptive and targets.eta_pp is None:
+            c.fail(("steps", i, "min_s"), "an adaptive efficiency step (min_s/max_s) needs targets.eta_pp",
+                   f"add 'targets: {{eta_pp: 0.1}}' ({MEANING['eta_pp']}) or use settle_s/measure_s")
+    return targets
+
+
+def _check_parallel(c: _Checker, bench: BenchSpec, steps) -> None:
+    """Calibrate steps run at once share the bench: each motor needs its own disk."""
+    if not bench.parallel_calibration:
+        return
+    for i in range(1, len(steps)):
+        a, b = steps[i - 1], steps[i]
+        if isinstance(a, CalibrateStep) and isinstance(b, CalibrateStep) and a.motor != b.motor \
+                and a.disk == b.disk:
+            c.fail(("steps", i, "disk"), f"disk '{b.disk}' is also on motor '{a.motor}' in steps[{i - 1}], "
+                                         f"and bench.parallel_calibration runs both at once",
+                   "define a second disk under 'disks:' for this motor, or set parallel_calibration: false")
 
 
 def _known_families() -> list[str]:
@@ -227,7 +265,7 @@ def _known_families() -> list[str]:
 def _bench(c: _Checker, top) -> BenchSpec:
     p = ("bench",)
     m = c.mapping(top["bench"], p, "bench: {name, period_s, bus: {...}}")
-    c.keys(m, p, ("name", "period_s", "bus"), required=("bus",))
+    c.keys(m, p, ("name", "period_s", "bus", "parallel_calibration"), required=("bus",))
     name = c.string(m, p, "name", "bench")
     period = c.number(m, p, "period_s", 1e-3, gt=0.0, le=0.1)
     bp = p + ("bus",)
@@ -270,7 +308,8 @@ def _bench(c: _Checker, top) -> BenchSpec:
         host = c.string(b, bp, "host", None)
         port = c.integer(b, bp, "port", None, ge=1, le=65535)
     bus = BusSpec(family=family, interface=interface, channel=channel, host=host, port=port, options=dict(options))
-    return BenchSpec(name=name, bus=bus, period_s=period)
+    return BenchSpec(name=name, bus=bus, period_s=period,
+                     parallel_calibration=c.boolean(m, p, "parallel_calibration", False))
 
 
 def _resolve_drive(c: _Checker, value: str, path, base_dir: Path) -> str:
@@ -479,15 +518,16 @@ def _steps(c: _Checker, top, motors, reducer, disks, waveforms, period_s):
 
 
 def _calibrate(c, d, sp, motors, disks, waveforms, period_s, loaded) -> CalibrateStep:
-    c.keys(d, sp, ("kind", "name", "motor", "disk", "waveform", "duration_s", "mode", "prompt", "remove_prompt"),
-           required=("motor", "disk", "waveform", "duration_s"))
+    c.keys(d, sp, ("kind", "name", "motor", "disk", "waveform", "duration_s", "mode", "prompt", "remove_prompt",
+                   "min_s", "max_s"), required=("motor", "disk", "waveform"))
     if loaded:
         c.fail(sp, "a calibrate step after the load step",
                "calibrate the motors before mounting the reducer (move this step up)")
     motor = _ref(c, d, sp, "motor", motors, "motors")
     disk = _ref(c, d, sp, "disk", disks, "disks")
     wname = _ref(c, d, sp, "waveform", waveforms, "waveforms")
-    duration = c.number(d, sp, "duration_s", gt=0.0, le=3600.0)
+    min_s, max_s = _adaptive_bounds(c, d, sp, "duration_s", 100 * period_s)
+    duration = max_s if max_s is not None else c.number(d, sp, "duration_s", gt=0.0, le=3600.0)
     if duration < 100 * period_s:
         c.fail(sp + ("duration_s",), f"must cover at least 100 samples ({100 * period_s:g} s) (got {duration:g})",
                "lengthen the run")
@@ -503,7 +543,8 @@ def _calibrate(c, d, sp, motors, disks, waveforms, period_s, loaded) -> Calibrat
                                         f"on motor '{motor}'")
     remove = c.string(d, sp, "remove_prompt", f"Remove inertia disk '{disk}' from motor '{motor}'")
     return CalibrateStep(motor=motor, disk=disk, waveform=wname, duration_s=duration, prompt=prompt,
-                         name=c.string(d, sp, "name", f"calibrate-{motor}"), mode=mode, remove_prompt=remove)
+                         name=c.string(d, sp, "name", f"calibrate-{motor}"), mode=mode, remove_prompt=remove,
+                         min_s=min_s, max_s=max_s)
 
 
 def _check_run(c, sp, wave: WaveformSpec, mspec: MotorSpec, dspec: DiskSpec, duration, period_s, mode):
@@ -545,6 +586,27 @@ def _design_waveforms(c: _Checker, waveforms, steps, motors, disks, period_s):
             _check_run(c, ("steps", i), out[name], motors[s.motor], disks[s.disk], s.duration_s,
                        period_s, s.mode)
     return out
+
+
+def _adaptive_bounds(c, d, sp, fixed_key: str, shortest_s: float):
+    """``min_s``/``max_s`` of an adaptive step: both or neither, not with ``fixed_key``,
+    0 < min_s <= max_s, min_s at least ``shortest_s``. Returns (None, None) when fixed."""
+    if "min_s" not in d and "max_s" not in d:
+        return None, None
+    for key in ("min_s", "max_s"):
+        if key not in d:
+            c.fail(sp, f"missing key '{key}' (an adaptive step needs both min_s and max_s)",
+                   f"add '{key}:' with {MEANING[key]}")
+    if fixed_key in d:
+        c.fail(sp + (fixed_key,), "a fixed length and min_s/max_s (adaptive) together",
+               f"remove {fixed_key} (adaptive) or min_s/max_s (fixed length)")
+    lo = c.number(d, sp, "min_s", gt=0.0, le=3600.0)
+    hi = c.number(d, sp, "max_s", gt=0.0, le=3600.0)
+    if lo < shortest_s:
+        c.fail(sp + ("min_s",), f"must cover at least {shortest_s:g} s (got {lo:g})", "lengthen min_s")
+    if hi < lo:
+        c.fail(sp + ("max_s",), f"is shorter than min_s ({hi:g} < {lo:g})", "set max_s >= min_s")
+    return lo, hi
 
 
 def _check_command(c, sp, wave: WaveformSpec, motor: MotorSpec, disk: DiskSpec, duration, period_s, mode):
@@ -590,7 +652,7 @@ def _load(c, d, sp, motors, reducer) -> LoadStep:
 
 def _efficiency(c, d, sp, motors, reducer: ReducerSpec, period_s) -> EfficiencyStep:
     c.keys(d, sp, ("kind", "name", "speeds_in_rad_s", "torques_out_nm", "settle_s", "measure_s",
-                   "include_zero_load"), required=("speeds_in_rad_s", "torques_out_nm", "settle_s", "measure_s"))
+                   "include_zero_load", "min_s", "max_s"), required=("speeds_in_rad_s", "torques_out_nm"))
     m_in, m_out = motors["in"], motors["out"]
     speeds = c.number_list(d, sp, "speeds_in_rad_s", gt=0.0)
     n, eta_low = reducer.ratio, reducer.efficiency_range[0]
@@ -617,6 +679,15 @@ def _efficiency(c, d, sp, motors, reducer: ReducerSpec, period_s) -> EfficiencyS
                        f"braking {t:g} N m needs about {need_in:.3g} A on the input motor (ratio {n:g}, "
                        f"efficiency {eta_low:g}), above motors.in.current_limit_a ({m_in.current_limit_a:g})",
                        "lower the torque")
+    min_s, max_s = _adaptive_bounds(c, d, sp, "measure_s", 50 * period_s)
+    if min_s is not None:
+        for key in ("settle_s", "include_zero_load"):
+            if key in d:
+                c.fail(sp + (key,), "is for a fixed-length efficiency step; an adaptive one (min_s/max_s) "
+                                    "finds each level's settling in the data and starts with one zero-load level",
+                       f"remove {key}")
+        return EfficiencyStep(speeds_in_rad_s=speeds, torques_out_nm=torques, settle_s=0.0, measure_s=0.0,
+                              name=c.string(d, sp, "name", "efficiency"), min_s=min_s, max_s=max_s)
     settle = c.number(d, sp, "settle_s", gt=0.0, le=3600.0)
     measure = c.number(d, sp, "measure_s", gt=0.0, le=3600.0)
     if measure < 20 * period_s:

@@ -1,0 +1,224 @@
+"""Estimates updated while acquiring, for measurements that stop once they are known.
+
+Pure functions and small accumulators, no I/O; the sequencer feeds them the samples
+recorded so far every few hundred milliseconds. They decide *when to stop*; the
+reported results still come from the full analysis of the recorded run
+(``calibration``, ``efficiency``).
+
+``StreamingB2``  one calibration run's b2 = Kt/J and its standard error from per-block
+                 sufficient statistics: each new block of filtered samples adds its
+                 Gram matrix G_b = X_b X_bᵀ and X_b y_b; the estimate is β = (ΣG_b)⁻¹ Σ X_b y_b
+                 and its covariance the block sandwich (ΣG)⁻¹ Σ S_b S_bᵀ (ΣG)⁻¹ with
+                 S_b = X_b y_b − G_b β — the same form as ``identify._block_covariance``,
+                 so no sample is ever re-filtered. The regression is the default method's
+                 base model (current, speed, Coulomb sign through the same FIR and
+                 second-difference match); cogging, current lag and the errors-in-variables
+                 correction are left out: they move b2 by fractions of its error but not
+                 its variance much, and an unmodelled term only makes the residual, and so
+                 the interval, larger (the stop comes later, never earlier).
+``LevelMean``    a steady level's tapered mean with its settling found in the data
+                 (``LevelMean.settle_chunk``), the white-noise standard error of the
+                 settled mean (from per-chunk second differences) and a steadiness check.
+``kt_share``     how much of Kt's relative error one run's b2 error makes (eq. 17).
+``slope_fit``    weighted straight line through level means (eq. 18 as a slope).
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+
+from . import derivatives as dv
+
+Z95 = 1.959963984540054
+BLOCK_FILTER_LENGTHS = 2     # a block spans two FIR lengths: residuals correlate over about one
+MIN_BLOCKS = 4               # fewer blocks: the spread of their scores says nothing yet
+SETTLE_SIGMAS = 3.0          # settled: every later chunk mean within 3 sigma of the level's tail
+SETTLE_WINDOW_CHUNKS = 5     # the settling is judged on moving means over this many chunks
+SETTLED_RUN = 3             # consecutive chunk means inside the band that mark the settling
+MIN_SETTLED_CHUNKS = 8       # settled chunks before a level may stop
+STEADY_SIGMAS = 3.0          # the settled window's halves must agree within 3 sigma
+TAPER_VARIANCE = 1.22        # white-noise variance factor of the Tukey-tapered mean (efficiency.taper)
+
+
+def t95(dof: float) -> float:
+    return float(stats.t.ppf(0.975, max(dof, 1.0)))
+
+
+class StreamingB2:
+    """b2 = Kt/J of one run from the samples acquired so far (module docstring)."""
+
+    def __init__(self, dt_s: float, *, cutoff_hz: float | None = None):
+        rate = 1.0 / dt_s
+        self.dt_s = dt_s
+        self.taps = dv.lowpass_fir(cutoff_hz or min(40.0, rate / 10.0), rate)
+        self.block = BLOCK_FILTER_LENGTHS * len(self.taps)
+        self._next = 0               # first raw sample of the next block
+        self._G: list[np.ndarray] = []
+        self._c: list[np.ndarray] = []
+
+    def update(self, position_rad: np.ndarray, current_a: np.ndarray, n: int) -> None:
+        """Take every complete block within the first ``n`` samples of the run's arrays."""
+        span = self.block + len(self.taps) + 1      # raw samples behind one block of outputs
+        while self._next + span <= n:
+            a = self._next
+            th = np.asarray(position_rad[a:a + span], float)
+            i = np.asarray(current_a[a:a + span], float)
+            sign = np.sign(dv.smooth_velocity(th - th[0], self.dt_s))
+            f = dv.consistent_derivatives(th, {"current": i, "sign": sign}, self.dt_s, self.taps)
+            # the current-loop lag column i' (as ``identify`` fits it): left out, a 0.5 ms lag
+            # leaves a residual that inflates the interval several times
+            X = np.vstack([f["current"], f["velocity"], f["sign"], np.gradient(f["current"], self.dt_s)])
+            y = f["acceleration"]
+            self._G.append(X @ X.T)
+            self._c.append(X @ y)
+            self._next += self.block
+
+    @property
+    def blocks(self) -> int:
+        return len(self._G)
+
+    def estimate(self) -> tuple[float, float, int] | None:
+        """(b2, its standard error, degrees of freedom) or None before ``MIN_BLOCKS``."""
+        nb = len(self._G)
+        if nb < MIN_BLOCKS:
+            return None
+        G = np.sum(self._G, axis=0)
+        c = np.sum(self._c, axis=0)
+        d = np.sqrt(np.diag(G))
+        if np.any(d == 0):
+            return None
+        # solve on the column-normalised Gram matrix: a constant sign column (one rotation
+        # direction) is then just an intercept, and a dead column does not blow up
+        Gn = G / np.outer(d, d)
+        try:
+            Ginv = np.linalg.pinv(Gn, rcond=1e-10) / np.outer(d, d)
+        except np.linalg.LinAlgError:
+            return None
+        beta = Ginv @ c
+        S = np.array([cb - Gb @ beta for Gb, cb in zip(self._G, self._c)])
+        omega = S.T @ S * nb / (nb - 1)
+        cov = Ginv @ omega @ Ginv
+        return float(beta[0]), float(np.sqrt(max(cov[0, 0], 0.0))), nb - 1
+
+
+def kt_share_unloaded(b2_unloaded: float, kt_guess: float, disk_kgm2: float) -> float:
+    """∂ln Kt/∂ln b2~ in magnitude: J/j = Kt/(b2~ j) (eq. 17; Kt's guess is enough here)."""
+    return abs(kt_guess / (b2_unloaded * disk_kgm2))
+
+
+def kt_share_loaded(b2_unloaded: float, b2_loaded: float) -> float:
+    """∂ln Kt/∂ln b2^ in magnitude: (J + j)/j = b2~/(b2~ − b2^) (eq. 17)."""
+    diff = b2_unloaded - b2_loaded
+    return abs(b2_unloaded / diff) if diff > 0 else float("inf")
+
+
+class LevelMean:
+    """One steady level of the input and output currents, accumulated chunk by chunk.
+
+    Per chunk (``add_chunk``) it keeps the chunk's mean (for the settling,
+    ``settle_chunk``) and the sum of squared second differences of each current (for
+    the white-noise level: var(Δ²x) = 6σ² for white noise, while a smooth ripple or
+    drift barely shows in a second difference). ``stats`` gives the Tukey-tapered mean
+    of the settled samples (as the final analysis weights a window, ``efficiency.taper``)
+    with the standard error white noise leaves in it, σ·√(1.22/n), and a check that the
+    settled window is steady: the tapered means of its two halves agree within noise.
+    A periodic ripple (CVT pulsation, cogging of either shaft) leaves almost nothing in a
+    tapered mean once the window holds a few of its periods; until then the halves
+    disagree and the level goes on.
+    """
+
+    def __init__(self):
+        self.n: list[int] = []
+        self.s_in: list[float] = []
+        self.d2_in: list[float] = []
+        self.d2_out: list[float] = []
+        self.raw_in: list[np.ndarray] = []
+        self.raw_out: list[np.ndarray] = []
+
+    def add_chunk(self, current_in_a: np.ndarray, current_out_a: np.ndarray) -> None:
+        xi, xo = np.asarray(current_in_a, float).copy(), np.asarray(current_out_a, float).copy()
+        self.n.append(len(xi))
+        self.s_in.append(float(np.sum(xi)))
+        self.d2_in.append(float(np.sum(np.diff(xi, 2) ** 2)))
+        self.d2_out.append(float(np.sum(np.diff(xo, 2) ** 2)))
+        self.raw_in.append(xi)
+        self.raw_out.append(xo)
+
+    def _means(self) -> np.ndarray:
+        return np.asarray(self.s_in) / np.maximum(np.asarray(self.n, float), 1.0)
+
+    def settle_chunk(self) -> int:
+        """First chunk from which ``SETTLED_RUN`` moving means of the input current in a row
+        lie within ``SETTLE_SIGMAS`` of the level's tail (the last half of them):
+        the speed loop's recovery from the load step, read off this bench's own data —
+        no fixed settle time. The tail's spread (noise and ripple of this bench) sets
+        the band."""
+        m = self._means()
+        if len(m) < 2 * (SETTLE_WINDOW_CHUNKS + SETTLED_RUN):
+            return len(m)
+        # moving means over SETTLE_WINDOW_CHUNKS chunks: a ripple slower than one chunk
+        # (an output-shaft cogging at 10-20 Hz) would otherwise widen the band
+        m = np.convolve(m, np.ones(SETTLE_WINDOW_CHUNKS) / SETTLE_WINDOW_CHUNKS, mode="valid")
+        k = len(m)
+        tail = m[k // 2:]
+        centre, spread = float(np.mean(tail)), float(np.std(tail, ddof=1))
+        inside = np.abs(m - centre) <= SETTLE_SIGMAS * max(spread, 1e-15)
+        # the first run of SETTLED_RUN chunks inside the band: a transient decays once, while
+        # a single noisy chunk later on must not move the settling point
+        run = np.convolve(inside.astype(int), np.ones(SETTLED_RUN, int), mode="valid")
+        hits = np.flatnonzero(run == SETTLED_RUN)
+        return int(hits[0]) if len(hits) else k
+
+    def stats(self) -> dict | None:
+        """Settled tapered means, their white-noise standard errors, the number of settled
+        samples and ``steady`` (halves agree), or None while fewer than
+        ``MIN_SETTLED_CHUNKS`` chunks are settled."""
+        from .efficiency import taper
+
+        j = self.settle_chunk()
+        if len(self.n) - j < MIN_SETTLED_CHUNKS:
+            return None
+        xi, xo = np.concatenate(self.raw_in[j:]), np.concatenate(self.raw_out[j:])
+        n = len(xi)
+        cnt = max(sum(self.n[j:]) - 2 * (len(self.n) - j), 1)
+        sig_in = np.sqrt(sum(self.d2_in[j:]) / (6.0 * cnt))
+        sig_out = np.sqrt(sum(self.d2_out[j:]) / (6.0 * cnt))
+        w = taper(n)
+
+        def tmean(x):
+            wx = taper(len(x))
+            return float(wx @ x / wx.sum())
+
+        h = n // 2
+        half_se = sig_in * np.sqrt(TAPER_VARIANCE / max(h, 1))
+        steady = abs(tmean(xi[:h]) - tmean(xi[h:])) <= STEADY_SIGMAS * np.sqrt(2.0) * half_se
+        return {"settle_chunk": j, "samples": n, "steady": bool(steady),
+                "mean_in": float(w @ xi / w.sum()), "mean_out": float(w @ xo / w.sum()),
+                "sem_in": float(sig_in * np.sqrt(TAPER_VARIANCE / n)),
+                "sem_out": float(sig_out * np.sqrt(TAPER_VARIANCE / n))}
+
+
+def slope_fit(x: np.ndarray, y: np.ndarray, sem_y: np.ndarray, sem_x: np.ndarray | None = None):
+    """Weighted straight line y = a + b x through level means with known standard errors
+    (the x errors enter through the slope: σ² = σ_y² + b² σ_x², two passes).
+    Returns (a, b, standard error of b)."""
+    x, y, sy = (np.asarray(v, float) for v in (x, y, sem_y))
+    sx = np.zeros_like(x) if sem_x is None else np.asarray(sem_x, float)
+    b = 0.0
+    for _ in range(2):
+        w = 1.0 / np.maximum(sy ** 2 + (b * sx) ** 2, 1e-300)
+        xm, ym = float(w @ x / w.sum()), float(w @ y / w.sum())
+        sxx = float(w @ (x - xm) ** 2)
+        if sxx <= 0:
+            return float("nan"), float("nan"), float("inf")
+        b = float(w @ ((x - xm) * (y - ym)) / sxx)
+    return ym - b * xm, b, float(np.sqrt(1.0 / sxx))
+
+
+def slope_target_sem(eta_pp: float, eta: float, slope: float, x_levels: np.ndarray) -> float:
+    """Standard error each level mean (σ_y² + b²σ_x²) may have for the staircase's slope
+    to reach a 95 % half-width of ``eta_pp`` percentage points on η = −K_out/(n K_in b):
+    with equal errors σ, σ_b = σ/√Sxx and Δη/η = σ_b/|b|, so σ ≤ (eta_pp/100)|b|√Sxx/(1.96 η)."""
+    x = np.asarray(x_levels, float)
+    sxx = float(np.sum((x - x.mean()) ** 2))
+    return (eta_pp / 100.0) * abs(slope) * np.sqrt(sxx) / (Z95 * max(abs(eta), 1e-6))
