@@ -215,10 +215,10 @@ def predict_calibration(kind: str, params: dict, case: MotorCase, *, duration_s:
     kt = math.sqrt(kt_rel_variance(ru * ru, rl * rl, case.rotor_inertia_kgm2, case.disk_inertia_kgm2))
     i = _current(w, period_s, case, loaded=True)
     nat = wf.natural_period_s(kind, params)
-    steady = i[-int(round(nat / period_s)):] if nat and nat < duration_s else i
+    last = slice(-int(round(nat / period_s)), None) if nat and nat < duration_s else slice(None)
     return Prediction(ru, rl, kt, kt * math.sqrt(2 * duration_s), float(np.max(np.abs(i))),
-                      float(np.sqrt(np.mean(steady * steady))),
-                      (float(np.min(w[len(w) // 4:])), float(np.max(w))), duration_s)
+                      float(np.sqrt(np.mean(i[last] ** 2))),
+                      (float(np.min(w[last])), float(np.max(w))), duration_s)
 
 
 def _current(w, period_s, case: MotorCase, *, loaded: bool) -> np.ndarray:

@@ -28,6 +28,9 @@ from ..analysis import excitation_design as ed
 from ..analysis.calibration import calibrate_motor
 
 REPO = Path(__file__).resolve().parents[2]
+# profiles/cvt.yaml's hand-chosen calibration multisine before the design existed
+CLASSIC = {"offset": 150.0, "amplitude": 80.0, "period_s": 1.0, "f_min_hz": 1.0, "f_max_hz": 8.0,
+           "fade_in_s": 0.2}
 
 
 def empirical(motor, command: np.ndarray, disk_kgm2: float, seeds, period_s: float) -> dict:
@@ -78,7 +81,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="run length in s (default: the profile's calibrate step)")
     args = ap.parse_args(argv)
     from ..profile import CalibrateStep, load_profile
-    from ..profile.parse import design_cases
+    from ..profile import waveforms as wf
+    from ..profile.design import motor_case
     from ..sim import PlantParams
 
     t0 = time.perf_counter()
@@ -88,6 +92,10 @@ def main(argv: list[str] | None = None) -> int:
     steps = [s for s in prof.steps if isinstance(s, CalibrateStep)]
     hand_name = "excite" if "excite" in prof.waveforms else steps[0].waveform
     hand = prof.waveforms[hand_name]
+    if hand.params.get("design") == "optimal":        # compare with cvt's classic hand choice
+        hand = type(hand)(name="classic", kind="multisine", params={
+            **{k: p.default for k, p in wf.PARAMS["multisine"].items() if p.default is not wf.REQUIRED},
+            **CLASSIC})
     print(f"excitation: {args.profile}, {args.seeds} seeds per waveform, sample period "
           f"{period * 1e3:g} ms; Kt relative std (statistical part), x sqrt(bench s) = per sqrt(s)")
     hdr = (f"{'motor':<5} {'waveform':<9} {'run s':>5} {'pred(profile)':>13} {'pred(true)':>10} "
@@ -98,15 +106,13 @@ def main(argv: list[str] | None = None) -> int:
         motor = plant.motor_in if step.motor == "in" else plant.motor_out
         disk = prof.disks[step.disk].inertia_kgm2
         duration = args.duration or step.duration_s
-        case = design_cases(prof, step.waveform if prof.waveforms[step.waveform].params.get("design")
-                            == "optimal" else None, [step])[0]
+        case = motor_case(prof.motors[step.motor], prof.disks[step.disk], hand.params)
         design = ed.design_multisine([case], duration_s=duration, period_s=period,
                                      max_tone_hz=10.0, min_fade_s=hand.params.get("fade_in_s", 0.2))
         for label, kind, params in (("hand", hand.kind, hand.params),
                                     ("designed", "multisine", design.params)):
             n = int(round(duration / period))
-            cmd = __import__("gearbench.profile.waveforms", fromlist=["render"]).render(
-                kind, params, np.arange(n) * period)
+            cmd = wf.render(kind, params, np.arange(n) * period)
             pred = ed.predict_calibration(kind, params, case, duration_s=duration, period_s=period)
             pred_t = ed.predict_calibration(kind, params, truth_case(case, motor), duration_s=duration,
                                             period_s=period)

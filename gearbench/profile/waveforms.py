@@ -80,7 +80,7 @@ PARAMS: dict[str, dict[str, Param]] = {
         "design": Param("choice", "none", choices=("none", "optimal"),
                         meaning="optimal: band, amplitude, offset, period and phases designed from "
                                 "the motors' limits (docs/excitation-design.md)"),
-        "peak_current_fraction": Param("number", 0.8, gt=0.0, le=1.0,
+        "peak_current_fraction": Param("number", 0.65, gt=0.0, le=1.0,
                                        meaning="design: peak current as a share of current_limit_a"),
         "rms_current_fraction": Param("number", 1.0, gt=0.0, le=2.0,
                                       meaning="design: rms current as a share of rated_current_a"),
