@@ -168,7 +168,12 @@ def study(runs: list[dict], *, alpha: float = ALPHA_INTERACTION, source: str = "
     crossed = []
     for s in efficiency_series(runs):
         what = f"{s['quantity']} @ {s['label']}"
-        x, _, _ = crossed_array(s["records"], what=f"{source}: {what}")
+        try:
+            x, _, _ = crossed_array(s["records"], what=f"{source}: {what}")
+        except GearbenchError as exc:
+            if "unbalanced" not in str(exc):
+                raise
+            raise GearbenchError(f"{exc} (or study the first N runs of each with --repeats N)") from None
         g = anova_gauge_rr(x, tolerance=s["tolerance"], alpha=alpha, what=what)
         rng = range_gauge_rr(x, tolerance=s["tolerance"], what=what)
         entry = dict(quantity=s["quantity"], point=s["point"], label=s["label"], unit="1",
@@ -309,6 +314,13 @@ def _perturbed(sim: dict, *, unit: int, station: int, seed: int,
     return out
 
 
+def check_design(units: int, repeats: int, stations: int) -> None:
+    for name, v, least in (("--units", units, 2), ("--repeats", repeats, 2), ("--stations", stations, 1)):
+        if not isinstance(v, int) or v < least:
+            raise GearbenchError(f"{name} {v}: need at least {least} (AIAG: 10 units, 2-3 stations, "
+                                 f"2-3 trials)")
+
+
 def run_sim_study(profile_path, *, units: int, repeats: int, stations: int, out_dir,
                   seed: int = 1, unit_spread: dict | None = None, station_spread: dict | None = None,
                   progress=sys.stderr) -> list[str]:
@@ -321,9 +333,7 @@ def run_sim_study(profile_path, *, units: int, repeats: int, stations: int, out_
     from .profile import load_profile
     from .station_db import connect
 
-    for name, v, least in (("--units", units, 2), ("--repeats", repeats, 2), ("--stations", stations, 1)):
-        if not isinstance(v, int) or v < least:
-            raise GearbenchError(f"{name} {v}: need at least {least}")
+    check_design(units, repeats, stations)
     profile = load_profile(profile_path)
     if not profile.simulation:
         raise GearbenchError(f"{profile.path}: --sim needs a 'simulation:' section describing the plant; "

@@ -67,17 +67,14 @@ def crossed_array(records, *, what: str = "measurement") -> tuple[np.ndarray, li
     if len(parts) < 2:
         raise GearbenchError(f"{what}: {len(parts)} part(s); a gauge R&R needs at least 2 parts "
                              f"(AIAG uses 10) — measure more units")
-    counts = {c: len(v) for c, v in cells.items()}
-    r = max(counts.values())
-    for p in parts:
-        for a in appraisers:
-            n = counts.get((p, a), 0)
-            if n != r:
-                raise GearbenchError(
-                    f"{what}: unbalanced design — part {p} at {a} has {n} trial(s), other cells {r}; "
-                    f"measure it {r - n} more time(s)" if n < r else
-                    f"{what}: unbalanced design — part {p} at {a} has {n} trials, other cells fewer; "
-                    f"use the same number of trials everywhere (--repeats)")
+    counts = {(p, a): len(cells.get((p, a), ())) for p in parts for a in appraisers}
+    tally = np.bincount(list(counts.values()))
+    r = int(np.flatnonzero(tally == tally.max())[-1])     # the usual number of trials
+    for (p, a), n in counts.items():
+        if n != r:
+            todo = f"measure it {r - n} more time(s)" if n < r else f"leave {n - r} of its runs out"
+            raise GearbenchError(f"{what}: unbalanced design — part {p} at {a} has {n} trial(s), "
+                                 f"the other cells {r}; {todo}")
     if r < 2:
         raise GearbenchError(f"{what}: 1 trial per part and station; repeatability needs at least "
                              f"2 (AIAG uses 2-3) — measure each part again")

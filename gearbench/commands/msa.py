@@ -38,7 +38,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from ..msa import format_table, read_databases, run_sim_study, select_runs, study
+    from ..msa import check_design, format_table, read_databases, run_sim_study, select_runs, study
 
     if not 0 < args.alpha < 1:
         raise GearbenchError(f"--alpha {args.alpha}: a significance level between 0 and 1, e.g. 0.05")
@@ -49,6 +49,7 @@ def run(args) -> int:
             raise GearbenchError("--sim makes its own station databases; drop --db (or drop --sim to "
                                  "study existing runs)")
         repeats = 3 if args.repeats is None else args.repeats
+        check_design(args.units, repeats, args.stations)
         stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
         out = Path(args.out or f"results/msa-{stamp}")
         t0 = time.monotonic()
