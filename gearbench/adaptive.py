@@ -132,7 +132,7 @@ class Staircase:
     def __init__(self, *, speed: float, currents_out_a: list[float], torques_out_nm: list[float],
                  period_s: float, min_s: float, max_s: float, eta_pp: float, kt_in: float,
                  kt_out: float, eta_prior: float, ratio_prior: float | None, ramp_rad_s2: float,
-                 segment: str):
+                 segment: str, settle_floor_chunks: int = 0):
         self.speed = speed
         self.levels = [0.0] + list(currents_out_a)
         self.torques = [0.0] + list(torques_out_nm)
@@ -151,6 +151,7 @@ class Staircase:
         self.level = -1              # -1: ramping up; len(levels): stopping
         self.level_start = self.n_ramp
         self.stop_start: int | None = None
+        self.settle_floor = settle_floor_chunks   # chunks: slowest settling of a braking step so far
         self.acc = LevelMean()
         self.done_levels: list[dict] = []
         self._pos0 = None
@@ -231,6 +232,7 @@ class Staircase:
             "level": self.level, "start": self.level_start, "stop": k, "pending": True,
             "torque_out_nm": self.torques[self.level], "out_command": self.levels[self.level]}
         rec["stopped_by"] = why
+        rec["floor"] = self.acc._settled_at if not self.acc.n else min(self.acc._settled_at, len(self.acc.n))
         rec["duration_s"] = (k - self.level_start) * self.period_s
         if st is not None:
             b, eta = self._slope_now(rec if "mean_in" in rec else None)
@@ -238,9 +240,13 @@ class Staircase:
             rec["interval_reached"] = 100 * Z95 * abs(eta) * math.hypot(st["sem_in"], b * st["sem_out"]) / (
                 abs(b) * math.sqrt(max(float(np.sum((self._x_levels() - self._x_levels().mean()) ** 2)), 1e-300)))
         self.done_levels.append(rec)
+        if self.level >= 1:
+            # a braking step settles no faster than the slowest one before it on this drive
+            self.settle_floor = max(self.settle_floor, st["settle_chunk"] if st is not None
+                                    else (k - self.level_start) // self.chunk)
         self.level += 1
         self.level_start = k
-        self.acc = LevelMean()
+        self.acc = LevelMean(self.settle_floor)
         if self.level >= len(self.levels):
             self.stop_start = k
 
@@ -248,13 +254,18 @@ class Staircase:
         """Fill in levels that ended at ``max_s`` inside ``setpoints`` (no columns there)."""
         for rec in self.done_levels:
             if rec.pop("pending", False):
-                acc = LevelMean()
+                acc = LevelMean(rec.get("floor", 0))
                 for a in range(rec["start"], rec["stop"] - self.chunk + 1, self.chunk):
                     acc.add_chunk(cols["in.current_a"][a:a + self.chunk], cols["out.current_a"][a:a + self.chunk])
                 st = acc.stats()
-                settle_n = st["settle_chunk"] * self.chunk if st else 0
+                # never settled within max_s: the level's last half, the least disturbed part
+                # (its standard error from the whole level's chunks; flagged in result.json)
+                settle_n = st["settle_chunk"] * self.chunk if st else (rec["stop"] - rec["start"]) // 2
                 a = rec["start"] + settle_n
                 k = rec["stop"]
+                if st is None:
+                    st = _unsettled_stats(cols, a, k)
+                    rec["settled_in_time"] = False
                 rec.update(settled=a, settle_s=settle_n * self.period_s,
                            dth_in=float(cols["in.position_rad"][k - 1] - cols["in.position_rad"][a]),
                            dth_out=float(cols["out.position_rad"][k - 1] - cols["out.position_rad"][a]))
@@ -287,4 +298,18 @@ class Staircase:
                  "quantity": "incremental efficiency slope 95 % half-width (pp) if every level "
                              "had this level's standard error",
                  "interval_reached": r.get("interval_reached"), "target": self.eta_pp,
+                 "settled_in_time": r.get("settled_in_time", True),
                  "stopped_by": r["stopped_by"]} for r in self.done_levels]
+
+
+def _unsettled_stats(cols: dict, a: int, k: int) -> dict:
+    """Means and white-noise standard errors of samples a..k (a level that did not settle)."""
+    from .analysis.streaming import LevelMean
+
+    acc = LevelMean()
+    acc.add_chunk(cols["in.current_a"][a:k], cols["out.current_a"][a:k])
+    sig_in, sig_out = acc._sigma(0)
+    n = max(k - a, 1)
+    return {"settle_chunk": 0, "mean_in": float(np.mean(cols["in.current_a"][a:k])),
+            "mean_out": float(np.mean(cols["out.current_a"][a:k])),
+            "sem_in": sig_in * math.sqrt(1.22 / n), "sem_out": sig_out * math.sqrt(1.22 / n)}

@@ -314,7 +314,10 @@ class Sequencer:
                         kt_in=self._kt("in"), kt_out=kt_out,
                         eta_prior=p.reducer.efficiency_range[1] if p.reducer else 1.0,
                         ratio_prior=p.reducer.ratio if p.reducer else None,
-                        ramp_rad_s2=RAMP_RAD_S2, segment=f"efficiency-{k}")
+                        ramp_rad_s2=RAMP_RAD_S2, segment=f"efficiency-{k}",
+                        # the same drives at the next speed: their braking steps settle no faster
+                        settle_floor_chunks=max([getattr(c, "settle_floor", 0) for c in self.adaptive.values()]
+                                                + [0]))
         return Segment(f"efficiency-{k}", "efficiency",
                        {"in": (Mode.VELOCITY, None), "out": (Mode.TORQUE, None)},
                        f"input {speed:g} rad/s, staircase of {len(step.torques_out_nm)} braking torques",

@@ -214,11 +214,15 @@ class _Table:
 def _case_waveform(case, motor: str, name: str):
     """The drawn plant's own calibration command (robustness: a multisine sized to the
     drive's current limit with its disk), repeated to cover any max_s."""
+    cmd = np.asarray(case.commands[motor], float)
+    return _table_waveform(name, np.tile(cmd, 4), 1e-3, len(cmd) * 1e-3)
+
+
+def _table_waveform(name: str, samples: np.ndarray, period_s: float, natural_s: float | None = None):
+    """A waveform that plays ``samples`` (held past the end)."""
     from ..profile.model import WaveformSpec
 
-    cmd = np.asarray(case.commands[motor], float)
-    long = np.tile(cmd, 4)
-    table = _Table(long, 1e-3)
+    table = _Table(samples, period_s)
 
     class _Spec(WaveformSpec):
         def render(self, time_s):
@@ -226,6 +230,195 @@ def _case_waveform(case, motor: str, name: str):
 
         @property
         def natural_period_s(self):
-            return len(cmd) * 1e-3
+            return natural_s
 
     return _Spec(name, "table", {})
+
+
+def paper_profile(profile, step_rad_s: float):
+    """The paper's procedure on ``profile``'s bench: each calibration run a speed step
+    from rest (0 -> ``step_rad_s`` at 0.2 s, as bench/accuracy.py), fixed lengths; run
+    with method="paper"."""
+    from ..profile.model import CalibrateStep
+
+    n = int(round(max(s.duration_s for s in profile.steps if isinstance(s, CalibrateStep))
+                  / profile.bench.period_s)) + 10
+    t = np.arange(n) * profile.bench.period_s
+    wave = _table_waveform("paper_step", np.where(t >= 0.2, step_rad_s, 0.0), profile.bench.period_s)
+    steps = [replace(s, waveform="paper_step") if isinstance(s, CalibrateStep) else s for s in profile.steps]
+    return replace(profile, waveforms={**profile.waveforms, "paper_step": wave}, steps=steps)
+
+
+# ------------------------------------------------------------------- running
+def procedures(plant_profile: dict, step_rad_s: float) -> dict:
+    """{name: (profile, method)} for the three procedures on one plant."""
+    return {"classic": (plant_profile["classic"], "default"),
+            "adaptive": (plant_profile["adaptive"], "default"),
+            "paper": (paper_profile(plant_profile["classic"], step_rad_s), "paper")}
+
+
+def run_plants(n_plants: int, seeds, *, which=("classic", "adaptive", "paper"), log=print) -> list[dict]:
+    """Every procedure on the profile's own plant (one run per seed) and on ``n_plants``
+    random plants per seed. Returns rows {group, plant, seed, procedure, **score}."""
+    from ..profile import load_profile
+    from ..sim import PlantParams
+
+    base = {k: load_profile(p) for k, p in PROFILES.items()}
+    rows = []
+    plant = PlantParams.from_dict(base["adaptive"].simulation)
+    for seed in seeds:
+        for name, (prof, method) in procedures(base, 230.0).items():
+            if name not in which:
+                continue
+            rows.append(_one("cvt plant", "cvt", seed, name, prof, plant, method, log))
+    for seed in seeds:
+        for index in range(n_plants):
+            case, _ = random_plant(index, seed, base["classic"])
+            profs = {k: random_plant(index, seed, base[k])[1] for k in ("classic", "adaptive")}
+            step = float(min(0.9 * case.bench_speed_rad_s * 1.2, 330.0))
+            for name, (prof, method) in procedures(profs, step).items():
+                if name not in which:
+                    continue
+                rows.append(_one("random plants", f"{seed}/{index}", case.plant.seed, name, prof,
+                                 case.plant, method, log))
+    return rows
+
+
+def _one(group, plant_id, seed, name, prof, plant, method, log) -> dict:
+    t0 = time.perf_counter()
+    try:
+        res = run_inprocess(prof, plant, seed=int(seed), method=method)
+        s = score(res)
+    except Exception as exc:          # a failure is a result here, not a crash
+        s = {"error": f"{type(exc).__name__}: {str(exc)[:120]}", "bench_time_s": float("nan")}
+    row = {"group": group, "plant": plant_id, "seed": seed, "procedure": name, **s}
+    if log:
+        if "error" in s:
+            log(f"  {group:<14}{plant_id:>7} {name:<9} ERROR {s['error']}")
+        else:
+            log(f"  {group:<14}{plant_id:>7} {name:<9} bench {s['bench_time_s']:6.1f} s  Kt max "
+                f"{max(s['kt']):6.3f} %  inc max {max(s['inc']):6.3f} pp  abs max {max(s['abs']):6.3f} pp"
+                f"  {'meets' if s['meets'] else 'MISSES'}  ({time.perf_counter() - t0:.1f} s wall)")
+    return row
+
+
+def run_chain(log=print) -> list[dict]:
+    """One run of each shipped profile through the real --sim CANopen chain."""
+    from ..api import run_profile
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in ("adaptive", "classic"):
+            t0 = time.perf_counter()
+            res = run_profile(PROFILES[name], sim=True, out_dir=Path(tmp) / name, serial="CYCLE",
+                              yes=True, quiet=True)
+            s = score(res)
+            rows.append({"group": "--sim chain", "plant": "cvt", "seed": "", "procedure": name, **s})
+            if log:
+                log(f"  --sim chain    {name:<9} bench {s['bench_time_s']:6.1f} s  Kt max {max(s['kt']):.3f} %  "
+                    f"inc max {max(s['inc']):.3f} pp  abs max {max(s['abs']):.3f} pp "
+                    f"({time.perf_counter() - t0:.0f} s wall)")
+    return rows
+
+
+# ------------------------------------------------------------------- report
+def summary(rows: list[dict]) -> list[dict]:
+    out = []
+    groups = []
+    for r in rows:
+        key = (r["group"], r["procedure"])
+        if key not in groups:
+            groups.append(key)
+    for g, p in groups:
+        rs = [r for r in rows if (r["group"], r["procedure"]) == (g, p)]
+        ok = [r for r in rs if "error" not in r]
+
+        def stat(q, f):
+            vals = [f(r[q]) for r in ok if r[q]]
+            return (float(np.mean(vals)), float(np.max(vals))) if vals else (math.nan, math.nan)
+        out.append({"group": g, "procedure": p, "runs": len(rs), "errors": len(rs) - len(ok),
+                    "bench_mean": float(np.mean([r["bench_time_s"] for r in ok])) if ok else math.nan,
+                    "bench_max": float(np.max([r["bench_time_s"] for r in ok])) if ok else math.nan,
+                    "kt": stat("kt", max), "inc": stat("inc", max), "abs": stat("abs", max),
+                    "meets": sum(bool(r.get("meets")) for r in rs) / max(len(rs), 1),
+                    "at_max": float(np.mean([r.get("stopped_by_max", 0) for r in ok])) if ok else math.nan})
+    return out
+
+
+def print_table(summ: list[dict]) -> None:
+    print(f"{'plants':<15}{'procedure':<10}{'runs':>5}{'fail':>5}{'bench s':>15}{'|Kt err| % (max/plant)':>24}"
+          f"{'|incr err| pp':>17}{'|abs err| pp':>17}{'meet goal':>11}{'at max':>8}")
+    print(f"{'':<35}{'mean    max':>15}{'mean    max':>24}{'mean    max':>17}{'mean    max':>17}")
+    for s in summ:
+        f2 = lambda v: f"{v[0]:7.3f} {v[1]:7.3f}"
+        print(f"{s['group']:<15}{s['procedure']:<10}{s['runs']:>5}{s['errors']:>5}"
+              f"{s['bench_mean']:7.1f} {s['bench_max']:7.1f}{f2(s['kt']):>24}{f2(s['inc']):>17}{f2(s['abs']):>17}"
+              f"{100 * s['meets']:10.0f}%{s['at_max']:8.1f}")
+
+
+def plot(rows: list[dict], path: Path) -> Path | None:
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("cycle_time: matplotlib is not installed; no plot (pip install matplotlib)")
+        return None
+    colours = {"classic": "tab:blue", "adaptive": "tab:green", "paper": "tab:red"}
+    markers = {"cvt plant": "*", "random plants": "o", "--sim chain": "D"}
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.8))
+    for ax, (q, label, goal) in zip(axes, (("kt", "max |Kt error| of the two motors, %", GOAL["kt_pct"]),
+                                           ("inc", "max |incremental efficiency error|, pp", GOAL["inc_pp"]),
+                                           ("abs", "max |absolute efficiency error|, pp", None))):
+        for r in rows:
+            if "error" in r or not r.get(q):
+                continue
+            ax.scatter(r["bench_time_s"], max(r[q]), c=colours[r["procedure"]], marker=markers[r["group"]],
+                       s=60 if r["group"] != "random plants" else 18, alpha=0.75,
+                       edgecolors="k" if r["group"] != "random plants" else "none")
+        if goal is not None:
+            ax.axhline(goal, color="k", ls="--", lw=0.8)
+        ax.axvline(20.0, color="grey", ls=":", lw=0.8)
+        ax.set_yscale("log")
+        ax.set_xlabel("bench time, s")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    handles = [plt.Line2D([], [], marker="o", ls="", color=c, label=p) for p, c in colours.items()]
+    handles += [plt.Line2D([], [], marker=m, ls="", color="grey", label=g) for g, m in markers.items()]
+    axes[0].legend(handles=handles, fontsize=8, loc="upper right")
+    fig.suptitle("gearbench cycle time vs accuracy (dashed: goal, dotted: 20 s)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m gearbench.bench cycle_time", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--plants", type=int, default=20, help="random plants per seed (default 20)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="draw seeds (default 0)")
+    ap.add_argument("--procedures", nargs="+", default=["classic", "adaptive", "paper"])
+    ap.add_argument("--png", default="results/cycle_time.png", help="plot file (default results/cycle_time.png)")
+    ap.add_argument("--no-chain", action="store_true", help="skip the runs through the --sim CANopen chain")
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    print(f"cycle_time: {len(args.seeds)} seed(s) x (the cvt plant + {args.plants} random plants), "
+          f"procedures {', '.join(args.procedures)}; goal: Kt <= {GOAL['kt_pct']} % and incremental "
+          f"efficiency <= {GOAL['inc_pp']} pp at all 12 points", flush=True)
+    rows = run_plants(args.plants, args.seeds, which=tuple(args.procedures),
+                      log=lambda s: print(s, flush=True))
+    if not args.no_chain:
+        rows += run_chain(log=lambda s: print(s, flush=True))
+    print()
+    print_table(summary(rows))
+    png = plot(rows, Path(args.png))
+    if png:
+        print(f"plot: {png}")
+    print(f"benchmark time {time.perf_counter() - t0:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())
