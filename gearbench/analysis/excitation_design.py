@@ -208,13 +208,20 @@ def predict_calibration(kind: str, params: dict, case: MotorCase, *, duration_s:
     """Predicted Kt relative std of a calibration with the waveform ``kind``/``params``
     (profile vocabulary) run ``duration_s`` alone and ``duration_s`` with the disk."""
     n = int(round(duration_s / period_s))
-    t = np.arange(n) * period_s
-    w = wf.render(kind, params, t)
+    w = wf.render(kind, params, np.arange(n) * period_s)
+    return predict_command(w, case, period_s=period_s, natural_period_s=wf.natural_period_s(kind, params),
+                           cutoff_hz=cutoff_hz)
+
+
+def predict_command(w: np.ndarray, case: MotorCase, *, period_s: float,
+                    natural_period_s: float | None = None, cutoff_hz: float | None = None) -> Prediction:
+    """``predict_calibration`` for a speed command given sample by sample."""
+    duration_s = len(w) * period_s
     ru = run_b2_rel_std(w, period_s, case, loaded=False, cutoff_hz=cutoff_hz)
     rl = run_b2_rel_std(w, period_s, case, loaded=True, cutoff_hz=cutoff_hz)
     kt = math.sqrt(kt_rel_variance(ru * ru, rl * rl, case.rotor_inertia_kgm2, case.disk_inertia_kgm2))
     i = _current(w, period_s, case, loaded=True)
-    nat = wf.natural_period_s(kind, params)
+    nat = natural_period_s
     last = slice(-int(round(nat / period_s)), None) if nat and nat < duration_s else slice(None)
     return Prediction(ru, rl, kt, kt * math.sqrt(2 * duration_s), float(np.max(np.abs(i))),
                       float(np.sqrt(np.mean(i[last] ** 2))),
@@ -357,7 +364,7 @@ def design_multisine(cases, *, duration_s: float, period_s: float, max_tone_hz: 
             refined.append((_objective(s2, amp, cases, duration_s, period_s, taps), s2, amp, why))
     best = min(r[0] for r in refined)
     ties = [r for r in refined if r[0] <= best * (1 + TIE_REL)]
-    obj, sh, amp, why = min(ties, key=lambda r: (max(r[1].harmonics) / r[1].period_s, r[0]))
+    _, sh, amp, why = min(ties, key=lambda r: (max(r[1].harmonics) / r[1].period_s, r[0]))
     params = {"offset": float(offset), "amplitude": float(amp), "period_s": float(sh.period_s),
               "f_min_hz": min(sh.harmonics) / sh.period_s, "f_max_hz": max(sh.harmonics) / sh.period_s,
               "freqs_hz": None,
@@ -387,7 +394,7 @@ def _fade(params, cases, duration_s, period_s, min_fade_s):
     return choices[-1], False
 
 
-def hand_params_summary(params: dict) -> str:
+def multisine_summary(params: dict) -> str:
     """One line: the multisine in profile words."""
     k = wf.multisine_harmonics(params)
     band = f"{k.min() / params['period_s']:g}-{k.max() / params['period_s']:g} Hz ({len(k)} tones)"

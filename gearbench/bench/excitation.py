@@ -79,7 +79,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, default=12, help="noise seeds per waveform (default 12)")
     ap.add_argument("--duration", type=float, default=None,
                     help="run length in s (default: the profile's calibrate step)")
+    ap.add_argument("--random", type=int, default=0, metavar="N",
+                    help="also N random plants of the robustness benchmark (their own command vs "
+                         "the design), --seeds noise seeds each")
     args = ap.parse_args(argv)
+    if args.random:
+        t0 = time.perf_counter()
+        random_plants(args.random, max(args.seeds, 2))
+        print(f"random plants: {time.perf_counter() - t0:.1f} s")
+        return 0
     from ..profile import CalibrateStep, load_profile
     from ..profile import waveforms as wf
     from ..profile.design import motor_case
@@ -126,9 +134,64 @@ def main(argv: list[str] | None = None) -> int:
             print(f"      {'':<9} b2 rel std unloaded/loaded: predicted(true) "
                   f"{pred_t.b2_rel_std_unloaded * 100:.4f}/{pred_t.b2_rel_std_loaded * 100:.4f} %, "
                   f"empirical {np.std(emp['b2u'], ddof=1) * 100:.4f}/{np.std(emp['b2l'], ddof=1) * 100:.4f} %"
-                  f"; {ed.hand_params_summary(params)}")
+                  f"; {ed.multisine_summary(params)}")
         print(f"      design binding: {design.binding}; acceleration crest factor "
               f"{design.acceleration_crest_factor:.3f}; {design.candidates} candidates"
               + (f"; {'; '.join(design.notes)}" if design.notes else ""))
     print(f"benchmark time {time.perf_counter() - t0:.1f} s")
     return 0
+
+
+def random_plants(n_cases: int, seeds: int, duration_s: float = 3.0) -> None:
+    """The robustness benchmark's random motors (loop bandwidth 3-30 Hz, 2,000-20,000
+    counts/rev, 2-8 mA noise...): each input motor calibrated with its drawn command (a
+    test engineer's multisine, scaled to the current limit) and with the design made from
+    its datasheet-like values (Kt, J, disk, limits; friction and noise at the defaults)."""
+    from ..bench.robustness import draw_case
+    from ..profile import waveforms as wf
+
+    print(f"random plants: {n_cases} cases x {seeds} seeds; Kt rel std % (empirical), design/drawn "
+          f"ratio, true peak current / limit")
+    print(f"{'case':>4} {'loop Hz':>7} {'drawn':>8} {'designed':>8} {'ratio':>6} {'pred ratio':>10} "
+          f"{'peak/limit drawn':>16} {'designed':>8}  band")
+    ratios, peaks, fails, emp_pred = [], [], 0, []
+    for idx in range(n_cases):
+        case = draw_case(idx, seed=1, duration_s=duration_s)
+        m, disk = case.plant.motor_in, case.disks_kgm2["in"]
+        mc = ed.MotorCase(kt_nm_a=m.Kt, rotor_inertia_kgm2=m.J, disk_inertia_kgm2=disk,
+                          peak_current_a=0.65 * m.current_limit_a, rms_current_a=m.rated_current_a,
+                          min_speed_rad_s=0.1 * m.speed_limit_rad_s, max_speed_rad_s=0.9 * m.speed_limit_rad_s,
+                          friction_nm=0.1 * m.Kt * m.rated_current_a, counts_per_rev=m.counts_per_rev,
+                          name=f"case{idx}")
+        d = ed.design_multisine([mc], duration_s=duration_s, period_s=1e-3)
+        n = int(round(duration_s / 1e-3))
+        cmds = {"drawn": case.commands["in"][:n],
+                "designed": wf.render("multisine", d.params, np.arange(n) * 1e-3)}
+        std, peak = {}, {}
+        for label, cmd in cmds.items():
+            try:
+                emp = empirical(m, cmd, disk, range(seeds), 1e-3)
+                std[label] = float(np.std(emp["kt"], ddof=1))
+                peak[label] = emp["peak_a"] / m.current_limit_a
+            except Exception as exc:   # a refused calibration is a result here
+                std[label], peak[label] = math.nan, math.nan
+                fails += 1
+                print(f"     case {idx} {label}: {type(exc).__name__}: {str(exc)[:100]}")
+        pred_ratio = d.predictions[mc.name].kt_rel_std / ed.predict_command(
+            cmds["drawn"], mc, period_s=1e-3).kt_rel_std
+        true_pred = ed.predict_calibration("multisine", d.params, truth_case(mc, m), duration_s=duration_s,
+                                           period_s=1e-3).kt_rel_std
+        emp_pred.append(std["designed"] / true_pred)
+        bw = m.vel_kp * m.Kt / (m.J + disk) / (2 * np.pi)
+        r = std["designed"] / std["drawn"]
+        ratios.append(r)
+        peaks.append(peak["designed"])
+        print(f"{idx:4d} {bw:7.1f} {std['drawn'] * 100:8.4f} {std['designed'] * 100:8.4f} {r:6.2f} "
+              f"{pred_ratio:10.2f} {peak['drawn']:16.2f} {peak['designed']:8.2f}  "
+              f"{d.params['f_min_hz']:g}-{d.params['f_max_hz']:g} Hz, {d.binding}; designed "
+              f"empirical/predicted(true) {emp_pred[-1]:.2f}")
+    r = np.array(ratios)
+    print(f"design/drawn std ratio: median {np.nanmedian(r):.2f}, better on {np.sum(r < 1)}/{len(r)}; "
+          f"designed peak/limit max {np.nanmax(peaks):.2f}; failures {fails}; designed empirical/"
+          f"predicted(true): median {np.nanmedian(emp_pred):.2f}, range {np.nanmin(emp_pred):.2f}-"
+          f"{np.nanmax(emp_pred):.2f}")

@@ -84,7 +84,7 @@ def _bench_time(per_sqrt_s: float, kt_rel_95: float) -> float:
 
 
 def _text(rec, pred, current, design, kt_target, step) -> list[str]:
-    from ..analysis.excitation_design import hand_params_summary
+    from ..analysis.excitation_design import multisine_summary
 
     a = rec["assumptions"]
     p = rec["design"]
@@ -96,7 +96,7 @@ def _text(rec, pred, current, design, kt_target, step) -> list[str]:
              f"{a['current_noise_a'] * 1e3:.3g} mA, {a['counts_per_rev']} counts/rev",
              f"  limits     peak {a['peak_current_a']:.3g} A, rms {a['rms_current_a']:.3g} A, speed "
              f"{a['min_speed_rad_s']:.4g}-{a['max_speed_rad_s']:.4g} rad/s (forward only)",
-             f"  design     {hand_params_summary(p)}",
+             f"  design     {multisine_summary(p)}",
              f"  binding    {design.binding}; acceleration crest factor {design.acceleration_crest_factor:.3f}",
              "  profile    kind: multisine, offset: {offset:.4g}, amplitude: {amplitude:.4g}, period_s: {period_s:g}, "
              "f_min_hz: {f_min_hz:g}, f_max_hz: {f_max_hz:g}, phases: {phases}, spectrum: {spectrum}, "
