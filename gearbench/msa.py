@@ -212,14 +212,15 @@ def read_databases(targets: list[str]) -> list[dict]:
     """Runs (with their result) from station SQLite files or a central postgresql:// URL."""
     from .central.query import RunQuery, open_results
 
-    runs = []
+    runs, seen = [], {}
     for t in targets:
         with open_results(t) as db:
+            station = getattr(db, "station", None)     # a station database's own id
+            if station is not None and station in seen:
+                raise GearbenchError(f"{seen[station]} and {t} both belong to station '{station}'; "
+                                     f"give each station's database once")
+            seen[station] = t
             runs += db.runs(RunQuery(newest_first=False), with_result=True)
-    stations = [r["station"] for r in runs]
-    if len(targets) > 1 and len(set(stations)) < len(targets) and runs:
-        raise GearbenchError(f"{', '.join(targets)}: two databases belong to the same station; "
-                             f"give each station's database once")
     return runs
 
 
@@ -323,7 +324,7 @@ def check_design(units: int, repeats: int, stations: int) -> None:
 
 def run_sim_study(profile_path, *, units: int, repeats: int, stations: int, out_dir,
                   seed: int = 1, unit_spread: dict | None = None, station_spread: dict | None = None,
-                  progress=sys.stderr) -> list[str]:
+                  progress=None) -> list[str]:
     """Run ``units × stations × repeats`` simulated runs through the normal run API; returns
     the station databases (``out_dir/station-<s>/station.sqlite``) they landed in.
 
@@ -334,6 +335,7 @@ def run_sim_study(profile_path, *, units: int, repeats: int, stations: int, out_
     from .station_db import connect
 
     check_design(units, repeats, stations)
+    progress = progress or sys.stderr      # looked up now: a default bound at import goes stale
     profile = load_profile(profile_path)
     if not profile.simulation:
         raise GearbenchError(f"{profile.path}: --sim needs a 'simulation:' section describing the plant; "
