@@ -175,7 +175,8 @@ class GaugeRR:
                  notes=list(self.notes))
         if self.method == "anova":
             d.update(interaction_p=self.interaction_p, interaction_pooled=self.interaction_pooled,
-                     anova=[dict(source=a.source, df=a.df, ss=a.ss, ms=a.ms, f=a.f, p=a.p)
+                     anova=[dict(source=a.source, df=a.df, ss=a.ss, ms=a.ms, p=a.p,
+                                 f=a.f if a.f is None or math.isfinite(a.f) else "inf")   # JSON has no inf
                             for a in self.anova])
         return d
 
