@@ -117,6 +117,7 @@ def main(argv: list[str] | None = None) -> int:
         case = motor_case(prof.motors[step.motor], prof.disks[step.disk], hand.params)
         design = ed.design_multisine([case], duration_s=duration, period_s=period,
                                      max_tone_hz=10.0, min_fade_s=hand.params.get("fade_in_s", 0.2))
+        got = {}
         for label, kind, params in (("hand", hand.kind, hand.params),
                                     ("designed", "multisine", design.params)):
             n = int(round(duration / period))
@@ -135,6 +136,13 @@ def main(argv: list[str] | None = None) -> int:
                   f"{pred_t.b2_rel_std_unloaded * 100:.4f}/{pred_t.b2_rel_std_loaded * 100:.4f} %, "
                   f"empirical {np.std(emp['b2u'], ddof=1) * 100:.4f}/{np.std(emp['b2l'], ddof=1) * 100:.4f} %"
                   f"; {ed.multisine_summary(params)}")
+            got[label] = (pred.kt_rel_std, float(np.mean(emp["reported"])), emp["kt"])
+        (ph, rh, eh), (pd, rd, e_d) = got["hand"], got["designed"]
+        ratio = float(np.std(e_d, ddof=1) / np.std(eh, ddof=1))
+        f_lo, f_hi = (stats.f.ppf(q, len(e_d) - 1, len(eh) - 1) for q in (0.05, 0.95))
+        print(f"      designed/hand Kt std: predicted {pd / ph:.2f}, reported by the analysis "
+              f"{rd / rh:.2f}, empirical {ratio:.2f} [90 % CI {ratio / math.sqrt(f_hi):.2f}, "
+              f"{ratio / math.sqrt(f_lo):.2f}]")
         print(f"      design binding: {design.binding}; acceleration crest factor "
               f"{design.acceleration_crest_factor:.3f}; {design.candidates} candidates"
               + (f"; {'; '.join(design.notes)}" if design.notes else ""))
