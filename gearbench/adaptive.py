@@ -154,7 +154,7 @@ class Staircase:
         self.settle_floor = settle_floor_chunks   # chunks: slowest settling of a braking step so far
         self.acc = LevelMean()
         self.done_levels: list[dict] = []
-        self._pos0 = None
+        self._cols: dict | None = None
 
     # -- commands
     def setpoints(self, k: int) -> dict[str, float]:
@@ -163,7 +163,7 @@ class Staircase:
         if self.level < 0:
             self.level = 0
         if self.stop_start is None and self.level < len(self.levels) and k - self.level_start >= self.max_n:
-            self._next(k, "max")
+            self._next(k, "max", self._cols)
         if self.stop_start is not None:
             j = k - self.stop_start
             return {"in": float(self.down[j]) if j < len(self.down) else 0.0, "out": 0.0}
@@ -204,6 +204,7 @@ class Staircase:
         return rec
 
     def update(self, k: int, cols: dict) -> bool:
+        self._cols = cols          # the recorder's buffers: a level ending at max_s reads them
         if self.stop_start is not None:
             return k >= self.stop_start + len(self.down)
         if k <= self.n_ramp or (k - self.level_start) % self.chunk:
@@ -228,10 +229,16 @@ class Staircase:
         """Close the current level at sample ``k``; start the next one or the stop."""
         if st is None:
             st = self.acc.stats()
+        if st is None and cols is not None:       # never settled within max_s: its last half
+            st = _unsettled_stats(cols, self.level_start + (k - self.level_start) // 2, k)
+            st["settle_chunk"] = (k - self.level_start) // 2 // self.chunk
+            st["unsettled"] = True
         rec = self._level_record(k, cols, why, st) if cols is not None else {
             "level": self.level, "start": self.level_start, "stop": k, "pending": True,
             "torque_out_nm": self.torques[self.level], "out_command": self.levels[self.level]}
         rec["stopped_by"] = why
+        if st is not None and st.get("unsettled"):
+            rec["settled_in_time"] = False
         rec["floor"] = self.acc._settled_at if not self.acc.n else min(self.acc._settled_at, len(self.acc.n))
         rec["duration_s"] = (k - self.level_start) * self.period_s
         if st is not None:
@@ -242,7 +249,8 @@ class Staircase:
         self.done_levels.append(rec)
         if self.level >= 1:
             # a braking step settles no faster than the slowest one before it on this drive
-            self.settle_floor = max(self.settle_floor, st["settle_chunk"] if st is not None
+            self.settle_floor = max(self.settle_floor, st["settle_chunk"]
+                                    if st is not None and not st.get("unsettled")
                                     else (k - self.level_start) // self.chunk)
         self.level += 1
         self.level_start = k

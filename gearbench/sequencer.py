@@ -312,12 +312,9 @@ class Sequencer:
                         torques_out_nm=list(step.torques_out_nm), period_s=self.period_s,
                         min_s=step.min_s, max_s=step.max_s, eta_pp=p.targets.eta_pp,
                         kt_in=self._kt("in"), kt_out=kt_out,
-                        eta_prior=p.reducer.efficiency_range[1] if p.reducer else 1.0,
+                        eta_prior=sum(p.reducer.efficiency_range) / 2 if p.reducer else 0.8,
                         ratio_prior=p.reducer.ratio if p.reducer else None,
-                        ramp_rad_s2=RAMP_RAD_S2, segment=f"efficiency-{k}",
-                        # the same drives at the next speed: their braking steps settle no faster
-                        settle_floor_chunks=max([getattr(c, "settle_floor", 0) for c in self.adaptive.values()]
-                                                + [0]))
+                        ramp_rad_s2=RAMP_RAD_S2, segment=f"efficiency-{k}")
         return Segment(f"efficiency-{k}", "efficiency",
                        {"in": (Mode.VELOCITY, None), "out": (Mode.TORQUE, None)},
                        f"input {speed:g} rad/s, staircase of {len(step.torques_out_nm)} braking torques",

@@ -91,7 +91,14 @@ def test_cvt_profile_contents():
     modbus = load_profile(PROFILES / "cvt-modbus.yaml")
     assert modbus.bench.bus.family == "modbus" and modbus.bench.bus.host == "127.0.0.1"
     assert modbus.motors["in"].drive.endswith("generic-modbus-servo.yaml")
-    assert modbus.estimated_bench_time_s == p.estimated_bench_time_s
+    # the Modbus variant runs the classic fixed-length procedure
+    assert modbus.estimated_bench_time_s == load_profile(PROFILES / "cvt-classic.yaml").estimated_bench_time_s
+    # cvt.yaml is adaptive: both motors calibrated at once, each with its own disk, and its
+    # max_s values bound the motor-running time under the 20 s a reducer line can give
+    assert p.bench.parallel_calibration and p.targets.kt_rel > 0 and p.targets.eta_pp > 0
+    cal = [s for s in p.steps if isinstance(s, CalibrateStep)]
+    assert all(s.adaptive for s in cal) and len({s.disk for s in cal}) == 2
+    assert p.steps[3].adaptive and p.estimated_bench_time_s <= 20.0
 
 
 def test_efficiency_levels_and_bench_time():
@@ -467,3 +474,29 @@ def test_structural_mutations_never_traceback(mutations):
        insert=st.text(alphabet=st.sampled_from(list(" \n\t:-[]{}'\"#&*!|>%@`,0123456789e.abc")), max_size=4))
 def test_text_mutations_never_traceback(pos, cut, insert):
     _check_outcome(CVT_TEXT[:pos] + insert + CVT_TEXT[pos + cut:])
+
+
+def test_adaptive_fields_are_validated_with_file_line_and_field(tmp_path):
+    text = (PROFILES / "cvt.yaml").read_text()
+    cases = [
+        ("  kt_rel: 0.001 ", "  kt_rel: -0.001 ", "targets.kt_rel", "must be > 0"),
+        ("    max_s: 0.95 ", "    max_s: 0.1 ", "steps[3].max_s", "shorter than min_s"),
+        ("    max_s: 0.95 ", "    max_s: 0.95\n    settle_s: 0.3\n", "steps[3].settle_s", "remove settle_s"),
+        ("targets:\n  kt_rel: 0.001", "targets:\n  kt_re: 0.001", "targets.kt_re", "unknown key"),
+        ("    disk: disk_b\n", "    disk: disk_a\n", "steps[1].disk", "second disk"),
+        ("    min_s: 1.0                       # per run", "    duration_s: 3.0\n    min_s: 1.0  # per run",
+         "steps[0].duration_s", "adaptive"),
+    ]
+    for old, new, where, what in cases:
+        assert old in text, old
+        bad = tmp_path / "bad.yaml"
+        bad.write_text(text.replace(old, new, 1))
+        with pytest.raises(ProfileError) as err:
+            load_profile(bad)
+        msg = str(err.value)
+        assert "bad.yaml:" in msg and where in msg and what in msg, msg
+        assert len(msg.splitlines()) == 1
+    # an adaptive step without its target
+    bad.write_text(text.replace("  eta_pp: 0.15", "", 1))
+    with pytest.raises(ProfileError, match=r"steps\[3\]\.min_s.*targets\.eta_pp"):
+        load_profile(bad)

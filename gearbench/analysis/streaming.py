@@ -32,6 +32,7 @@ from . import derivatives as dv
 Z95 = 1.959963984540054
 BLOCK_FILTER_LENGTHS = 2     # a block spans two FIR lengths: residuals correlate over about one
 MIN_BLOCKS = 4               # fewer blocks: the spread of their scores says nothing yet
+SETTLE_MARGIN = 2            # the window starts at twice the point found steady
 MIN_SETTLED_CHUNKS = 8       # settled chunks before a level may stop
 STEADY_SIGMAS = 2.0          # the settled window's halves must agree within 2 sigma
 TAPER_VARIANCE = 1.22        # white-noise variance factor of the Tukey-tapered mean (efficiency.taper)
@@ -173,7 +174,10 @@ class LevelMean:
         """Settled tapered means, their white-noise standard errors and the number of
         settled samples, or None while the level has not settled over at least
         ``MIN_SETTLED_CHUNKS`` chunks."""
-        j = self.settle_chunk()
+        # the steadiness test finds where a decaying tail drops below the noise of the
+        # halves; as long again lets it decay as far once more (a speed loop's recovery
+        # is close to exponential), so what is left of it in the mean is below the noise
+        j = SETTLE_MARGIN * self.settle_chunk()
         if len(self.n) - j < MIN_SETTLED_CHUNKS:
             return None
         xi, xo = np.concatenate(self.raw_in[j:]), np.concatenate(self.raw_out[j:])

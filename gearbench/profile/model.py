@@ -247,5 +247,17 @@ class Profile:
     @property
     def estimated_bench_time_s(self) -> float:
         """Motor-running time on a real tester: 2 runs per calibration + every efficiency
-        level's settle and measure. Operator prompts and drive start-up are not included."""
-        return float(sum(s.bench_time_s for s in self.steps))
+        level's settle and measure (adaptive steps: at their max_s, an upper bound;
+        calibrate steps run at once with ``bench.parallel_calibration`` count once).
+        Speed ramps, operator prompts and drive start-up are not included."""
+        total, group = 0.0, []
+        for s in self.steps + [None]:
+            if (self.bench.parallel_calibration and isinstance(s, CalibrateStep)
+                    and s.motor not in {g.motor for g in group}):
+                group.append(s)
+                continue
+            total += max((g.bench_time_s for g in group), default=0.0)
+            group = [s] if (self.bench.parallel_calibration and isinstance(s, CalibrateStep)) else []
+            if s is not None and not group:
+                total += s.bench_time_s
+        return float(total)
