@@ -74,13 +74,18 @@ def summary_lines(profile, shown: str | Path) -> list[str]:
         head = "steps     " if i == 0 else "          "
         if isinstance(s, CalibrateStep):
             what = (f"calibrate motor {s.motor} with {s.waveform} ({profile.waveforms[s.waveform].kind}, "
-                    f"{s.mode}), alone then with disk {s.disk}: 2 x {_fmt(s.duration_s)} s")
+                    f"{s.mode}), alone then with disk {s.disk}: 2 x "
+                    + (f"{_fmt(s.min_s)}..{_fmt(s.max_s)} s until Kt is known to {_fmt(100 * profile.targets.kt_rel)} %"
+                       if s.adaptive else f"{_fmt(s.duration_s)} s")
+                    + (" (with the other motor, at once)" if profile.bench.parallel_calibration else ""))
         elif isinstance(s, LoadStep):
             what = f"prompt: {s.prompt}"
         else:
             assert isinstance(s, EfficiencyStep)
             what = (f"{len(s.speeds_in_rad_s)} speeds x {len(s.torques_out_nm)} torques = {s.operating_points} "
-                    f"operating points, {len(s.levels())} levels x ({_fmt(s.settle_s)} + {_fmt(s.measure_s)}) s")
+                    + (f"operating points, staircase of {len(s.levels())} levels x {_fmt(s.min_s)}..{_fmt(s.max_s)} s "
+                       f"until the efficiency slope is known to {_fmt(profile.targets.eta_pp)} pp" if s.adaptive else
+                       f"operating points, {len(s.levels())} levels x ({_fmt(s.settle_s)} + {_fmt(s.measure_s)}) s"))
         lines.append(f"{head} {i + 1}. {s.name:<14} {what}  [{s.bench_time_s:.1f} s]")
     limits = ", ".join(f"{lim.name} [{'-inf' if lim.low is None else f'{lim.low:.4g}'}, "
                        f"{'inf' if lim.high is None else f'{lim.high:.4g}'}]" for lim in profile.limits)
@@ -88,5 +93,7 @@ def summary_lines(profile, shown: str | Path) -> list[str]:
     sim = profile.simulation
     lines.append("simulation " + ("plant defined (used by --sim)" if sim is not None else "none (--sim uses defaults)"))
     lines.append(f"operating points {profile.operating_points}; estimated bench time "
-                 f"{profile.estimated_bench_time_s:.1f} s (motors running; operator prompts not included)")
+                 f"{profile.estimated_bench_time_s:.1f} s (motors running; operator prompts not included"
+                 + ("; adaptive steps at their max_s: an upper bound)" if any(
+                     getattr(s, "adaptive", False) for s in profile.steps) else ")"))
     return lines

@@ -1,0 +1,117 @@
+"""Adaptive measurement (issue 14): measurements stop when their statistical interval
+meets the profile's target, or at max_s, and say which. A short simulated case runs the
+real sequencer in-process against the simulated bench (gearbench.bench.cycle_time's
+InProcessBench: the --sim physics without the bus), so each run takes seconds."""
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gearbench.analysis.streaming import LevelMean, StreamingB2, slope_fit
+from gearbench.bench.cycle_time import run_inprocess
+from gearbench.profile import EfficiencyStep, load_profile
+from gearbench.profile.model import Targets
+from gearbench.sim import MotorParams, PlantParams, simulate_motor
+from gearbench.sim import waveforms as wf
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def short_cvt():
+    """cvt.yaml cut to one speed x two torques (the adaptive procedure unchanged)."""
+    p = load_profile(ROOT / "profiles" / "cvt.yaml")
+    steps = [replace(s, speeds_in_rad_s=[200.0], torques_out_nm=[0.06, 0.10]) if isinstance(s, EfficiencyStep)
+             else s for s in p.steps]
+    return replace(p, steps=steps), PlantParams.from_dict(p.simulation)
+
+
+def _run(profile, plant, seed=1):
+    res = run_inprocess(profile, plant, seed=seed)
+    assert res["status"] == "passed", res["reason"]
+    return res
+
+
+def test_measurements_stop_on_target_and_record_why(short_cvt):
+    profile, plant = short_cvt
+    res = _run(profile, plant)
+    ms = res["measurements"]
+    cal = [m for m in ms if m["kind"] == "calibrate"]
+    eff = [m for m in ms if m["kind"] == "efficiency"]
+    # both motors at once: two segments (unloaded, with disks), each with both motors
+    assert sorted(res["steps"]) == ["calibrate-in+out-disk_a+disk_b", "calibrate-in+out-unloaded", "efficiency-0"]
+    assert len(cal) == 4 and {m["motor"] for m in cal} == {"in", "out"}
+    assert len(eff) == 3                       # zero load + 2 torques, one staircase
+    for m in ms:
+        assert m["stopped_by"] in ("target", "max")
+        assert m["duration_s"] > 0 and m["interval_reached"] is not None
+        if m["stopped_by"] == "target":
+            assert m["interval_reached"] <= m["target"] + 1e-12
+    # the calibration runs on this plant reach the Kt target, between min_s and max_s
+    for m in cal:
+        assert m["stopped_by"] == "target"
+        assert 2.0 - 1e-9 <= m["duration_s"] <= 2.4 + 1e-9
+        assert m["target"] == pytest.approx(profile.targets.kt_rel / np.sqrt(2))
+    # bench time = what was acquired, far below the fixed procedure, and still accurate
+    assert res["bench_time_s"] < 10.0
+    truth = res["simulation_truth"]
+    for motor in ("in", "out"):
+        assert abs(res["motors"][motor]["Kt"] / truth["motors"][motor]["Kt"] - 1) < 0.002
+    for p, t in zip(res["efficiency"], truth["efficiency"]):
+        assert p["incremental_method"] == "slope" and p["eta_incremental_secant"] is not None
+        assert abs(p["eta_incremental"] - t["eta_incremental"]) < 0.002
+        assert abs(p["eta_absolute"] - t["eta_absolute"]) < 0.003
+
+
+def test_an_unreachable_target_stops_at_max_s(short_cvt):
+    profile, plant = short_cvt
+    strict = replace(profile, targets=Targets(kt_rel=1e-7, eta_pp=1e-5))
+    res = _run(strict, plant)
+    assert {m["stopped_by"] for m in res["measurements"]} == {"max"}
+    cal = [m for m in res["measurements"] if m["kind"] == "calibrate"]
+    assert all(m["duration_s"] == pytest.approx(2.4) for m in cal)
+    eff = [m for m in res["measurements"] if m["kind"] == "efficiency"]
+    assert all(m["duration_s"] == pytest.approx(0.95) for m in eff)
+
+
+def test_streaming_b2_matches_the_full_fit_within_its_error():
+    """Per-block sufficient statistics give b2 and an error close to the analysis' own."""
+    from gearbench.analysis.identify import identify_default
+
+    m = MotorParams(Kt=0.0527, J=1.5e-5, D=2e-6, Tc=0.008, cog_amp=0.0)
+    t = wf.time_base(3.0)
+    cmd = wf.multisine(t, amplitude=80.0, freqs_hz=[1, 2, 3, 4, 5, 6, 7, 8], offset=150.0)
+    tr = simulate_motor(m, cmd, seed=4)
+    s = StreamingB2(1e-3)
+    for k in range(100, len(tr) + 1, 100):       # as the sequencer feeds it
+        s.update(tr["position_rad"], tr["current_a"], k)
+    b2, sd, dof = s.estimate()
+    full = identify_default(tr.time_s, tr["position_rad"], tr["current_a"], check=False)
+    assert dof >= 5
+    assert abs(b2 - full.b2) < 4 * max(sd, full.b2_std)
+    assert 0.3 < sd / full.b2_std < 3.0
+    assert abs(b2 / (m.Kt / m.J) - 1) < 0.002
+
+
+def test_level_settling_is_found_in_the_data():
+    """A level with an exponential transient (tau 40 ms) then noise: the settled window
+    starts after the transient, and the mean is the final value within its error."""
+    rng = np.random.default_rng(0)
+    n = 800
+    t = np.arange(n) * 1e-3
+    x = 0.2 + 0.1 * np.exp(-t / 0.04) + rng.normal(0, 0.004, n)
+    acc = LevelMean()
+    for a in range(0, n, 20):
+        acc.add_chunk(x[a:a + 20], np.full(20, -1.0))
+    st = acc.stats()
+    assert st is not None
+    assert st["settle_chunk"] * 20 * 1e-3 >= 0.1        # after ~2.5 tau at least
+    assert abs(st["mean_in"] - 0.2) < 4 * st["sem_in"]
+
+
+def test_slope_fit_recovers_a_line():
+    x = np.array([0.0, -0.5, -1.0, -1.5, -2.0])
+    y = 0.3 - 0.16 * x
+    a, b, sb = slope_fit(x, y + np.array([1e-4, -1e-4, 0, 1e-4, -1e-4]), np.full(5, 1e-4))
+    assert b == pytest.approx(-0.16, abs=3 * sb) and sb < 1e-3
