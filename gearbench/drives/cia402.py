@@ -74,6 +74,8 @@ from .scaling import AxisUnits, unwrap_int32
 
 DEFAULT_EDS = str(shipped_driver("cia402-servo.eds"))
 SYNC_OVERFLOW = 240
+NMT_OPERATIONAL_STATE = 0x05          # the heartbeat byte of a node in OPERATIONAL (CiA 301)
+ABORT_CONNECTION_QUICK_STOP = 3       # 0x6007: quick stop on a communication loss (CiA 402)
 STARVED_LIMIT_FACTOR = 10    # an emulated drive starved of CPU may be silent this many limits, not more
 STATES = {  # statusword mask, value (CiA 402)
     "SWITCH ON DISABLED": (0x4F, 0x40), "READY TO SWITCH ON": (0x6F, 0x21), "SWITCHED ON": (0x6F, 0x23),
@@ -123,6 +125,8 @@ class CiA402Drive(Drive):
         self._heartbeat_overdue = False
         self.nmt_state: int | None = None
         self.emcy: list[EmcyError] = []
+        self.master_watch = "not armed (lockstep: the emulated plant only moves on SYNC)"
+        self._master_slot: tuple[int, int] | None = None
 
     @property
     def where(self) -> str:
@@ -200,6 +204,39 @@ class CiA402Drive(Drive):
             self.sdo_write(0x1019, 0, SYNC_OVERFLOW if self.net.sync_counter_byte else 0)
         self.sdo_write(0x1017, 0, heartbeat_ms)
         self.verified = True
+
+    def watch_master(self, master_id: int, timeout_ms: int) -> None:
+        """Arm a heartbeat-consumer slot of 0x1016 for the master and set 0x6007 to quick
+        stop; ``master_watch`` says what the drive will do if the master goes silent."""
+        od = self.node.object_dictionary
+        if 0x1016 not in od:
+            self.master_watch = "not armed: no 0x1016 in the EDS (keeps its last command if the PC dies)"
+            return
+        slots = {sub: self.sdo_read(0x1016, sub) for sub in od[0x1016].subindices if sub > 0}
+        ours = [sub for sub, v in slots.items() if (v >> 16) & 0x7F == master_id and v & 0xFFFF]
+        free = [sub for sub, v in slots.items() if not v & 0xFFFF]
+        slot = (ours or free or [None])[0]
+        if slot is None:
+            self.master_watch = "not armed: every 0x1016 consumer slot is in use"
+            return
+        self._master_slot = (slot, slots[slot])
+        if slots[slot] & 0xFFFF:      # CiA 301: an active entry is cleared before it is changed
+            self.sdo_write(0x1016, slot, 0)
+        self.sdo_write(0x1016, slot, (master_id << 16) | timeout_ms)
+        action = "its abort-connection option (no 0x6007)"
+        if 0x6007 in od:
+            self.sdo_write(0x6007, 0, ABORT_CONNECTION_QUICK_STOP)
+            action = "quick stop (0x6007 = 3)"
+        self.master_watch = f"{action} after {timeout_ms} ms without the master's heartbeat"
+
+    def unwatch_master(self) -> None:
+        """Give the consumer slot back as it was (a factory setting for another master stays)."""
+        slot = getattr(self, "_master_slot", None)
+        if slot is not None:
+            self.sdo_write(0x1016, slot[0], 0)
+            if slot[1] & 0xFFFF:
+                self.sdo_write(0x1016, slot[0], slot[1])
+            self._master_slot = None
 
     def _select_modes(self) -> None:
         """Modes from 0x6502 as the drive reports it (or the description): cyclic 9/10 preferred."""
@@ -415,7 +452,11 @@ class CiA402Network(DriveNetwork):
     a drive silent this long is a fault), ``frame_grace_s`` (0.02: once a SYNC's first
     TPDO arrived, its other TPDOs are lost if not in by then), ``sdo_timeout_s`` (0.3), ``cyclic`` (None: cyclic
     synchronous 9/10 where the drive has them, else profile modes 3/4 with ramps set by
-    gearbench; False: profile modes only), ``bus_kwargs`` (extra python-can args).
+    gearbench; False: profile modes only), ``bus_kwargs`` (extra python-can args),
+    ``master_node_id`` (127) and ``master_timeout_ms`` (1000; 0 = off): against real
+    drives (not lockstep) the master produces a heartbeat and arms each drive's
+    heartbeat consumer (0x1016) with its abort-connection option (0x6007) set to quick
+    stop, so a tester PC that dies or is unplugged stops its drives by itself.
     """
 
     family = "cia402"
@@ -423,7 +464,8 @@ class CiA402Network(DriveNetwork):
     def __init__(self, bus: str = "udp_multicast:239.74.163.2", *, heartbeat_ms: int = 100,
                  timeout_s: float = 0.5, state_timeout_s: float = 0.5, frame_grace_s: float = 0.02,
                  sdo_timeout_s: float = 0.3, cyclic: bool | None = None, lockstep: bool = False,
-                 bus_kwargs: dict | None = None, **options):
+                 bus_kwargs: dict | None = None, master_node_id: int = 127, master_timeout_ms: int = 1000,
+                 **options):
         super().__init__(bus=bus, cyclic=cyclic, **options)
         # Real drives latch on SYNC, so SYNC must come every period on the wall clock for
         # time_s = count x period to hold. An emulated bench (lockstep) advances its physics
@@ -438,6 +480,9 @@ class CiA402Network(DriveNetwork):
         self.state_timeout_s = state_timeout_s
         self.frame_grace_s = frame_grace_s
         self.sdo_timeout_s = sdo_timeout_s
+        self.master_node_id = int(master_node_id)
+        self.master_timeout_ms = int(master_timeout_ms)
+        self._master_heartbeat = None   # the periodic send task (the kernel's BCM on socketcan)
         self.network: canopen.Network | None = None
         self.sync_count = 0
         self._cv = threading.Condition()
@@ -496,6 +541,7 @@ class CiA402Network(DriveNetwork):
             for cob_id, fmt in d.tpdo_formats.items():
                 self._formats[cob_id] = (struct.Struct(fmt), d._has_counter)
                 self.network.subscribe(cob_id, self._on_tpdo)
+        self._watch_master()
         for d in self.drives.values():
             d.node.nmt.state = "OPERATIONAL"
         wait_s = 3 * self.heartbeat_ms / 1000.0 + 0.2
@@ -510,6 +556,21 @@ class CiA402Network(DriveNetwork):
         self.stalls.start()
         self.liveness.reset(d.node.id for d in self.drives.values())
         self._started = True
+
+    def _watch_master(self) -> None:
+        """Real drives watch the master's heartbeat (CiA 301 0x1016) and quick-stop when it
+        stops (CiA 402 0x6007 = 3): the one stop that works when the tester PC itself dies.
+        Not in lockstep: an emulated plant only moves on SYNC, so a dead master freezes it."""
+        if self.lockstep or self.master_timeout_ms <= 0:
+            return
+        if any(d.node.id == self.master_node_id for d in self.drives.values()):
+            raise DriveError(f"master_node_id {self.master_node_id} is also a drive's node id on "
+                             f"{self.bus_spec}; set bus option master_node_id to a free id (1..127)")
+        period_ms = max(10, min(self.heartbeat_ms, self.master_timeout_ms // 4))
+        self._master_heartbeat = self.network.send_periodic(
+            0x700 + self.master_node_id, [NMT_OPERATIONAL_STATE], period_ms / 1000.0)
+        for d in self.drives.values():
+            d.watch_master(self.master_node_id, self.master_timeout_ms)
 
     def watch_process(self, pid: int) -> None:
         """The drives are emulated by process ``pid`` on this host (``--sim``): its
@@ -538,7 +599,8 @@ class CiA402Network(DriveNetwork):
                 # where a drive echoes no SYNC counter, its samples are matched to SYNCs by arrival
                 # order and the bus's receive time only: flagged so a reader of the data knows
                 "sync_counter_echo": {n: bool(d._has_counter) for n, d in self.drives.items()},
-                "late_syncs": self.late_syncs}
+                "late_syncs": self.late_syncs,
+                "if_the_master_dies": {n: d.master_watch for n, d in self.drives.items()}}
 
     # ----------------------------------------------------------------- receive (notifier thread)
     def _on_tpdo(self, cob_id, data, timestamp):
@@ -800,6 +862,14 @@ class CiA402Network(DriveNetwork):
             self.sync_producer = None
         if self.network is not None:
             try:
+                for d in self.drives.values():
+                    try:
+                        d.unwatch_master()     # an orderly end is not a lost master
+                    except Exception:
+                        pass
+                if self._master_heartbeat is not None:
+                    self._master_heartbeat.stop()
+                    self._master_heartbeat = None
                 for d in self.drives.values():
                     try:
                         d.node.nmt.state = "PRE-OPERATIONAL"

@@ -24,6 +24,9 @@ Built on canopen's ``LocalNode`` (SDO server, NMT slave) plus what it lacks
   and target torque go to the node's ``Cia402Axis`` in SI (also when written by SDO).
 - Profile modes 3/4 ramp with 0x6083/0x6084/0x6087 as the dictionary holds them.
 - EMCY on faults and on fault reset; heartbeat producer from 0x1017.
+- Heartbeat consumer from 0x1016 (CiA 301): once a watched producer (the master) has
+  been heard, silence beyond its consumer time sends EMCY 0x8130 and applies 0x6007
+  (1 fault, 2 disable voltage, 3 quick stop) to an enabled axis.
 - Fault options from ``EmulatedBench``: TPDO drop rate, muted nodes.
 """
 from __future__ import annotations
@@ -32,6 +35,7 @@ import struct
 import threading
 import time
 
+import can
 import canopen
 from canopen.objectdictionary import ODVariable
 from canopen.sdo import SdoAbortedError
@@ -48,6 +52,20 @@ NMT_OPERATIONAL = 5
 PDO_INVALID = 1 << 31
 ABORT_NOT_MAPPABLE, ABORT_PDO_LENGTH, ABORT_VALUE_RANGE = 0x06040041, 0x06040042, 0x06090030
 EMCY_SYNC_LENGTH = 0x8240
+EMCY_HEARTBEAT = 0x8130        # CiA 301: life guard / heartbeat error
+ABORT_ACTIONS = {2: 0x0000, 3: 0x0002}   # 0x6007 -> controlword: disable voltage, quick stop
+CONSUMER_STALL_S = 0.05        # the consumer judges silence only while this process keeps up
+
+
+class _ReceiveLag(can.Listener):
+    """How far behind the bus this process handles frames (receive time -> handled):
+    a heartbeat still queued behind a backlog of SYNCs is not a silent master."""
+
+    def __init__(self):
+        self.lag_s = 0.0
+
+    def on_message_received(self, msg) -> None:
+        self.lag_s = time.time() - msg.timestamp if msg.timestamp else 0.0
 DEVICE_TYPE_SERVO = 0x00020192
 
 
@@ -357,6 +375,11 @@ class CanopenServer:
         self.network.subscribe(0x80, self.on_sync)
         self.network.NOTIFIER_CYCLE = 0.1    # stop() waits for one notifier cycle
         self.network.connect()
+        self._receive_lag = _ReceiveLag()
+        self.network.notifier.add_listener(self._receive_lag)
+        self._heard: dict[int, float] = {}                 # producer node id -> last heartbeat (monotonic)
+        self._listening: set[int] = set()
+        self._lost: dict[tuple[int, int], float] = {}     # (node, producer) -> the heartbeat it timed out after
         self._stop = threading.Event()
         self._heartbeat = threading.Thread(target=self._heartbeat_loop, name="emulate-heartbeat", daemon=True)
         for node in self.nodes:   # power-up: boot-up message, then PRE-OPERATIONAL
@@ -395,10 +418,59 @@ class CanopenServer:
             if not self.bench.drop_frame():
                 self.network.send_message(cob_id, payload)
 
+    # ------------------------------------------------------------ heartbeat consumer
+    def _on_producer_heartbeat(self, can_id, data, timestamp):
+        self._heard[can_id - 0x700] = time.monotonic()
+
+    def _consumed(self, node: DriveNode) -> list[tuple[int, float]]:
+        """(producer node id, consumer time in s) of every armed 0x1016 slot."""
+        if 0x1016 not in node.object_dictionary:
+            return []
+        out = []
+        for sub in node.object_dictionary[0x1016].subindices:
+            value = node.raw(0x1016, sub) if sub else 0
+            if value & 0xFFFF and (value >> 16) & 0x7F:
+                out.append(((value >> 16) & 0x7F, (value & 0xFFFF) / 1000.0))
+        return out
+
+    def _check_consumers(self, now: float) -> None:
+        for node in self.nodes:
+            for producer, limit_s in self._consumed(node):
+                if producer not in self._listening:
+                    self._listening.add(producer)
+                    self.network.subscribe(0x700 + producer, self._on_producer_heartbeat)
+                heard = self._heard.get(producer)
+                key = (node.id, producer)
+                if heard is None or self._lost.get(key) == heard:
+                    continue                  # not yet heard (CiA 301: monitoring starts then) or already reported
+                if now - heard > limit_s:
+                    self._lost[key] = heard
+                    self._master_lost(node)
+
+    def _master_lost(self, node: DriveNode) -> None:
+        axis = node.axis
+        option = node.raw(0x6007) if 0x6007 in node.object_dictionary else 0
+        with self.bench.lock:
+            enabled = axis.state == "OPERATION ENABLED"
+            if enabled and option == 1:
+                axis.fault_now(EMCY_HEARTBEAT)            # sends its own EMCY
+                return
+            if enabled and option in ABORT_ACTIONS:
+                axis.write_controlword(ABORT_ACTIONS[option])
+            node._refresh_status()
+        if node.has_network() and axis.name not in self.bench.muted:
+            node.emcy.send(EMCY_HEARTBEAT, 0x11)          # error register: generic + communication
+
     def _heartbeat_loop(self):
         due = {node.id: 0.0 for node in self.nodes}
+        last = hold = time.monotonic()
         while not self._stop.wait(0.005):
             now = time.monotonic()
+            if now - last > CONSUMER_STALL_S:   # this process was stalled: let the receiver catch up
+                hold = now + 2 * CONSUMER_STALL_S   # before blaming the master for heartbeats still queued
+            if now >= hold and self._receive_lag.lag_s < CONSUMER_STALL_S:
+                self._check_consumers(now)
+            last = now
             for node in self.nodes:
                 period_ms = node.raw(0x1017)
                 if period_ms and now >= due[node.id]:

@@ -160,6 +160,11 @@ class Cia402Axis:
         if mode in self.supported_modes and mode in SUPPORTED_MODES or mode == 0:
             self.mode_display = mode
 
+    def fault_now(self, code: int) -> None:
+        """Fault at once, outside a physics step (e.g. the master's heartbeat lost)."""
+        if self.state not in ("FAULT", "FAULT REACTION ACTIVE"):
+            self._fault(code)
+
     def inject_fault(self, code: int) -> None:
         """Fault from outside (fixture, emulator fault option); applied at the next step."""
         self._pending_fault = code
