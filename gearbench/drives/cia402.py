@@ -585,6 +585,11 @@ class CiA402Network(DriveNetwork):
         threads = [r for r in readers if hasattr(r, "native_id")]
         if self.stalls._thread is not None:
             threads.append(self.stalls._thread)
+        # the master's heartbeat, where a Python thread sends it (not the kernel's BCM): a
+        # starved heartbeat would make the drives quick-stop a good unit
+        sender = getattr(getattr(self._master_heartbeat, "_task", None), "thread", None)
+        if sender is not None and hasattr(sender, "native_id"):
+            threads.append(sender)
         return [t.native_id for t in threads]
 
     def supervision(self) -> dict:

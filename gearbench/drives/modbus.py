@@ -12,8 +12,12 @@ by one sampling period; the write and the first drive's read share one
 read/write-multiple-registers request (function 0x17).
 
 Options: ``host`` ("127.0.0.1"), ``port`` (502), ``timeout_s`` (1.0),
-``lockstep`` (False). A drive may override ``host``/``port`` in
-``AxisConfig.extra`` (real drives usually have one IP each).
+``lockstep`` (False), ``master_timeout_ms`` (1000; 0 = off). A drive may override
+``host``/``port`` in ``AxisConfig.extra`` (real drives usually have one IP each).
+
+A tester PC that dies stops its drives: where the map declares the drive's
+communication watchdog (``comm_timeout``, seconds), the master arms it against real
+drives (not lockstep), so a drive that hears no request for that long quick-stops.
 """
 from __future__ import annotations
 
@@ -67,6 +71,7 @@ class ModbusDrive(Drive):
         self._unwrap = {n: _Unwrap(16 * self.map.registers[n].words)
                         for n in ("sample_counter", "position") if self.map.registers[n].is_integer}
         self._k = 1   # counter periods per sampling period, set by start()
+        self.master_watch = "not armed"
 
     def __repr__(self):
         return f"drive '{self.name}' (Modbus unit {self.unit} at {self.endpoint})"
@@ -188,6 +193,17 @@ class ModbusDrive(Drive):
             else:
                 time.sleep(0.002)
 
+    def watch_master(self, timeout_s: float) -> None:
+        """Arm (``timeout_s`` > 0) or disarm (0) the drive's communication watchdog."""
+        if "comm_timeout" not in self.map.registers:
+            self.master_watch = f"not armed: {self.map.model} declares no comm_timeout register " \
+                                f"(keeps its last command if the PC dies)"
+            return
+        reg = self.map.registers["comm_timeout"]
+        self.write("comm_timeout", round(timeout_s / reg.scale))
+        self.master_watch = (f"quick stop after {timeout_s * 1000:g} ms without a request" if timeout_s
+                             else "not armed (lockstep: the emulated plant only moves on sync)")
+
     def reset_fault(self) -> None:
         # CiA 402 acts on the rising edge of the fault-reset bit
         self.write("control", self.map.control_values["disable"])
@@ -214,6 +230,7 @@ class ModbusNetwork(DriveNetwork):
         self.port = int(options.get("port", 502))
         self.timeout_s = float(options.get("timeout_s", 1.0))
         self.lockstep = bool(options.get("lockstep", False))
+        self.master_timeout_ms = int(options.get("master_timeout_ms", 1000))
         self._clients: dict[tuple[str, int], ModbusTcpClient] = {}
         self._sync_drive: ModbusDrive | None = None
         self._last_counter: int | None = None
@@ -261,6 +278,8 @@ class ModbusNetwork(DriveNetwork):
         self.period_s = period_s
         self._last_index = None
         self._last_counter = None
+        for d in self.drives.values():
+            d.watch_master(0 if self.lockstep else self.master_timeout_ms / 1000.0)
 
     def _sync(self) -> None:
         d = self._sync_drive or next((d for d in self.drives.values() if "sync" in d.map.registers), None)
@@ -304,7 +323,8 @@ class ModbusNetwork(DriveNetwork):
         return samples
 
     def supervision(self) -> dict:
-        return {"skewed_samples": self.skewed_samples, "counter_skew_max": self.counter_skew_max}
+        return {"skewed_samples": self.skewed_samples, "counter_skew_max": self.counter_skew_max,
+                "if_the_master_dies": {n: d.master_watch for n, d in self.drives.items()}}
 
     def _next_free_running(self, drive: ModbusDrive) -> Sample:
         """Poll until the drive's counter reaches the next sampling instant."""
@@ -321,6 +341,11 @@ class ModbusNetwork(DriveNetwork):
             time.sleep(self.period_s / 8)    # poll, don't spin: the other core has work too
 
     def _close(self) -> None:
+        for d in self.drives.values():
+            try:
+                d.watch_master(0)      # an orderly end is not a lost master
+            except Exception:
+                pass
         for c in self._clients.values():
             c.close()
         self._clients.clear()

@@ -328,6 +328,10 @@ def register_map_problems(data, where: str = "register map") -> tuple[RegisterMa
         elif name in registers and need not in registers[name].access:
             bad(regs_in[name], "access", f"registers.{name}.access: '{registers[name].access}' "
                 f"but gearbench must {'read' if need == 'r' else 'write'} it", f"set access: {need} or rw")
+    watchdog = registers.get("comm_timeout")
+    if watchdog is not None and (not watchdog.writable or watchdog.unit != "s"):
+        bad(regs_in["comm_timeout"], "access", "registers.comm_timeout: the drive's communication watchdog "
+            "is written by the master in seconds", "set access: rw (or w), unit: s and scale: <s per count>")
     if "sync" in registers and not registers["sync"].writable:
         bad(regs_in["sync"], "access", "registers.sync.access: sync is written by the master", "set access: w")
     counter = registers.get("sample_counter")

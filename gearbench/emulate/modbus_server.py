@@ -6,6 +6,11 @@ reads get status, sample counter, position, velocity and current computed from
 ``bench.latest`` at that moment (one instant per request); writes go to the
 axis's CiA 402 state machine (control, mode, targets in SI via the map's scale).
 
+Communication watchdog (a map's optional ``comm_timeout`` register, seconds): once
+armed, a unit that hears no request for that long quick-stops an enabled axis, as a
+real drive whose master died (free-running only: in lockstep nothing moves without
+the master's sync).
+
 Time: free-running by default (a thread advances the world every period on the
 monotonic clock, catching up when late). With ``lockstep=True`` the world
 advances only when a master writes the ``sync`` register: writing n advances n
@@ -27,6 +32,7 @@ from ..errors import DriveError, ProfileError
 
 DEFAULT_MAP = "drivers/generic-modbus-servo.yaml"
 MAX_CATCH_UP = 200      # periods; beyond this the pacer gives up real time and resyncs
+WATCHDOG_STALL_S = 0.05  # a pacer this late was stalled itself: it does not blame the master
 
 
 class ModbusServerHandle:
@@ -44,6 +50,9 @@ class ModbusServerHandle:
         self.port = port
         self.lockstep = lockstep
         self.overruns = 0          # free-running pacer resyncs (host too slow)
+        self.watchdog_s: dict[int, float] = {}      # unit -> armed comm_timeout
+        self.last_request: dict[int, float] = {}    # unit -> monotonic time of its last request
+        self.watchdog_trips = 0
         self._loop = asyncio.new_event_loop()
         self._server: ModbusTcpServer | None = None
         self._ready = threading.Event()
@@ -118,14 +127,28 @@ class ModbusServerHandle:
             if now - next_t > MAX_CATCH_UP * period:   # hopelessly late: resync, count it
                 self.overruns += 1
                 next_t = now
+            elif now - next_t < WATCHDOG_STALL_S:      # judge the master only while we keep up
+                self._watchdog(now)
             while next_t <= now:
                 self.bench.advance()
                 next_t += period
             time.sleep(max(0.0, next_t - time.monotonic()))
 
+    def _watchdog(self, now: float) -> None:
+        for unit, limit_s in list(self.watchdog_s.items()):
+            if limit_s > 0 and now - self.last_request.get(unit, now) > limit_s:
+                self.watchdog_s[unit] = 0.0          # tripped once; the master re-arms it
+                self.watchdog_trips += 1
+                with self.bench.lock:
+                    axis = self.bench.drive(unit)
+                    if axis.state == "OPERATION ENABLED":
+                        axis.write_controlword(self.map.control_values["quick_stop"])
+                self.bench.log("modbus-watchdog", unit=unit, timeout_s=limit_s)
+
     # --- the emulated drive ----------------------------------------------------------
     async def _action(self, unit, function_code, start_address, address, count, registers, set_values):
         """pymodbus SimDevice action: apply writes, or fill the registers a read returns."""
+        self.last_request[unit] = time.monotonic()
         while self.bench.axes[unit] in self.bench.muted and not self._stop.is_set():
             await asyncio.sleep(0.01)      # "mute" fixture: the drive stops answering
         faults = self.bench.modbus_faults  # fault injection: exception, slow answer, dropped connection
@@ -192,6 +215,8 @@ class ModbusServerHandle:
                     axis.target_current_a = raw * reg.scale
                 elif reg.name == "sync":
                     sync_n = int(raw)
+                elif reg.name == "comm_timeout":
+                    self.watchdog_s[unit] = float(raw) * reg.scale
         if sync_n and self.lockstep:
             steps = sync_n * m.counter_period_s / bench.world.period_s
             if abs(steps - round(steps)) > 1e-6 or round(steps) < 1:
