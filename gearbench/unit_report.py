@@ -178,6 +178,7 @@ def _samples_section(result: dict, traces: dict) -> str:
              "<p class='note'>Samples lost on the bus are counted per step; up to 1 % of a step is "
              "filled by interpolation for the analysis, more is refused.</p>",
              _table(["step", "samples", "lost"], rows, (1, 2))]
+    parts.append(_measurements_table(result))
     thumbs = []
     for step, tr in traces.items():
         cols = {n: tr[n] for n in tr.names if n.endswith((".velocity_rad_s", ".current_a"))}
@@ -187,6 +188,28 @@ def _samples_section(result: dict, traces: dict) -> str:
     if thumbs:
         parts += ["<h2>Traces</h2>", f"<div class='thumbs'>{''.join(thumbs)}</div>"]
     return "\n".join(parts)
+
+
+def _measurements_table(result: dict) -> str:
+    """Adaptive measurements: how long each took, the statistical interval it reached and
+    why it stopped (docs/profile-format.md, "Adaptive measurement")."""
+    ms = result.get("measurements") or []
+    if not ms:
+        return ""
+    rows = []
+    for m in ms:
+        cal = m.get("kind") == "calibrate"
+        reached = m.get("interval_reached")
+        shown = "–" if reached is None else (f"{100 * reached:.3g} %" if cal else f"{reached:.3g} pp")
+        target = f"{100 * m['target']:.3g} %" if cal else f"{m['target']:.3g} pp"
+        settle = "" if cal or m.get("settle_s") is None else f"{m['settle_s']:.2f}" + (
+            "" if m.get("settled_in_time", True) else " (not settled)")
+        rows.append([_e(m.get("name", "")), f"{m.get('duration_s', 0):.2f}", settle, shown, target,
+                     _e(m.get("stopped_by", ""))])
+    return ("<h2>Measurements: adaptive stop</h2><p class='note'>Each measurement ran until the "
+            "statistical part of its 95 % interval met the profile's target (Kt: this run's share, "
+            "relative; efficiency: the speed's slope), or to its max_s.</p>"
+            + _table(["measurement", "s", "settle s", "reached", "target", "stopped by"], rows, (1, 2, 3, 4)))
 
 
 def _header(result: dict, run_dir: Path) -> str:

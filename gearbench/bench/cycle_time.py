@@ -257,16 +257,18 @@ def procedures(plant_profile: dict, step_rad_s: float) -> dict:
             "paper": (paper_profile(plant_profile["classic"], step_rad_s), "paper")}
 
 
-def run_plants(n_plants: int, seeds, *, which=("classic", "adaptive", "paper"), log=print) -> list[dict]:
-    """Every procedure on the profile's own plant (one run per seed) and on ``n_plants``
-    random plants per seed. Returns rows {group, plant, seed, procedure, **score}."""
+def run_plants(n_plants: int, seeds, *, which=("classic", "adaptive", "paper"), log=print,
+               cvt_seeds=None) -> list[dict]:
+    """Every procedure on the profile's own plant (one run per noise seed in ``cvt_seeds``,
+    default ``seeds``) and on ``n_plants`` random plants per draw seed in ``seeds``.
+    Returns rows {group, plant, seed, procedure, **score}."""
     from ..profile import load_profile
     from ..sim import PlantParams
 
     base = {k: load_profile(p) for k, p in PROFILES.items()}
     rows = []
     plant = PlantParams.from_dict(base["adaptive"].simulation)
-    for seed in seeds:
+    for seed in (seeds if cvt_seeds is None else cvt_seeds):
         for name, (prof, method) in procedures(base, 230.0).items():
             if name not in which:
                 continue
@@ -397,18 +399,20 @@ def plot(rows: list[dict], path: Path) -> Path | None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m gearbench.bench cycle_time", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--plants", type=int, default=20, help="random plants per seed (default 20)")
-    ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="draw seeds (default 0)")
+    ap.add_argument("--plants", type=int, default=10, help="random plants per draw seed (default 10)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1], help="random-plant draw seeds (default 0 1)")
+    ap.add_argument("--cvt-runs", type=int, default=5, help="noise seeds on the cvt plant (default 5)")
     ap.add_argument("--procedures", nargs="+", default=["classic", "adaptive", "paper"])
     ap.add_argument("--png", default="results/cycle_time.png", help="plot file (default results/cycle_time.png)")
     ap.add_argument("--no-chain", action="store_true", help="skip the runs through the --sim CANopen chain")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    print(f"cycle_time: {len(args.seeds)} seed(s) x (the cvt plant + {args.plants} random plants), "
+    print(f"cycle_time: the cvt plant x {args.cvt_runs} noise seeds + {len(args.seeds)} draw seed(s) x "
+          f"{args.plants} random plants, "
           f"procedures {', '.join(args.procedures)}; goal: Kt <= {GOAL['kt_pct']} % and incremental "
           f"efficiency <= {GOAL['inc_pp']} pp at all 12 points", flush=True)
     rows = run_plants(args.plants, args.seeds, which=tuple(args.procedures),
-                      log=lambda s: print(s, flush=True))
+                      log=lambda s: print(s, flush=True), cvt_seeds=range(args.cvt_runs))
     if not args.no_chain:
         rows += run_chain(log=lambda s: print(s, flush=True))
     print()
