@@ -5,6 +5,7 @@ else udp_multicast on a free port. Test ids and output name the bus used.
 """
 import json
 import math
+import os
 import signal
 import subprocess
 import sys
@@ -21,6 +22,10 @@ from gearbench.drives.cia402 import CiA402Network
 
 EDS = str(Path(__file__).resolve().parents[1] / "drivers" / "cia402-servo.eds")
 BUS = bus_for_tests()
+# .ci/vcan's software-emulated (TCG) guest runs Python 20-100x slower: fewer SYNCs per second
+# for the emulated drives to keep up with, fewer samples, generous supervision timeouts
+EMULATED = bool(os.environ.get("GEARBENCH_VCAN_EMULATED"))
+SLOW_NET = dict(heartbeat_ms=500, timeout_s=20.0, sdo_timeout_s=10.0, state_timeout_s=10.0) if EMULATED else {}
 
 
 @pytest.fixture(scope="module", params=[BUS], ids=[BUS.interface])
@@ -51,10 +56,11 @@ def test_independent_basenode402_client_turns_the_motor(emulator):
     try:
         node = BaseNode402(1, EDS)
         # these only bound waits; a software-emulated CI guest (.ci/vcan) runs Python ~20x slower
+        scale = 5 if EMULATED else 1
         for name, seconds in (("TIMEOUT_CHECK_TPDO", 2.0), ("TIMEOUT_SWITCH_STATE_SINGLE", 4.0),
                               ("TIMEOUT_SWITCH_STATE_FINAL", 8.0), ("TIMEOUT_SWITCH_OP_MODE", 5.0)):
-            setattr(node, name, seconds)
-        node.sdo.RESPONSE_TIMEOUT = 2.0
+            setattr(node, name, seconds * scale)
+        node.sdo.RESPONSE_TIMEOUT = 2.0 * scale
         net.add_node(node)
         node.nmt.state = "PRE-OPERATIONAL"
         node.tpdo.read()
@@ -75,7 +81,10 @@ def test_independent_basenode402_client_turns_the_motor(emulator):
             if rpdo.enabled and rpdo.on_message in net.subscribers.get(rpdo.cob_id, []):
                 net.unsubscribe(rpdo.cob_id, rpdo.on_message)
         node.nmt.state = "OPERATIONAL"
-        net.sync.start(0.005)
+        # SYNC by python-can's send_periodic (the kernel's BCM on socketcan); in a TCG guest the
+        # emulator handles ~10-50 SYNCs/s, a faster SYNC would flood its receive queue
+        sync_s = 0.05 if EMULATED else 0.005
+        net.sync.start(sync_s)
         node.op_mode = "PROFILED VELOCITY"
         assert node.op_mode == "PROFILED VELOCITY"       # the setter only logs failures
         node.state = "OPERATION ENABLED"
@@ -88,9 +97,9 @@ def test_independent_basenode402_client_turns_the_motor(emulator):
         node.rpdo[2].transmit()
         frames = []
         node.tpdo[1].add_callback(lambda m: frames.append(m["Position actual value"].raw))
-        time.sleep(1.0)                                    # 200 SYNCs = 0.2 s of drive time: settled
+        time.sleep(200 * sync_s)                           # 200 SYNCs = 0.2 s of drive time: settled
         n0 = len(frames)
-        time.sleep(1.0)
+        time.sleep(200 * sync_s)
         window = frames[n0:]
         current_a = node.tpdo[2]["Current actual value"].raw * rated_ma / 1000 / 1000
         speed = (window[-1] - window[0]) * 2 * math.pi / counts_per_rev / ((len(window) - 1) * 1e-3)
@@ -110,7 +119,7 @@ def test_independent_basenode402_client_turns_the_motor(emulator):
 
 def test_gearbench_master_streams_both_drives(emulator):
     bus, proc = emulator
-    net = CiA402Network(bus=str(bus), heartbeat_ms=100, lockstep=True)
+    net = CiA402Network(bus=str(bus), **{"heartbeat_ms": 100, **SLOW_NET}, lockstep=True)
     with net:
         din = net.add_drive(AxisConfig("in", 1, EDS))
         dout = net.add_drive(AxisConfig("out", 2, EDS))
@@ -118,7 +127,7 @@ def test_gearbench_master_streams_both_drives(emulator):
         din.enable(Mode.VELOCITY)
         dout.enable(Mode.TORQUE)
         din.set_setpoint(80.0)
-        n = 1500
+        n = 200 if EMULATED else 1500          # 0.2 s of drive time still settles the 80 rad/s step
         t0 = time.perf_counter()
         rows = [net.sample() for _ in range(n)]
         rate = n / (time.perf_counter() - t0)
@@ -132,7 +141,7 @@ def test_gearbench_master_streams_both_drives(emulator):
 
 def test_emulator_fault_option_reaches_master_as_benchfault(emulator):
     bus, proc = emulator
-    net = CiA402Network(bus=str(bus), heartbeat_ms=100, lockstep=True)
+    net = CiA402Network(bus=str(bus), **{"heartbeat_ms": 100, **SLOW_NET}, lockstep=True)
     from gearbench.errors import BenchFault
     with net:
         din = net.add_drive(AxisConfig("in", 1, EDS))

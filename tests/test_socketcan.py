@@ -4,10 +4,12 @@ Run by ``.ci/vcan`` (the host kernel's vcan, or a qemu guest where the kernel ha
 none). Elsewhere these tests skip with one line; in CI they fail unless ``.ci/run``
 hands them to ``.ci/vcan`` (GEARBENCH_VCAN_STEP). Test ids name the bus.
 
-Inside an emulated guest Python runs ~20x slower than on the host: every timing
-here is either lockstep (one period of drive time per SYNC) or loose, and the
-supervision timeouts are generous. Debian's ``candump`` records the bus as an
-independent witness of what went over it.
+Inside a software-emulated guest (``.ci/vcan`` sets GEARBENCH_VCAN_EMULATED=tcg)
+Python runs 20-100x slower than on the host: every timing here is either lockstep
+(one period of drive time per SYNC) or loose, and there the supervision timeouts
+are generous and the paced SYNC period long enough for the emulated drives to
+answer each SYNC within its period. What each test proves is the same on both.
+Debian's ``candump`` records the bus as an independent witness of what went over it.
 """
 from __future__ import annotations
 
@@ -21,7 +23,6 @@ import time
 from pathlib import Path
 
 import pytest
-import yaml
 
 from conftest import in_ci, require_tool
 from gearbench.drives.base import AxisConfig, Mode
@@ -33,8 +34,12 @@ EDS = str(REPO / "drivers" / "cia402-servo.eds")
 VCAN = os.environ.get("GEARBENCH_VCAN", "")
 BUS = f"socketcan:{VCAN or 'vcan0'}"
 ID = f"socketcan-{VCAN or 'vcan0'}"
-# generous for a software-emulated guest; a drive silent this long is still a fault
-NET = dict(heartbeat_ms=500, timeout_s=10.0, sdo_timeout_s=1.0, state_timeout_s=3.0)   # a TCG guest runs Python ~20x slower
+EMULATED = bool(os.environ.get("GEARBENCH_VCAN_EMULATED"))   # a TCG guest: CPU-bound Python 20-100x slower
+# Bounds, not expectations: in a TCG guest on a loaded 2-core host the emulated drives were seen
+# to take > 3 s for one SDO answer (qemu itself waiting for a host CPU). A drive silent this long
+# is still a fault.
+NET = dict(heartbeat_ms=500, timeout_s=20.0 if EMULATED else 10.0, sdo_timeout_s=10.0 if EMULATED else 1.0,
+           state_timeout_s=10.0 if EMULATED else 3.0)
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -166,8 +171,14 @@ def test_state_machine_and_emcy_fault_over_socketcan(emulator, tmp_path):
 def test_sync_from_the_kernel_broadcast_manager(emulator, tmp_path):
     """Paced mode on socketcan: SYNC comes from the kernel (BCM), not from Python; it keeps
     its period while this process sleeps, and no sample the drives answered in time is lost."""
-    period_s = 0.1      # slow enough for the emulator to answer inside a slot in an emulated guest
-    with Candump(tmp_path) as dump, open_net(lockstep=False) as net:
+    # the emulated drives must answer every SYNC inside its period: in a TCG guest they need
+    # 20-300 ms per SYNC (measured), so the period there is 0.5 s; Python sleeps 5-10 periods
+    period_s = 0.5 if EMULATED else 0.1
+    sleep_s = (5 if EMULATED else 10) * period_s
+    # paced: the drives also watch the master's heartbeat (0x1016); in the guest an emulated drive
+    # may hear it late by the guest's stalls, so its consumer timeout is as generous as the rest
+    watch = {"master_timeout_ms": 20000} if EMULATED else {}
+    with Candump(tmp_path) as dump, open_net(lockstep=False, **watch) as net:
         din = net.add_drive(AxisConfig("in", 1, EDS))
         net.add_drive(AxisConfig("out", 2, EDS))
         net.start(period_s)
@@ -176,7 +187,7 @@ def test_sync_from_the_kernel_broadcast_manager(emulator, tmp_path):
         assert net.sync_producer.kind == "kernel" and net.sync_producer.task is not None
         before = [net.sample() for _ in range(5)]
         t_sleep = time.time()
-        time.sleep(1.0)                                  # Python does nothing: the kernel goes on
+        time.sleep(sleep_s)                              # Python does nothing: the kernel goes on
         t_wake = time.time()
         after = [net.sample() for _ in range(5)]
     rows = [first, *before, *after]
@@ -185,40 +196,15 @@ def test_sync_from_the_kernel_broadcast_manager(emulator, tmp_path):
     assert all(r["in"].time_s == pytest.approx(r["in"].index * period_s) for r in rows)
     # SYNCs answered in full while Python slept are kept (the bus order decides, not the host): the loop
     # does not jump to the newest SYNC; any SYNC not answered before the next one is a counted gap
-    assert idx[len(before) + 1] - idx[len(before)] < 0.5 / period_s
+    assert idx[len(before) + 1] - idx[len(before)] < sleep_s / period_s / 2
     assert idx[-1] - idx[0] + 1 - len(idx) <= net.lost_samples
     syncs = [t for t, cob, _ in dump.frames() if cob == 0x080]
     during = [t for t in syncs if t_sleep + 0.05 < t < t_wake - 0.05]
-    assert len(during) >= 0.9 / period_s * 0.8, f"{len(during)} SYNCs while Python slept"
+    assert len(during) >= (sleep_s - 0.1) / period_s * 0.8, f"{len(during)} SYNCs while Python slept"
     gaps = [b - a for a, b in zip(syncs, syncs[1:])]
     assert statistics.median(gaps) == pytest.approx(period_s, rel=0.2)
     print(f"kernel SYNC on {VCAN}: {len(syncs)} SYNCs, median interval {statistics.median(gaps) * 1e3:.2f} ms, "
-          f"{len(during)} while Python slept 1 s; {len(rows)} samples, {net.lost_samples} lost")
-
-
-@pytest.mark.parametrize("bus", [BUS], ids=[ID])
-def test_gearbench_run_motors_only_over_socketcan(vcan, tmp_path, bus):
-    """``gearbench run profiles/motors-only.yaml --sim`` with the profile's bus on vcan (lockstep)."""
-    doc = yaml.safe_load((REPO / "profiles" / "motors-only.yaml").read_text())
-    doc["bench"]["bus"].update(interface="socketcan", channel=VCAN)
-    for step in doc["steps"]:
-        step["duration_s"] = 1.0                       # short: one multisine period per run
-    for m in doc["motors"].values():
-        m["drive"] = str(REPO / m["drive"])
-    profile = tmp_path / "motors-only-vcan.yaml"
-    profile.write_text(yaml.safe_dump(doc, sort_keys=False))
-    out = tmp_path / "run"
-    r = subprocess.run([sys.executable, "-m", "gearbench", "run", str(profile), "--sim", "--yes", "--out", str(out)],
-                       capture_output=True, text=True, timeout=900)
-    assert r.returncode in (0, 1), r.stdout[-2000:] + r.stderr[-2000:]   # 1 = a limit failed: still a full run
-    result = json.loads((out / "result.json").read_text())
-    assert result["lost_samples"] == 0 and result["samples"] > 4 * 900
-    assert set(result["motors"]) == {"in", "out"}
-    for name, m in result["motors"].items():
-        assert m["Kt"] == pytest.approx(doc["simulation"]["motors"][name]["Kt"], rel=0.005)   # the run-accuracy claim: well under 0.5 %
-    print(f"gearbench run over {BUS}: exit {r.returncode}, {result['samples']} samples, "
-          f"Kt in {result['motors']['in']['Kt']:.5f} out {result['motors']['out']['Kt']:.5f}, "
-          f"wall {result.get('wall_time_s', 0):.0f} s")
+          f"{len(during)} while Python slept {sleep_s:g} s; {len(rows)} samples, {net.lost_samples} lost")
 
 
 def test_heartbeat_loss_stops_the_bench(emulator):
