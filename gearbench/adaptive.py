@@ -120,7 +120,8 @@ class CalibrationRuns:
                  "duration_s": self.stop_at[m] * self.period_s,
                  "quantity": "Kt statistical 95 % half-width (relative), this run's share",
                  "interval_reached": self.reached.get(m), "target": self.target,
-                 "b2_streaming": self.b2.get(m), "stopped_by": self.stopped_by[m]}
+                 "b2_streaming": self.b2.get(m), "stopped_by": self.stopped_by[m],
+                 "run_samples": self.end_sample(m)}
                 for m in self.runs if m in self.stop_at]
 
 
@@ -296,6 +297,7 @@ class Staircase:
             a, b = r.get("settled", r["start"]), r["stop"]
             if b - a >= 2:
                 out.append((int(counter[a]), int(counter[b - 1]) + 1))
+                r["window_samples"] = list(out[-1])
         return out
 
     def measurements(self) -> list[dict]:
@@ -307,6 +309,7 @@ class Staircase:
                              "had this level's standard error",
                  "interval_reached": r.get("interval_reached"), "target": self.eta_pp,
                  "settled_in_time": r.get("settled_in_time", True),
+                 "window_samples": r.get("window_samples"),
                  "stopped_by": r["stopped_by"]} for r in self.done_levels]
 
 

@@ -109,8 +109,9 @@ def reanalyse_result(result: dict, traces: Callable[[str], "object"], profile, m
     seq = Sequencer(profile, None, emit=lambda rec: None, operator=None, serial=result.get("serial", ""),
                     out_dir=result.get("out_dir", ""), method=method)
     status, exit_code, reason, limits = "passed", 0, "", []
+    seq.load_recorded(result.get("measurements"))   # what an adaptive run decided while acquiring
     try:
-        for step in profile.steps:
+        for step in seq.step_groups():
             for action in seq.plan_step(step):
                 if isinstance(action, Segment):
                     tr = traces(action.name)

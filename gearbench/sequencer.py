@@ -116,6 +116,7 @@ class Sequencer:
         self._output_failure: str | None = None     # a required output failed on a path that went on
         self.measurements: list[dict] = []         # adaptive measurements: duration, interval, stopped_by
         self.adaptive: dict[str, object] = {}      # segment name -> its finished controller
+        self._recorded: dict = {}                  # re-analysis: adaptive decisions from result.json
 
     def emit(self, record) -> None:
         """Emit a record; a required output that failed becomes a bench fault."""
@@ -610,7 +611,9 @@ class Sequencer:
         elif what == "efficiency":
             seg = self.traces[args["segment"]]
             ratio = self.profile.reducer.ratio if self.profile.reducer else None
-            adaptive = "windows" in seg.meta
+            if "windows" not in seg.meta and ("windows", args["segment"]) in self._recorded:
+                seg.meta["windows"] = self._recorded[("windows", args["segment"])]
+            adaptive = "windows" in seg.meta or args.get("adaptive", False)
             res = pipeline.efficiency(seg, self.motors_result.get("in") or {"Kt": self._kt("in")},
                                       self.motors_result.get("out") or {"Kt": self._kt("out")},
                                       ratio=ratio, settle_s=seg.meta["settle_s"],
@@ -625,9 +628,21 @@ class Sequencer:
 
     def _motor_run(self, trace: Trace, motor: str) -> Trace:
         ctl = self.adaptive.get(trace.source)
-        if ctl is None or not hasattr(ctl, "end_sample") or len(ctl.runs) < 2:
-            return trace
-        return trace.slice(0, min(ctl.end_sample(motor), len(trace)))
+        if ctl is not None and hasattr(ctl, "end_sample") and len(ctl.runs) > 1:
+            end = ctl.end_sample(motor)
+        else:       # re-analysis: where the run ended, from result.json's measurements
+            end = self._recorded.get(("run", trace.source, motor))
+        return trace if end is None else trace.slice(0, min(int(end), len(trace)))
+
+    def load_recorded(self, measurements: list[dict]) -> None:
+        """What an adaptive run decided while acquiring (result.json ``measurements``):
+        each motor's run length in a shared calibration segment and each level's settled
+        window, so a re-analysis of the recorded traces uses the same data."""
+        for m in measurements or []:
+            if m.get("kind") == "calibrate" and m.get("run_samples") is not None:
+                self._recorded[("run", m["segment"], m["motor"])] = m["run_samples"]
+            elif m.get("kind") == "efficiency" and m.get("window_samples"):
+                self._recorded.setdefault(("windows", m["segment"]), []).append(tuple(m["window_samples"]))
 
     # ---------------------------------------------------------------- limits
     def _quantity(self, q: str):
