@@ -217,7 +217,7 @@ class Staircase:
             return False
         rec = self._level_record(k, cols, None, st)
         b, eta = self._slope_now(rec)
-        need = slope_target_sem(self.eta_pp, eta, b, self._x_levels())
+        need = slope_target_sem(self.eta_pp, eta, b, self._x_levels(), self.level)
         have = math.hypot(st["sem_in"], b * st["sem_out"])
         if have <= need and st["steady"]:
             self._next(k, "target", cols, st)
@@ -245,8 +245,9 @@ class Staircase:
         if st is not None:
             b, eta = self._slope_now(rec if "mean_in" in rec else None)
             rec["settle_s"] = st["settle_chunk"] * self.chunk * self.period_s
-            rec["interval_reached"] = 100 * Z95 * abs(eta) * math.hypot(st["sem_in"], b * st["sem_out"]) / (
-                abs(b) * math.sqrt(max(float(np.sum((self._x_levels() - self._x_levels().mean()) ** 2)), 1e-300)))
+            # the slope's half-width if every level had its share of the error like this one
+            need = slope_target_sem(self.eta_pp, eta, b, self._x_levels(), self.level)
+            rec["interval_reached"] = self.eta_pp * math.hypot(st["sem_in"], b * st["sem_out"]) / need
         self.done_levels.append(rec)
         if self.level >= 1:
             # a braking step settles no faster than the slowest one before it on this drive
@@ -305,8 +306,8 @@ class Staircase:
                  "segment": self.segment, "speed_in_rad_s": self.speed,
                  "torque_out_nm": r["torque_out_nm"], "reference": r["torque_out_nm"] == 0,
                  "duration_s": r["duration_s"], "settle_s": r.get("settle_s"),
-                 "quantity": "incremental efficiency slope 95 % half-width (pp) if every level "
-                             "had this level's standard error",
+                 "quantity": "incremental efficiency slope 95 % statistical half-width (pp) if "
+                             "every level met its share as this one did (shares by leverage)",
                  "interval_reached": r.get("interval_reached"), "target": self.eta_pp,
                  "settled_in_time": r.get("settled_in_time", True),
                  "window_samples": r.get("window_samples"),

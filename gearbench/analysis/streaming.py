@@ -213,10 +213,22 @@ def slope_fit(x: np.ndarray, y: np.ndarray, sem_y: np.ndarray, sem_x: np.ndarray
     return ym - b * xm, b, float(np.sqrt(1.0 / sxx))
 
 
-def slope_target_sem(eta_pp: float, eta: float, slope: float, x_levels: np.ndarray) -> float:
-    """Standard error each level mean (σ_y² + b²σ_x²) may have for the staircase's slope
-    to reach a 95 % half-width of ``eta_pp`` percentage points on η = −K_out/(n K_in b):
-    with equal errors σ, σ_b = σ/√Sxx and Δη/η = σ_b/|b|, so σ ≤ (eta_pp/100)|b|√Sxx/(1.96 η)."""
+def slope_target_sem(eta_pp: float, eta: float, slope: float, x_levels: np.ndarray,
+                     level: int | None = None) -> float:
+    """Standard error a level mean (σ_y² + b²σ_x²) may have for the staircase's slope to
+    reach a 95 % half-width of ``eta_pp`` percentage points on η = −K_out/(n K_in b):
+    Δη/η = σ_b/|b|, so Var(b) ≤ V = ((eta_pp/100)·|b|/(1.96 η))².
+
+    Var(b) = Σ w_k² σ_k² with w_k = d_k/Sxx, d_k = x_k − x̄. For a given total time (σ_k² ∝
+    1/t_k) it is smallest with t_k ∝ |d_k|: the end levels carry the slope, the middle ones
+    little. That allocation meets V with σ_k² = V·Sxx²/(|d_k|·Σ|d_j|) for ``level`` k
+    (|d_k| floored at a tenth of the largest, so no level is let off entirely); without
+    ``level``, the equal-time bound σ² = V·Sxx."""
     x = np.asarray(x_levels, float)
-    sxx = float(np.sum((x - x.mean()) ** 2))
-    return (eta_pp / 100.0) * abs(slope) * np.sqrt(sxx) / (Z95 * max(abs(eta), 1e-6))
+    d = np.abs(x - x.mean())
+    sxx = float(np.sum(d ** 2))
+    v = ((eta_pp / 100.0) * abs(slope) / (Z95 * max(abs(eta), 1e-6))) ** 2
+    if level is None or sxx <= 0:
+        return float(np.sqrt(v * sxx))
+    dk = max(float(d[level]), 0.1 * float(d.max()))
+    return float(np.sqrt(v * sxx ** 2 / (dk * float(d.sum()))))
