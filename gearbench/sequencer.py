@@ -244,7 +244,7 @@ class Sequencer:
         motors = [s.motor for s in steps]
         disks = {s.motor: p.disks[s.disk] for s in steps}
         who = " and ".join(f"'{m}'" for m in motors)
-        tag = "+".join(motors)
+        tag = ".".join(motors)          # file-name safe: trace-calibrate-in.out-unloaded.parquet
         actions: list = [("prompt", f"Motor{'s' if len(motors) > 1 else ''} {who}: shafts free, no disk, "
                                     f"no reducer", dict(coupling="none", disk_kgm2={}))]
         mount = " and ".join(f"disk '{disks[m].name}' on motor '{m}'" for m in motors)
@@ -252,7 +252,7 @@ class Sequencer:
         names = {}
         for run in ("unloaded", "loaded"):
             seg_name = (f"calibrate-{tag}-unloaded" if run == "unloaded" else
-                        f"calibrate-{tag}-{'+'.join(disks[m].name for m in motors)}")
+                        f"calibrate-{tag}-{'.'.join(disks[m].name for m in motors)}")
             names[run] = seg_name
             if run == "loaded":
                 actions.append(("prompt", prompt, dict(coupling="none",

@@ -108,12 +108,21 @@ def _motor_section(result: dict, traces: dict) -> str:
         parts.append("<p class='note'>Simulated bench: true Kt "
                      + ", ".join(f"{_e(m)} {_f(t.get('Kt'))} N·m/A (error {_f(100 * (motors[m]['Kt'] / t['Kt'] - 1), '+.3f')} %)"
                                  for m, t in truth.items() if m in motors and _num(t.get('Kt'))) + "</p>")
+    # motors calibrated at once share a step (calibrate-in.out-...): each motor's own run
+    # ends where result.json's measurements say
+    ends = {(x.get("segment"), x.get("motor")): x.get("run_samples")
+            for x in result.get("measurements") or [] if x.get("kind") == "calibrate"}
     for m, p in motors.items():
         runs = []
         disk = _num((p.get("fit") or {}).get("disk_inertia_kgm2")) or 0.0
         for step, tr in traces.items():
-            if not step.startswith(f"calibrate-{m}-") or f"{m}.position_rad" not in tr:
+            parts_ = step.split("-")
+            if (parts_[0] != "calibrate" or len(parts_) < 3 or m not in parts_[1].split(".")
+                    or f"{m}.position_rad" not in tr):
                 continue
+            end = ends.get((step, m))
+            if end:
+                tr = tr.slice(0, int(end))
             loaded = not step.endswith("-unloaded")
             try:
                 b = torque_balance(tr.time_s, tr[f"{m}.position_rad"], tr[f"{m}.current_a"],

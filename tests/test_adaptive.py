@@ -40,7 +40,7 @@ def test_measurements_stop_on_target_and_record_why(short_cvt):
     cal = [m for m in ms if m["kind"] == "calibrate"]
     eff = [m for m in ms if m["kind"] == "efficiency"]
     # both motors at once: two segments (unloaded, with disks), each with both motors
-    assert sorted(res["steps"]) == ["calibrate-in+out-disk_a+disk_b", "calibrate-in+out-unloaded", "efficiency-0"]
+    assert sorted(res["steps"]) == ["calibrate-in.out-disk_a.disk_b", "calibrate-in.out-unloaded", "efficiency-0"]
     assert len(cal) == 4 and {m["motor"] for m in cal} == {"in", "out"}
     assert len(eff) == 3                       # zero load + 2 torques, one staircase
     for m in ms:
