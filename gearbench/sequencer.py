@@ -1,7 +1,10 @@
 """The sequencer: a profile's steps as a plain sequence, run against drives.
 
 calibrate (each motor unloaded, then with a disk) -> load (mount reducer) ->
-efficiency (grid of input speeds x output braking torques). Everything that
+efficiency (grid of input speeds x output braking torques). Steps with min_s/max_s are
+adaptive (``gearbench.adaptive``): a controller plays their commands and ends each
+measurement when its statistical interval meets the profile's targets; with
+``bench.parallel_calibration`` neighbouring calibrate steps run at once. Everything that
 happens is emitted as records (``gearbench.records``); the sequencer writes no
 files itself. A watchdog enforces the motors' current and speed limits; a limit,
 a drive fault or an operator abort quick-stops and disables every drive at once
