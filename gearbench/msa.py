@@ -111,6 +111,7 @@ def efficiency_series(runs: list[dict]) -> list[dict]:
     out = []
     for key in EFFICIENCY_KEYS:
         lims = [x for x in first.get("limits") or [] if x.get("quantity") == f"efficiency.{key}"]
+        same: dict[tuple, dict] = {}
         for i, pt in enumerate(first["efficiency"]):
             tol, tol_note = _tolerance(lims[i] if i < len(lims) else None)
             records, errors = [], []
@@ -120,10 +121,22 @@ def efficiency_series(runs: list[dict]) -> list[dict]:
                 records.append((r["serial"], r["station"], v))
                 truth = ((res.get("simulation_truth") or {}).get("efficiency") or [])
                 if i < len(truth) and truth[i].get(key) is not None and v is not None:
-                    errors.append(float(v) - float(truth[i][key]))
-            out.append(dict(quantity=key, point=i, label=_point_label(pt), records=records,
-                            tolerance=tol, tolerance_note=tol_note,
-                            truth_errors=errors if len(errors) == len(runs) else None))
+                    errors.append((r["station"], float(v) - float(truth[i][key])))
+            values = tuple(v for _, _, v in records)
+            if values in same:
+                # one estimate reported at several points (e.g. one eq. 18 slope per speed over
+                # a torque staircase): one study, not several copies of it
+                e = same[values]
+                e["points"].append(i)
+                e["torques"].append(float(pt.get("torque_out_nm", 0.0)))
+                e["label"] = (f"{e['label'].split(',')[0]}, {min(e['torques']):.2g}-"
+                              f"{max(e['torques']):.2g} N m")
+                continue
+            same[values] = dict(quantity=key, point=i, points=[i], label=_point_label(pt),
+                                torques=[float(pt.get("torque_out_nm", 0.0))], records=records,
+                                tolerance=tol, tolerance_note=tol_note,
+                                truth_errors=errors if len(errors) == len(runs) else None)
+            out.append(same[values])
     return out
 
 
@@ -176,12 +189,15 @@ def study(runs: list[dict], *, alpha: float = ALPHA_INTERACTION, source: str = "
             raise GearbenchError(f"{exc} (or study the first N runs of each with --repeats N)") from None
         g = anova_gauge_rr(x, tolerance=s["tolerance"], alpha=alpha, what=what)
         rng = range_gauge_rr(x, tolerance=s["tolerance"], what=what)
-        entry = dict(quantity=s["quantity"], point=s["point"], label=s["label"], unit="1",
+        entry = dict(quantity=s["quantity"], point=s["point"], points=s["points"], label=s["label"], unit="1",
                      tolerance_note=s["tolerance_note"], anova=g.as_dict(),
                      range_check=rng.as_dict() if rng else None)
         if s["truth_errors"]:
-            e = np.asarray(s["truth_errors"])
-            entry["bias_vs_truth"] = dict(mean=float(e.mean()), max_abs=float(np.abs(e).max()), n=len(e))
+            e = np.asarray([err for _, err in s["truth_errors"]])
+            by_station = {st: float(np.mean([err for st2, err in s["truth_errors"] if st2 == st]))
+                          for st in dict.fromkeys(st for st, _ in s["truth_errors"])}
+            entry["bias_vs_truth"] = dict(mean=float(e.mean()), max_abs=float(np.abs(e).max()), n=len(e),
+                                          by_station=by_station)
         crossed.append(entry)
     kt = []
     for s in kt_series(runs):
@@ -234,23 +250,23 @@ def format_table(rep: dict) -> str:
              "stations), GRR, PV part variation, TV total — standard deviations; %GRR of TV; "
              "%P/T = 6·GRR/tolerance"]
     if rep["efficiency"]:
-        hdr = (f"{'quantity':<17}{'point':<20}{'EV':>8}{'AV':>8}{'GRR':>8}{'PV':>8}{'TV':>8}"
+        hdr = (f"{'quantity':<17}{'point':<22}{'EV':>8}{'AV':>8}{'GRR':>8}{'PV':>8}{'TV':>8}"
                f"{'%GRR':>7}{'%P/T':>7}{'ndc':>5}  {'verdict':<13}{'range %GRR':>10}")
         has_truth = any("bias_vs_truth" in c for c in rep["efficiency"])
         if has_truth:
-            hdr += f"{'bias vs truth':>15}"
+            hdr += "  bias vs truth, pp: by station"
         lines += ["", hdr]
         for c in rep["efficiency"]:
             a = c["anova"]
             pt = f"{a['pct_tolerance']:.2f}" if a["pct_tolerance"] is not None else "—"
             ndc = str(a["ndc"]) if a["ndc"] is not None else "inf"
             rc = f"{c['range_check']['pct_grr']:.1f}" if c.get("range_check") else "—"
-            row = (f"{c['quantity']:<17}{c['label']:<20}" +
+            row = (f"{c['quantity']:<17}{c['label']:<22}" +
                    "".join(f"{100 * a[k]:>8.4f}" for k in ("ev", "av", "grr", "pv", "tv")) +
                    f"{a['pct_grr']:>7.1f}{pt:>7}{ndc:>5}  {a['verdict']:<13}{rc:>10}")
             if has_truth:
                 b = c.get("bias_vs_truth")
-                row += f"{100 * b['mean']:>+12.4f} pp" if b else f"{'—':>15}"
+                row += ("  " + " ".join(f"{100 * v:+.3f}" for v in b["by_station"].values())) if b else "  —"
             lines.append(row)
         notes = sorted({n for c in rep["efficiency"] for n in c["anova"]["notes"]
                         if not n.startswith("part×station interaction")})

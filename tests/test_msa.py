@@ -311,3 +311,18 @@ def test_sim_study_end_to_end(tmp_path, capsys):
     con = sqlite3.connect(out / "station-1" / "station.sqlite")
     assert con.execute("SELECT COUNT(*) FROM runs").fetchone()[0] == 4
     assert not math.isnan(eta[0]["anova"]["grr"]) and os.path.exists(out / "plants")
+
+
+def test_one_estimate_reported_at_several_points_is_one_study():
+    """A staircase reports one eq. 18 slope per speed at each of its torque points: one study."""
+    from gearbench.msa import efficiency_series
+
+    runs = []
+    for n, (serial, st) in enumerate([(s, t) for s in ("A", "B") for t in ("s1", "s2")] * 2):
+        res = _result(serial, 1, n, [0.7 + 0.01 * n] * 2, 0.0527, n, "x")
+        res["efficiency"][1]["speed_setpoint_rad_s"] = 100.0      # same speed, next torque
+        res["efficiency"][1]["torque_out_nm"] = 0.1
+        runs.append(dict(serial=serial, station=st, result=res))
+    inc = [s for s in efficiency_series(runs) if s["quantity"] == "eta_incremental"]
+    assert len(inc) == 1 and inc[0]["points"] == [0, 1]
+    assert inc[0]["label"] == "100 rad/s, 0.08-0.1 N m"
