@@ -26,8 +26,7 @@ import math
 
 import numpy as np
 
-from .analysis.streaming import (LevelMean, StreamingB2, Z95, kt_share_loaded, kt_share_unloaded,
-                                 slope_fit, slope_target_sem, t95)
+from .analysis.streaming import (LevelMean, StreamingB2, Z95, slope_fit, slope_target_sem, t95)
 
 CHECK_S = 0.1                # calibration: how often the running b2 estimates are updated
 LEVEL_CHUNK_S = 0.02         # efficiency: chunk of the level means (below the ripple periods' tens)

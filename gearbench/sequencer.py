@@ -241,7 +241,6 @@ class Sequencer:
         """Calibrate steps run at once (or one adaptive step): every motor alone, then every
         motor with its disk, one prompt each. Adaptive steps stop each motor's run on
         ``targets.kt_rel`` (gearbench.adaptive); fixed ones play ``duration_s``."""
-        from .adaptive import CalibrationRuns
 
         p = self.profile
         motors = [s.motor for s in steps]

@@ -113,5 +113,5 @@ def test_level_settling_is_found_in_the_data():
 def test_slope_fit_recovers_a_line():
     x = np.array([0.0, -0.5, -1.0, -1.5, -2.0])
     y = 0.3 - 0.16 * x
-    a, b, sb = slope_fit(x, y + np.array([1e-4, -1e-4, 0, 1e-4, -1e-4]), np.full(5, 1e-4))
+    _, b, sb = slope_fit(x, y + np.array([1e-4, -1e-4, 0, 1e-4, -1e-4]), np.full(5, 1e-4))
     assert b == pytest.approx(-0.16, abs=3 * sb) and sb < 1e-3

@@ -28,7 +28,6 @@ meets the goal when both Kt are within 0.2 % and all 12 incremental efficiencies
 from __future__ import annotations
 
 import argparse
-import copy
 import math
 import tempfile
 import time
@@ -161,7 +160,7 @@ def random_plant(index: int, seed: int, profile):
 
     case = draw_case(index, seed)
     p = case.plant
-    mi, mo = p.motor_in, p.motor_out
+    mo = p.motor_out
     speed = case.bench_speed_rad_s
     speeds = [round(speed * f, 1) for f in (0.6, 0.8, 1.0)]
     rated = mo.rated_current_a
@@ -172,7 +171,7 @@ def random_plant(index: int, seed: int, profile):
 def _adapt_profile(profile, case, speeds, torques):
     """``profile`` re-targeted at the drawn plant (motor data, disks, grid, excitation),
     keeping its procedure (fixed or adaptive, sequential or parallel)."""
-    from ..profile.model import CalibrateStep, DiskSpec, EfficiencyStep, WaveformSpec
+    from ..profile.model import CalibrateStep, DiskSpec, EfficiencyStep
 
     p = case.plant
     motors = dict(profile.motors)
