@@ -32,6 +32,8 @@ from ..drives.cia402 import CiA402Network
 from ..errors import BenchFault
 
 NET = dict(heartbeat_ms=500, timeout_s=3.0, sdo_timeout_s=1.0, state_timeout_s=3.0)
+if os.environ.get("GEARBENCH_VCAN_EMULATED"):   # .ci/vcan's TCG guest: Python 20-100x slower, bounds to match
+    NET.update(timeout_s=20.0, sdo_timeout_s=10.0, state_timeout_s=10.0, master_timeout_ms=20000)
 
 
 class SyncListener:
