@@ -47,7 +47,7 @@ def test_dev_parameters_recovered(dev_results):
 
 
 sim = pytest.importorskip("gearbench.sim")
-from gearbench.analysis.diagnose import harness  # noqa: E402
+from gearbench.bench import _diagnose_cases as harness  # noqa: E402
 
 
 @pytest.mark.parametrize("effect,excitation,min_shrink", [

@@ -11,8 +11,9 @@ from gearbench.cli import main
 from gearbench.trace import Trace
 
 pytest.importorskip("gearbench.sim")
-from gearbench.analysis.diagnose import harness  # noqa: E402
-from gearbench.analysis.diagnose.bench import bench_case_trace, diagnose_bench  # noqa: E402
+from gearbench.bench import _diagnose_cases as harness  # noqa: E402
+from gearbench.analysis.diagnose.bench import diagnose_bench  # noqa: E402
+from gearbench.bench._diagnose_cases import bench_case_trace  # noqa: E402
 
 
 @pytest.mark.parametrize("effect", [None, "torsional_compliance", "ratio_ripple"])
@@ -119,6 +120,60 @@ def test_composite_chain_names_both_effects_drops_look_alikes_and_sizes_them():
         assert x["effect"] not in chain and "not significant once" in x["why"]
     for c in d.chain:
         assert c["significant"] and c["t_vs_null"] > 2
+
+
+def test_coulomb_friction_alone_needs_no_delay():
+    """Coulomb friction alone (reversing multisine): the chain names it and nothing else
+    — no time_delay after it — and what is left is at the noise floor.  Two causes of
+    the old spurious delay, checked here: friction evaluated at one end of the sample
+    step (a reversal up to a sample early or late), and the current's hold fraction
+    left where equation error put it (0.1-0.4 for a true 1) by a trust-region refine."""
+    out = harness.run_case(harness.composite_case(("coulomb_friction",)))
+    d = out.diagnosis
+    assert out.chain == ["coulomb_friction"]
+    assert d.remaining["at_noise_floor"]
+    assert d.remaining["hold_fraction"] > 0.9          # the simulator's: 1
+
+
+def test_friction_interval_mean_and_refine_recovers_the_hold():
+    """The interval mean of tanh(w/eps) under a linear velocity (exact antiderivative):
+    a reversal from -1 to +1 averages 0, a step that stays on one side averages the
+    sign; and Gauss-Newton refine moves a hold fraction many equation-error standard
+    errors (no trust region in those units), kept within [0, 1]."""
+    from gearbench.analysis.diagnose import simerror
+    from gearbench.analysis.diagnose.effects import mean_tanh
+    from gearbench.analysis.diagnose.nominal import CurrentTaps, Model, Signals, Viscous
+
+    assert mean_tanh(np.array([-1.0]), np.array([1.0]), 0.01)[0] == pytest.approx(0.0, abs=1e-12)
+    assert mean_tanh(np.array([0.5]), np.array([2.0]), 0.01)[0] == pytest.approx(1.0, abs=1e-9)
+    # from -1 to 3 (eps small): the sign is -1 for a quarter of the step, +1 for the rest
+    assert mean_tanh(np.array([-1.0]), np.array([3.0]), 1e-4)[0] == pytest.approx(0.5, abs=1e-3)
+    x = np.linspace(-0.5, 0.7, 7)
+    assert np.allclose(mean_tanh(x, x + 1e-9, 0.3), np.tanh(x / 0.3))
+
+    n, dt = 3000, 1e-3
+    rng = np.random.default_rng(1)
+    i = np.repeat(rng.standard_normal(n // 20), 20) * 0.2
+    w = np.zeros(n)
+    for k in range(n - 1):               # truth: sample k's torque is driven by i[k+1]
+        w[k + 1] = w[k] + dt * (2000.0 * i[k + 1] - 1.0 * w[k])
+    theta = np.concatenate([[0.0], np.cumsum(0.5 * dt * (w[1:] + w[:-1]))])
+    sig = Signals(np.arange(n) * dt, theta, w, i, dt)
+    start = Model((CurrentTaps(), Viscous()), np.array([1700.0, 300.0, 1.0]),
+                  np.diag([1.0, 1.0, 1e-4]))        # hold 0.15, "sigma" 1
+    starts = np.arange(20, n - 120, 100)
+    out = simerror.refine(sig, start, starts, 100)
+    a0, a1 = out.coef[:2]
+    assert a1 / (a0 + a1) > 0.97 and a0 >= 0.0
+    assert a0 + a1 == pytest.approx(2000.0, rel=0.01)
+
+
+def test_kt_saturation_is_found_behind_a_current_offset():
+    """A current offset and Kt saturation together: the paper's spring, kept at the
+    start because it stood in for the offset, is dropped once the offset is in; then
+    kt saturation is found (it was hidden behind the spring's bad extrapolation)."""
+    out = harness.run_case(harness.composite_case(("current_offset", "kt_saturation")))
+    assert out.chain[:2] == ["current_offset", "kt_saturation"]
 
 
 def test_friction_simulation_stops_motion_without_reversing_it():

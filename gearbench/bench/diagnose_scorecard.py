@@ -41,7 +41,7 @@ def _wanted(args, name: str | None) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ..analysis.diagnose import harness
+    from . import _diagnose_cases as harness
     from ..analysis.diagnose.effects import NAMES
 
     ap = argparse.ArgumentParser(prog="diagnose_scorecard", description=HELP)
@@ -184,7 +184,8 @@ def _units(args, harness) -> list[dict]:
 
 def _bench(args) -> list[dict]:
     """Reducer effects injected into the simulated bench, diagnosed blind."""
-    from ..analysis.diagnose.bench import BENCH_INJECTIONS, bench_case_trace, diagnose_bench
+    from ..analysis.diagnose.bench import diagnose_bench
+    from ._diagnose_cases import BENCH_INJECTIONS, bench_case_trace
 
     rows = []
     t0 = time.perf_counter()

@@ -338,38 +338,3 @@ def diagnose_bench(trace: Trace, max_chain: int = MAX_CHAIN) -> BenchDiagnosis:
                           "unknown_effect": bool(not at_floor and t > vd.T_CRIT
                                                  and len(chain) < max_chain)}
     return BenchDiagnosis(nominal, first or [], chain, remaining)
-
-
-# ---------------------------------------------------------------- injection harness
-#: Reducer effects injected into the simulated bench (PlantParams changes, moderate).
-#: load_losses and speed_losses (churning, ~w^2) have no simulator counterpart (the
-#: simulated mesh efficiency is constant or falls with speed; its drag is linear) and are
-#: not injected.
-BENCH_INJECTIONS = {
-    "speed_load_losses": {"cvt": {"eta_max": 0.9, "eta_slope_per_rad_s": 5e-4, "eta_min": 0.3,
-                                  "pulsation_amp": 0.0}},
-    "ratio_ripple": {"cvt": {"eta_max": 0.9, "eta_slope_per_rad_s": 0.0, "eta_min": 0.9,
-                             "pulsation_amp": 0.05, "pulsation_order": 4}},
-    "backlash": {"backlash_rad": 0.02},
-    "torsional_compliance": {"backlash_rad": 1e-6, "mesh_stiffness": 2.0},
-}
-
-
-def bench_case_trace(effect: str | None, seed: int = 0, duration_s: float = 12.0) -> Trace:
-    """A blind bench trace: input speed swept (multisine around 150 rad/s), output
-    current oscillating through zero (braking and driving: torque reversals)."""
-    from ...sim import CvtParams, MotorParams, PlantParams, simulate_bench
-
-    rng = np.random.default_rng(seed)
-    t = np.arange(int(duration_s * 1000)) * 1e-3
-    f = rng.uniform(0.2, 0.6, 2)
-    cin = 150 + 40 * np.sin(2 * np.pi * f[0] * t) + 20 * np.sin(2 * np.pi * 1.7 * f[0] * t + 1)
-    cout = -0.5 + 0.9 * np.sin(2 * np.pi * f[1] * t + rng.uniform(0, 6))
-    motor = MotorParams(cog_amp=0.0)
-    changes = dict(BENCH_INJECTIONS.get(effect or "", {}))
-    if "cvt" in changes:
-        changes["cvt"] = CvtParams(**changes["cvt"])
-    plant = PlantParams(motor_in=motor, motor_out=motor, seed=seed, **changes)
-    tr = simulate_bench(plant, cin, cout, seed=seed)
-    return Trace(tr.time_s, {k: tr[k] for k in BENCH_COLUMNS}, {},
-                 source=f"<bench {effect or 'clean'} seed {seed}>")

@@ -13,7 +13,7 @@ encoder_quantization, inertia_mismatch.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numba
 import numpy as np
@@ -40,33 +40,56 @@ class Base:
     given: GivenModel | None = None
     spring: bool = False
     chosen: tuple = ()
+    #: the current's hold fraction h (share of i[k+1] driving sample k), fixed once
+    #: chosen on simulation error (simerror.refine); None: two free taps.  Integrated
+    #: equation error sees h only at its windows' ends and misjudges it, which biased
+    #: every candidate fitted that way (kt saturation behind an offset came out worse
+    #: than none)
+    hold: float | None = None
 
     def with_effect(self, effect: "Effect", hp: dict) -> "Base":
-        return Base(self.given, self.spring, (*self.chosen, (effect, dict(hp))))
+        return replace(self, chosen=(*self.chosen, (effect, dict(hp))))
+
+    def with_settings(self, name: str, hp: dict) -> "Base":
+        """The chosen effect ``name`` at new settings, in its place in the chain."""
+        return replace(self, chosen=tuple((e, dict(hp)) if e.name == name else (e, h)
+                                          for e, h in self.chosen))
+
+    def settings(self, name: str) -> dict:
+        return next(dict(h) for e, h in self.chosen if e.name == name)
+
+    def without(self, name: str) -> "Base":
+        return replace(self, chosen=tuple(c for c in self.chosen if c[0].name != name))
 
     @property
     def chosen_names(self) -> tuple[str, ...]:
         return tuple(e.name for e, _ in self.chosen)
 
-    def _settings(self) -> tuple[int, float]:
-        delay, sat = 0, 0.0
+    def _settings(self) -> tuple[int, float, float | None, float]:
+        delay, sat, hold, off = 0, 0.0, self.hold, 0.0
         for _, hp in self.chosen:
-            delay = int(hp.get("delay_samples", delay))
+            if "delay_tau" in hp:
+                delay, hold = split_timing(hp["delay_tau"])
             sat = float(hp.get("kt_sat_a", sat))
-        return delay, sat
+            off = float(hp.get("kt_sat_offset_a", off))
+        return delay, sat, hold, off
 
-    def _core(self, delay: int | None, sat_a: float | None) -> list[Term]:
-        d0, s0 = self._settings()
-        delay = d0 if delay is None else delay
+    def _core(self, delay: int | None, sat_a: float | None,
+              hold: float | None = None, sat_off: float | None = None) -> list[Term]:
+        d0, s0, h0, off = self._settings()
+        off = off if sat_off is None else sat_off
+        if delay is None:
+            delay, hold = d0, h0
         sat_a = s0 if sat_a is None else sat_a
         if self.given is None:
-            return nominal_terms(self.spring, delay, sat_a)
+            return nominal_terms(self.spring, delay, sat_a, hold, off)
         g = self.given
         return [GivenNominal(kt_over_j=g.kt_over_j, d_over_j=g.d_over_j,
-                             c_over_j=g.c_over_j, delay=delay, sat_a=sat_a)]
+                             c_over_j=g.c_over_j, delay=delay, sat_a=sat_a, sat_off=off)]
 
-    def terms(self, delay: int | None = None, sat_a: float | None = None) -> list[Term]:
-        terms = self._core(delay, sat_a)
+    def terms(self, delay: int | None = None, sat_a: float | None = None,
+              hold: float | None = None, sat_off: float | None = None) -> list[Term]:
+        terms = self._core(delay, sat_a, hold, sat_off)
         for effect, hp in self.chosen:
             terms += effect.chain_terms(hp)[0]
         return terms
@@ -132,33 +155,85 @@ class Effect:
 
 
 # ------------------------------------------------------------------- friction
-@dataclass(frozen=True)
-class CoulombTerm(Term):
-    """-Tc/J * tanh(omega/eps): Coulomb friction, smoothed sign."""
+def _logcosh(x):
+    x = np.abs(x)
+    return x + np.log1p(np.exp(-2.0 * x)) - np.log(2.0)
 
-    #: simulated semi-implicitly (simerror.simulate): stops motion, never reverses it
+
+def mean_tanh(a, b, eps: float):
+    """Mean of tanh(w/eps) while w goes linearly from a to b (one sample interval).
+
+    Friction acts over the whole interval a feature stands for; evaluated at its start
+    it is half a sample early, and at a reversal (a torque step of 2 Tc) that timing
+    error is an impulse the fit mends by shifting the current — a spurious delay."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    d = b - a
+    wide = np.abs(d) > 1e-3 * eps
+    safe = np.where(wide, d, 1.0)
+    exact = eps * (_logcosh(b / eps) - _logcosh(a / eps)) / safe
+    return np.where(wide, exact, np.tanh(0.5 * (a + b) / eps))
+
+
+def interval_velocities(sig):
+    """(w[q], w[q+1]) of the velocity estimate: the ends of each sample interval."""
+    w = sig.velocity_rad_s
+    return w, np.append(w[1:], w[-1])
+
+
+class FrictionTerm(Term):
+    """A friction torque -sum c_j g_j(theta) s(omega) that opposes motion.
+
+    Simulated over each step's interval (simerror.simulate, sub-stepped, linearly
+    implicit: it stops motion without chattering, and a reversal happens within the
+    step, not at its end); measured as the interval mean (``mean_tanh``), so equation
+    and simulation error see the same timing."""
+
     opposes_motion = True
+
+    def measured(self, sig):
+        a, b = interval_velocities(sig)
+        th = sig.position_rad
+        s = mean_tanh(a, b, self.eps)
+        return [-s * g for g in self.shape(sig, th, 0.5 * (a + b))]
+
+    def simulate(self, sig, theta, omega, idx, state):
+        s = np.tanh(omega / self.eps)
+        return [-s * g for g in self.shape(sig, theta, omega)]
+
+    def value_slope(self, sig, theta, omega):
+        """Features and their slopes d feature / d omega (for the implicit step)."""
+        t = np.tanh(omega / self.eps)
+        ds = (1.0 - t * t) / self.eps
+        g = self.shape(sig, theta, omega)
+        return [-t * x for x in g], [-ds * x for x in g]
+
+    def shape(self, sig, theta, omega):
+        return [np.ones_like(omega)]
+
+
+@dataclass(frozen=True)
+class CoulombTerm(FrictionTerm):
+    """-Tc/J * tanh(omega/eps): Coulomb friction, smoothed sign."""
 
     names: tuple[str, ...] = ("tc_over_j",)
     eps: float = 0.3
 
-    def simulate(self, sig, theta, omega, idx, state):
-        return [-np.tanh(omega / self.eps)]
-
 
 @dataclass(frozen=True)
-class StribeckTerm(Term):
+class StribeckTerm(FrictionTerm):
     """-Ts/J * tanh(omega/eps) exp(-(omega/ws)^2): static friction above Coulomb."""
-
-    #: simulated semi-implicitly (simerror.simulate): stops motion, never reverses it
-    opposes_motion = True
 
     names: tuple[str, ...] = ("ts_over_j",)
     ws: float = 5.0
     eps: float = 0.3
 
-    def simulate(self, sig, theta, omega, idx, state):
-        return [-np.tanh(omega / self.eps) * np.exp(-(omega / self.ws) ** 2)]
+    def shape(self, sig, theta, omega):
+        return [np.exp(-(omega / self.ws) ** 2)]
+
+    def value_slope(self, sig, theta, omega):
+        t = np.tanh(omega / self.eps)
+        e = np.exp(-(omega / self.ws) ** 2)
+        return [-t * e], [-((1.0 - t * t) / self.eps - 2.0 * omega / self.ws ** 2 * t) * e]
 
 
 def speed_scale(sig: Signals) -> float:
@@ -307,19 +382,38 @@ class CurrentOffset(Effect):
         return {"offset_a": v, "offset_a_pm": h}
 
 
+def split_timing(tau: float) -> tuple[int, float]:
+    """Current timing tau (samples; 0..1 is the nominal's hold) -> whole samples of
+    delay and the hold fraction within the sample."""
+    d = int(np.floor(tau))
+    return d, float(tau - d)
+
+
 class TimeDelay(Effect):
-    """The measured current lags the torque-producing one by d samples."""
+    """The measured current lags the torque-producing one: the torque over sample
+    interval k is driven by the current reported tau samples later (the nominal's hold
+    covers 0 <= tau <= 1).  Scanned and refined on simulation error: integrated
+    equation error sees current timing only at its windows' ends."""
 
     name = "time_delay"
+    continuous = ("delay_tau",)
+    by_simulation = True
 
     def grid(self, sig, base):
-        return [{"delay_samples": d} for d in range(1, 11)]
+        return [{"delay_tau": float(t)} for t in np.arange(1.0, 11.01, 0.5)]
 
     def build(self, sig, base, hp):
-        return base.terms(delay=hp["delay_samples"]), base.fixed()
+        d, h = split_timing(hp["delay_tau"])
+        if base.given is None:
+            return base.terms(delay=d, hold=h), base.fixed()
+        return base.terms(delay=d), {**base.fixed(), 1: h}
 
     def describe(self, model, base, hp):
-        return dict(hp)
+        # the delay beyond the hold the model had before (the sampler's own timing)
+        h0 = base.hold if base.hold is not None else 0.0
+        return {"delay_samples": int(round(hp["delay_tau"] - h0)),
+                "current_timing_samples": float(hp["delay_tau"]),
+                "hold_fraction_before": float(h0)}
 
 
 class KtSaturation(Effect):
@@ -333,7 +427,7 @@ class KtSaturation(Effect):
         return [{"kt_sat_a": imax * f} for f in (0.3, 0.45, 0.6, 0.8, 1.0, 1.3, 1.7, 2.2, 3.0, 4.5)]
 
     def build(self, sig, base, hp):
-        return base.terms(sat_a=hp["kt_sat_a"]), base.fixed()
+        return base.terms(sat_a=hp["kt_sat_a"], sat_off=hp.get("kt_sat_offset_a", 0.0)), base.fixed()
 
 
 class InertiaMismatch(Effect):
@@ -597,7 +691,7 @@ class DirectionFriction(Effect):
 
 
 @dataclass(frozen=True)
-class PositionFrictionTerm(Term):
+class PositionFrictionTerm(FrictionTerm):
     """Coulomb friction whose level varies with position: -tanh(w/eps) (s g1 + c g2)/J
     with (g1, g2) = (sin, cos)(N th) over the rotor angle, or Legendre P1, P2 of the
     position over the travel (unit-free: normalised to the trace's range)."""
@@ -608,13 +702,12 @@ class PositionFrictionTerm(Term):
     lo: float = 0.0
     span: float = 1.0
 
-    def simulate(self, sig, theta, omega, idx, state):
-        s = np.tanh(omega / self.eps)
+    def shape(self, sig, theta, omega):
         if self.order:
             a = self.order * sig.rad_per_unit * theta
-            return [-s * np.sin(a), -s * np.cos(a)]
+            return [np.sin(a), np.cos(a)]
         x = 2.0 * (theta - self.lo) / self.span - 1.0
-        return [-s * x, -s * (1.5 * x * x - 0.5)]
+        return [x, 1.5 * x * x - 0.5]
 
 
 #: Rotor-angle orders scanned for position-dependent friction (eccentric screws,

@@ -120,14 +120,18 @@ class Term:
         return state
 
 
-def current_map(sig: Signals, delay: int = 0, sat_a: float = 0.0) -> np.ndarray:
+def current_map(sig: Signals, delay: int = 0, sat_a: float = 0.0,
+                sat_off: float = 0.0) -> np.ndarray:
     """Current driving the torque: measured current advanced by ``delay`` samples
     (undoing a measurement delay) and optionally saturated, i/(1+(i/i_sat)^2)."""
     i = sig.current_a
     if delay:
         i = np.concatenate([i[delay:], np.full(delay, i[-1])])
     if sat_a > 0:
-        i = i / (1.0 + (i / sat_a) ** 2)
+        # the motor saturates on its true current: the measured one less a sensor
+        # offset ``sat_off`` (the offset term itself stays a separate constant)
+        t = i - sat_off
+        i = t / (1.0 + (t / sat_a) ** 2) + sat_off
     return i
 
 
@@ -138,20 +142,21 @@ class CurrentTaps(Term):
     names: tuple[str, ...] = ("a0", "a1")
     delay: int = 0
     sat_a: float = 0.0
+    sat_off: float = 0.0
 
     def _i(self, sig):
-        return held_current(sig, self.delay, self.sat_a)
+        return held_current(sig, self.delay, self.sat_a, self.sat_off)
 
     def simulate(self, sig, theta, omega, idx, state):
         i0, i1 = self._i(sig)
         return [i0[idx], i1[idx]]
 
 
-def held_current(sig: Signals, delay: int = 0, sat_a: float = 0.0):
+def held_current(sig: Signals, delay: int = 0, sat_a: float = 0.0, sat_off: float = 0.0):
     """(i[k], i[k+1]) of the mapped current, memoised on the trace."""
-    key = ("current", delay, sat_a)
+    key = ("current", delay, sat_a, sat_off)
     if key not in sig.cache:
-        i = current_map(sig, delay, sat_a)
+        i = current_map(sig, delay, sat_a, sat_off)
         sig.cache[key] = (i, np.append(i[1:], i[-1]))
     return sig.cache[key]
 
@@ -166,9 +171,10 @@ class HeldCurrent(Term):
     hold: float = 0.5
     delay: int = 0
     sat_a: float = 0.0
+    sat_off: float = 0.0
 
     def simulate(self, sig, theta, omega, idx, state):
-        i0, i1 = held_current(sig, self.delay, self.sat_a)
+        i0, i1 = held_current(sig, self.delay, self.sat_a, self.sat_off)
         return [(1.0 - self.hold) * i0[idx] + self.hold * i1[idx]]
 
 
@@ -376,7 +382,8 @@ def fit_model(sig: Signals, terms, win: Windows, fixed: dict[int, float] | None 
         hc = float(np.clip(h, 0.0, 1.0))
         t0 = terms[0]
         if isinstance(t0, CurrentTaps):
-            terms = [HeldCurrent(hold=hc, delay=t0.delay, sat_a=t0.sat_a), *terms[1:]]
+            terms = [HeldCurrent(hold=hc, delay=t0.delay, sat_a=t0.sat_a, sat_off=t0.sat_off),
+                     *terms[1:]]
             return fit_model(sig, terms, win, {j - 1: v for j, v in fixed.items() if j > 1})
         if isinstance(t0, GivenNominal) and 1 not in fixed:
             return fit_model(sig, terms, win, {**fixed, 1: hc})
@@ -401,8 +408,12 @@ def _fit_linear(X, y, terms, fixed):
 
 
 # ------------------------------------------------------------------ nominal model
-def nominal_terms(spring: bool = False, delay: int = 0, sat_a: float = 0.0) -> list[Term]:
-    terms: list[Term] = [CurrentTaps(delay=delay, sat_a=sat_a), Viscous()]
+def nominal_terms(spring: bool = False, delay: int = 0, sat_a: float = 0.0,
+                  hold: float | None = None, sat_off: float = 0.0) -> list[Term]:
+    """Current (free taps, or a fixed hold fraction), viscous friction, the spring."""
+    cur = (CurrentTaps(delay=delay, sat_a=sat_a, sat_off=sat_off) if hold is None else
+           HeldCurrent(hold=float(hold), delay=delay, sat_a=sat_a, sat_off=sat_off))
+    terms: list[Term] = [cur, Viscous()]
     if spring:
         terms.append(Spring())
     return terms
@@ -485,9 +496,10 @@ class GivenNominal(Term):
     c_over_j: float = 0.0
     delay: int = 0
     sat_a: float = 0.0
+    sat_off: float = 0.0
 
     def simulate(self, sig, theta, omega, idx, state):
-        i0, i1 = held_current(sig, self.delay, self.sat_a)
+        i0, i1 = held_current(sig, self.delay, self.sat_a, self.sat_off)
         base = self.kt_over_j * i0[idx] - self.d_over_j * omega - self.c_over_j * theta
         return [base, self.kt_over_j * (i1[idx] - i0[idx])]
 
