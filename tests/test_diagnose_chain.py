@@ -168,6 +168,23 @@ def test_friction_interval_mean_and_refine_recovers_the_hold():
     assert a0 + a1 == pytest.approx(2000.0, rel=0.01)
 
 
+def test_presliding_friction_builds_up_over_a_distance():
+    """Dahl's state relaxes towards the sign of motion over the presliding distance,
+    whatever the speed, and the simulated state steps like the measured track."""
+    from gearbench.analysis.diagnose.effects import DahlTerm, _dahl_track
+
+    xs = 0.01
+    theta = np.concatenate([np.linspace(0, 0.05, 51), np.linspace(0.05, 0.0, 51)[1:]])
+    z = _dahl_track(theta, xs)
+    assert z[0] == 0.0 and z[50] == pytest.approx(1 - np.exp(-5.0), abs=1e-9)
+    assert z[-1] == pytest.approx(-1 + (z[50] + 1) * np.exp(-5.0), abs=1e-9)
+    slow = _dahl_track(np.linspace(0, 0.05, 501), xs)      # same path, 10x slower
+    assert slow[-1] == pytest.approx(z[50], abs=1e-9)
+    term = DahlTerm(xs=xs)
+    st = term.step_state([np.array([z[10]])], None, np.array([1.0]), 1e-3)
+    assert st[0][0] == pytest.approx(z[11], abs=1e-9)      # 1 mrad per step at 1 rad/s
+
+
 def test_kt_saturation_is_found_behind_a_current_offset():
     """A current offset and Kt saturation together: the paper's spring, kept at the
     start because it stood in for the offset, is dropped once the offset is in; then

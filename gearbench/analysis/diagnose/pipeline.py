@@ -469,11 +469,11 @@ def diagnose(trace: Trace, model: GivenModel | None = None, *, chain: bool = Tru
     tests = testability.assess(sig, floor, win_all, H, model is not None)
     ranked, refits, refined_folds = _evaluate(sig, sp, wins, win_all, st, floor, v_rms, ov,
                                               order, model, err_nom,
-                                              exclude=("direction_friction",))
-    # listed, not scored: it refines a Coulomb term the chain has chosen (see _excluded)
-    ranked = ranked + [vd.score("direction_friction", {
+                                              exclude=REFINES_COULOMB)
+    # listed, not scored: they refine a Coulomb term the chain has chosen (see _excluded)
+    ranked = ranked + [vd.score(name, {
         "note": "scored once Coulomb friction is in the chain (it refines that term)"},
-        mse_nom, mse_nom, 1, floor.mse, v_rms, overlap=ov)]
+        mse_nom, mse_nom, 1, floor.mse, v_rms, overlap=ov) for name in REFINES_COULOMB]
     ranked = _gate(ranked, tests)
     gap_open = float(np.mean(mse_nom)) > (1.0 + vd.MATERIAL) * floor.mse
     verdict = vd.verdict(ranked, gap_open, {k: t.experiment for k, t in tests.items()
@@ -615,8 +615,14 @@ def _droppable(name: str, base: Base) -> bool:
     """A Coulomb term that a later direction/position friction builds on stays."""
     if name != "coulomb_friction":
         return True
-    return not any(e.name == "position_friction" or (e.name == "direction_friction"
+    return not any(e.name in ("position_friction", "presliding_friction") or (
+                   e.name == "direction_friction"
                    and not hp.get("with_coulomb", True)) for e, hp in base.chosen)
+
+
+#: Candidates that refine a chosen Coulomb term (how it differs by direction, how it
+#: switches at a reversal): offered only once Coulomb friction is in the chain.
+REFINES_COULOMB = ("direction_friction", "presliding_friction")
 
 
 def _excluded(base: Base, steps, model) -> tuple[str, ...]:
@@ -626,7 +632,7 @@ def _excluded(base: Base, steps, model) -> tuple[str, ...]:
     # direction dependence refines a Coulomb model already chosen: offered first, its
     # |sign| part (a constant while moving) would stand in for Coulomb + a current offset
     if "coulomb_friction" not in base.chosen_names:
-        out.append("direction_friction")
+        out.extend(REFINES_COULOMB)
     if model is None:
         out.append("inertia_mismatch")
     return tuple(out)
