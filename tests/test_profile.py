@@ -484,7 +484,7 @@ def test_adaptive_fields_are_validated_with_file_line_and_field(tmp_path):
         ("    max_s: 0.95 ", "    max_s: 0.95\n    settle_s: 0.3\n", "steps[3].settle_s", "remove settle_s"),
         ("targets:\n  kt_rel: 0.001", "targets:\n  kt_re: 0.001", "targets.kt_re", "unknown key"),
         ("    disk: disk_b\n", "    disk: disk_a\n", "steps[1].disk", "second disk"),
-        ("    min_s: 1.0                       # per run", "    duration_s: 3.0\n    min_s: 1.0  # per run",
+        ("    min_s: 2.0                       # per run", "    duration_s: 3.0\n    min_s: 2.0  # per run",
          "steps[0].duration_s", "adaptive"),
     ]
     for old, new, where, what in cases:
