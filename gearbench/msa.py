@@ -208,13 +208,19 @@ def study(runs: list[dict], *, alpha: float = ALPHA_INTERACTION, source: str = "
     if not crossed and not kt:
         raise GearbenchError(f"{source}: the runs hold neither efficiency points nor Kt; nothing to study")
     trials = sorted({n for n in _cell_counts(runs).values()})
-    verdicts = [c["anova"]["verdict"] for c in crossed]
+    # the verdict is on what releases parts: quantities the profile limits (all, if none is)
+    limited = [c for c in crossed if c["anova"]["tolerance"] is not None] or crossed
+    verdicts = [c["anova"]["verdict"] for c in limited]
+    others = [c for c in crossed if c not in limited]
     return dict(standard="AIAG MSA 4th ed. (ANOVA method; average-and-range cross-check); "
                          "Kt: type-1 study (bias t-test, Cg/Cgk, VDA 5)",
                 profile=runs[0].get("profile"), parts=parts, stations=stations,
                 trials=trials[0] if len(trials) == 1 else trials, runs_used=len(runs),
                 alpha_interaction=alpha, efficiency=crossed, kt=kt,
-                verdict=max(verdicts, key=VERDICT_ORDER.get) if verdicts else None)
+                verdict=max(verdicts, key=VERDICT_ORDER.get) if verdicts else None,
+                verdict_on=sorted({c["quantity"] for c in limited}),
+                not_in_verdict={v: sum(c["anova"]["verdict"] == v for c in others)
+                                for v in VERDICT_ORDER if others})
 
 
 def _cell_counts(runs):
@@ -297,7 +303,11 @@ def format_table(rep: dict) -> str:
         if all(k["type1"]["reference"] is None for k in rep["kt"]):
             lines.append("no true Kt on a real bench: bias needs a reference motor of known Kt")
     if rep["verdict"]:
-        lines += ["", f"measurement system (efficiency): {rep['verdict'].upper()}"]
+        lines += ["", f"measurement system ({', '.join(rep['verdict_on'])}, the limited "
+                      f"quantities): {rep['verdict'].upper()}"]
+        if rep["not_in_verdict"]:
+            lines.append("not in the verdict (no limit, so no part is released on it): " + ", ".join(
+                f"{n} {v}" for v, n in rep["not_in_verdict"].items()))
     return "\n".join(lines)
 
 

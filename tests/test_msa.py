@@ -232,6 +232,7 @@ def test_study_from_station_databases(two_station_dbs, capsys):
     assert t["n"] == 30 and t["reference"] == pytest.approx(0.0527)
     assert t["tolerance"] == pytest.approx(0.30 * 0.0527, rel=1e-9)
     assert t["cg"] == pytest.approx(0.2 * t["tolerance"] / (6 * t["s"])) and t["cg"] > 20
+    assert rep["verdict_on"] == ["eta_incremental"]     # eta_absolute has no limit: not in the verdict
     assert code == (0 if rep["verdict"] == "acceptable" else 1)
 
     assert main(["msa"] + sum((["--db", d] for d in two_station_dbs), [])) == code
