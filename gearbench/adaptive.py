@@ -250,7 +250,8 @@ class Staircase:
         self.done_levels.append(rec)
         if self.level >= 1:
             # a braking step settles no faster than the slowest one before it on this drive
-            self.settle_floor = max(self.settle_floor, st["settle_chunk"]
+            # (the point found steady, not the window start: that doubles it once per level)
+            self.settle_floor = max(self.settle_floor, st.get("steady_chunk", st["settle_chunk"])
                                     if st is not None and not st.get("unsettled")
                                     else (k - self.level_start) // self.chunk)
         self.level += 1

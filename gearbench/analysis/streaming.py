@@ -177,13 +177,14 @@ class LevelMean:
         # the steadiness test finds where a decaying tail drops below the noise of the
         # halves; as long again lets it decay as far once more (a speed loop's recovery
         # is close to exponential), so what is left of it in the mean is below the noise
-        j = SETTLE_MARGIN * self.settle_chunk()
+        steady = self.settle_chunk()
+        j = SETTLE_MARGIN * steady
         if len(self.n) - j < MIN_SETTLED_CHUNKS:
             return None
         xi, xo = np.concatenate(self.raw_in[j:]), np.concatenate(self.raw_out[j:])
         n = len(xi)
         sig_in, sig_out = self._sigma(j)
-        return {"settle_chunk": j, "samples": n, "steady": True,
+        return {"settle_chunk": j, "steady_chunk": steady, "samples": n, "steady": True,
                 "mean_in": _tapered_mean(xi), "mean_out": _tapered_mean(xo),
                 "sem_in": float(sig_in * np.sqrt(TAPER_VARIANCE / n)),
                 "sem_out": float(sig_out * np.sqrt(TAPER_VARIANCE / n))}
