@@ -181,7 +181,7 @@ def _held_out(sig, sp: simerror.Split, models, order) -> np.ndarray:
 
 
 #: Most effects the chain adds (each step rescans every candidate).
-MAX_CHAIN = 4
+MAX_CHAIN = 6
 
 
 @dataclass
