@@ -462,9 +462,7 @@ def _disk_track(theta, omega, dt, wn, zeta, gap):  # pragma: no cover - compiled
     for k in range(n):
         th2[k] = a
         w2[k] = b
-        # twist at mid-step (see DiskTerm.simulate): the explicit start-of-step twist
-        # gains energy every step
-        d = theta[k] + 0.5 * dt * omega[k] - a - 0.5 * dt * b
+        d = theta[k] - a
         if d > half:
             dz, c = d - half, 1.0
         elif d < -half:
@@ -512,12 +510,7 @@ class DiskTerm(Term):
         return [th2[idx].copy(), w2[idx].copy()]
 
     def simulate(self, sig, theta, omega, idx, state):
-        # the shaft's twist at mid-step, predicted from both velocities: with the
-        # start-of-step twist, explicit velocity + trapezoid angle gains (w dt)^2/4 of
-        # amplitude per step — x4 over a 100 ms horizon at a 244 rad/s two-mass mode, so
-        # even the true shaft failed to predict held-out data
-        h = 0.5 * sig.dt_s
-        dz, c = _deadzone(theta + h * omega - state[0] - h * state[1], 0.5 * self.gap)
+        dz, c = _deadzone(theta - state[0], 0.5 * self.gap)
         return [-dz, -c * (omega - state[1])]
 
     def step_state(self, state, theta, omega, dt):
