@@ -175,7 +175,8 @@ class Sequencer:
         """The profile's steps as run: each step alone, except that with
         ``bench.parallel_calibration`` calibrate steps of different motors next to each
         other form one tuple, calibrated at once (the motors are independent before the
-        reducer is mounted)."""
+        reducer is mounted): their runs alone together, then their disk runs together
+        when each has its own disk, else one after another with the shared disk."""
         from .profile import CalibrateStep
 
         groups: list = []
@@ -249,25 +250,39 @@ class Sequencer:
         tag = ".".join(motors)          # file-name safe: trace-calibrate-in.out-unloaded.parquet
         actions: list = [("prompt", f"Motor{'s' if len(motors) > 1 else ''} {who}: shafts free, no disk, "
                                     f"no reducer", dict(coupling="none", disk_kgm2={}))]
-        mount = " and ".join(f"disk '{disks[m].name}' on motor '{m}'" for m in motors)
-        prompt = steps[0].prompt if len(steps) == 1 else f"Mount {mount}"
-        names = {}
-        for run in ("unloaded", "loaded"):
-            seg_name = (f"calibrate-{tag}-unloaded" if run == "unloaded" else
-                        f"calibrate-{tag}-{'.'.join(disks[m].name for m in motors)}")
-            names[run] = seg_name
-            if run == "loaded":
-                actions.append(("prompt", prompt, dict(coupling="none",
-                                                       disk_kgm2={m: disks[m].inertia_kgm2 for m in motors})))
-            actions.append(self._calibration_segment(steps, run, seg_name, names))
-        remove = " and ".join(f"disk '{disks[m].name}' from motor '{m}'" for m in motors)
-        actions.append(("prompt", steps[0].remove_prompt if len(steps) == 1 else f"Remove {remove}",
-                        dict(coupling="none", disk_kgm2={})))
+        names = {"unloaded": f"calibrate-{tag}-unloaded"}
+        actions.append(self._calibration_segment(steps, "unloaded", names["unloaded"], names))
+        loaded = {}
+        if len({d.name for d in disks.values()}) == len(motors):   # a disk per motor: at once
+            mount = " and ".join(f"disk '{disks[m].name}' on motor '{m}'" for m in motors)
+            seg_name = f"calibrate-{tag}-{'.'.join(disks[m].name for m in motors)}"
+            loaded = dict.fromkeys(motors, seg_name)
+            actions.append(("prompt", steps[0].prompt if len(steps) == 1 else f"Mount {mount}",
+                            dict(coupling="none", disk_kgm2={m: disks[m].inertia_kgm2 for m in motors})))
+            actions.append(self._calibration_segment(steps, "loaded", seg_name, names))
+            remove = " and ".join(f"disk '{disks[m].name}' from motor '{m}'" for m in motors)
+            actions.append(("prompt", steps[0].remove_prompt if len(steps) == 1 else f"Remove {remove}",
+                            dict(coupling="none", disk_kgm2={})))
+        else:
+            # one disk shared: the motors run alone together, then the disk goes from motor to
+            # motor — its inertia error then cancels in K_out/K_in (the incremental efficiency)
+            previous = None
+            for s in steps:
+                m, d = s.motor, disks[s.motor]
+                loaded[m] = f"calibrate-{m}-{d.name}"
+                text = (s.prompt or f"Mount disk '{d.name}' on motor '{m}'") if previous is None else \
+                    f"Move disk '{d.name}' from motor '{previous}' to motor '{m}'"
+                actions.append(("prompt", text, dict(coupling="none", disk_kgm2={m: d.inertia_kgm2})))
+                actions.append(self._calibration_segment((s,), "loaded", loaded[m], names))
+                previous = m
+            actions.append(("prompt", steps[-1].remove_prompt or
+                            f"Remove disk '{disks[previous].name}' from motor '{previous}'",
+                            dict(coupling="none", disk_kgm2={})))
         for s in steps:
             d = disks[s.motor]
             actions.append(("analyse", "calibrate", dict(motor=s.motor, disk=d.inertia_kgm2,
                             disk_std=d.inertia_std_kgm2, disk_name=d.name,
-                            unloaded=names["unloaded"], loaded=names["loaded"])))
+                            unloaded=names["unloaded"], loaded=loaded[s.motor])))
         return actions
 
     def _calibration_segment(self, steps: tuple, run: str, seg_name: str, names: dict) -> Segment:

@@ -77,7 +77,8 @@ def summary_lines(profile, shown: str | Path) -> list[str]:
                     f"{s.mode}), alone then with disk {s.disk}: 2 x "
                     + (f"{_fmt(s.min_s)}..{_fmt(s.max_s)} s until Kt is known to {_fmt(100 * profile.targets.kt_rel)} %"
                        if s.adaptive else f"{_fmt(s.duration_s)} s")
-                    + (" (with the other motor, at once)" if profile.bench.parallel_calibration else ""))
+                    + (" (alone at once with the other motor; the disk runs together when each motor "
+                       "has its own disk, else in turn)" if profile.bench.parallel_calibration else ""))
         elif isinstance(s, LoadStep):
             what = f"prompt: {s.prompt}"
         else:

@@ -256,8 +256,17 @@ class Profile:
                     and s.motor not in {g.motor for g in group}):
                 group.append(s)
                 continue
-            total += max((g.bench_time_s for g in group), default=0.0)
+            total += self._group_time_s(group)
             group = [s] if (self.bench.parallel_calibration and isinstance(s, CalibrateStep)) else []
             if s is not None and not group:
                 total += s.bench_time_s
         return float(total)
+
+    def _group_time_s(self, group: list) -> float:
+        """Calibrate steps run at once: the runs alone together, then the disk runs together
+        (a disk per motor) or one after another (one disk shared)."""
+        if not group:
+            return 0.0
+        run = max(g.bench_time_s for g in group) / 2.0
+        shared = len({g.disk for g in group}) < len(group)
+        return run + (sum(g.bench_time_s / 2.0 for g in group) if shared else run)

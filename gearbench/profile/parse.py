@@ -215,7 +215,6 @@ def build_profile(doc: MarkedDoc, path: Path, sha256: str, base_dir: Path) -> Pr
     steps = _steps(c, top, motors, reducer, disks, waveforms, bench.period_s)
     waveforms = _design_waveforms(c, waveforms, steps, motors, disks, bench.period_s)
     targets = _targets(c, top, steps)
-    _check_parallel(c, bench, steps)
     limits = _limits(c, top, motors, reducer, steps)
     simulation = _simulation(c, top, bench)
     return Profile(path=path, sha256=sha256, name=name, description=description, bench=bench, motors=motors,
@@ -238,19 +237,6 @@ def _targets(c: _Checker, top, steps) -> Targets:
             c.fail(("steps", i, "min_s"), "an adaptive efficiency step (min_s/max_s) needs targets.eta_pp",
                    f"add 'targets: {{eta_pp: 0.1}}' ({MEANING['eta_pp']}) or use settle_s/measure_s")
     return targets
-
-
-def _check_parallel(c: _Checker, bench: BenchSpec, steps) -> None:
-    """Calibrate steps run at once share the bench: each motor needs its own disk."""
-    if not bench.parallel_calibration:
-        return
-    for i in range(1, len(steps)):
-        a, b = steps[i - 1], steps[i]
-        if isinstance(a, CalibrateStep) and isinstance(b, CalibrateStep) and a.motor != b.motor \
-                and a.disk == b.disk:
-            c.fail(("steps", i, "disk"), f"disk '{b.disk}' is also on motor '{a.motor}' in steps[{i - 1}], "
-                                         f"and bench.parallel_calibration runs both at once",
-                   "define a second disk under 'disks:' for this motor, or set parallel_calibration: false")
 
 
 def _known_families() -> list[str]:
