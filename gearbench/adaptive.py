@@ -132,9 +132,14 @@ class Staircase:
     def __init__(self, *, speed: float, currents_out_a: list[float], torques_out_nm: list[float],
                  period_s: float, min_s: float, max_s: float, eta_pp: float, kt_in: float,
                  kt_out: float, eta_prior: float, ratio_prior: float | None, ramp_rad_s2: float,
-                 segment: str, settle_floor_chunks: int = 0):
+                 segment: str, settle_floor_chunks: int = 0, loss_out=None):
         self.speed = speed
         self.levels = [0.0] + list(currents_out_a)
+        # the output motor's own friction (D, Tc from its calibration) brakes the reducer too:
+        # once the zero-load level shows the output speed, each braking current is lowered by
+        # it, so the shaft carries the profile's torque on every station, whatever its motor
+        self.loss_out = loss_out
+        self.compensated_nm: float | None = None
         self.torques = [0.0] + list(torques_out_nm)
         self.period_s = period_s
         self.min_n = int(round(min_s / period_s))
@@ -248,6 +253,8 @@ class Staircase:
             need = slope_target_sem(self.eta_pp, eta, b, self._x_levels(), self.level)
             rec["interval_reached"] = self.eta_pp * math.hypot(st["sem_in"], b * st["sem_out"]) / need
         self.done_levels.append(rec)
+        if self.level == 0:
+            self._compensate_friction(rec)
         if self.level >= 1:
             # a braking step settles no faster than the slowest one before it on this drive
             # (the point found steady, not the window start: that doubles it once per level)
@@ -259,6 +266,16 @@ class Staircase:
         self.acc = LevelMean(self.settle_floor)
         if self.level >= len(self.levels):
             self.stop_start = k
+
+    def _compensate_friction(self, zero_load: dict) -> None:
+        span = (zero_load.get("stop", 0) - zero_load.get("settled", zero_load.get("stop", 0))) * self.period_s
+        if self.loss_out is None or span <= 0 or not zero_load.get("dth_out"):
+            return
+        loss = abs(self.loss_out(zero_load["dth_out"] / span))
+        if not np.isfinite(loss):
+            return
+        self.compensated_nm = loss
+        self.levels[1:] = [-max(abs(t) - loss, 0.0) / self.kt_out for t in self.torques[1:]]
 
     def finish(self, cols: dict, n: int) -> None:
         """Fill in levels that ended at ``max_s`` inside ``setpoints`` (no columns there)."""
@@ -311,6 +328,8 @@ class Staircase:
                  "interval_reached": r.get("interval_reached"), "target": self.eta_pp,
                  "settled_in_time": r.get("settled_in_time", True),
                  "window_samples": r.get("window_samples"),
+                 "out_command_a": r.get("out_command"),
+                 "friction_compensated_nm": self.compensated_nm if r["torque_out_nm"] else None,
                  "stopped_by": r["stopped_by"]} for r in self.done_levels]
 
 

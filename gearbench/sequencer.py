@@ -326,7 +326,11 @@ class Sequencer:
 
         p = self.profile
         kt_out = self._kt("out")
+        out = self.motors_result.get("out")
+        loss_out = (lambda w, D=float(out["D"]), Tc=float(out["Tc"]): D * w + Tc * float(np.sign(w))) \
+            if out and np.isfinite(out.get("D", np.nan)) and np.isfinite(out.get("Tc", np.nan)) else None
         ctl = Staircase(speed=speed, currents_out_a=[-abs(t) / kt_out for t in step.torques_out_nm],
+                        loss_out=loss_out,
                         torques_out_nm=list(step.torques_out_nm), period_s=self.period_s,
                         min_s=step.min_s, max_s=step.max_s, eta_pp=p.targets.eta_pp,
                         kt_in=self._kt("in"), kt_out=kt_out,

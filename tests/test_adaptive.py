@@ -44,6 +44,11 @@ def test_measurements_stop_on_target_and_record_why(short_cvt):
                                     "efficiency-0"]
     assert len(cal) == 4 and {m["motor"] for m in cal} == {"in", "out"}
     assert len(eff) == 3                       # zero load + 2 torques, one staircase
+    # the output motor's own friction is taken off its braking current: the shaft carries the
+    # profile's torque (uncompensated it carried about Tc = 9 mN m more)
+    assert [m["friction_compensated_nm"] for m in eff[1:]] == [pytest.approx(plant.motor_out.Tc, rel=0.2)] * 2
+    assert [p["torque_out_nm"] for p in res["efficiency"]] == [pytest.approx(0.06, abs=1e-3),
+                                                               pytest.approx(0.10, abs=1e-3)]
     for m in ms:
         assert m["stopped_by"] in ("target", "max")
         assert m["duration_s"] > 0 and m["interval_reached"] is not None
