@@ -650,17 +650,38 @@ class Backlash(Effect):
 
 
 # ------------------------------------------------- direction / position friction
+def mean_abs_tanh(a, b, eps: float):
+    """Mean of |tanh(w/eps)| while w goes linearly from a to b (antiderivative
+    eps sgn(w) log cosh(w/eps))."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    d = b - a
+    wide = np.abs(d) > 1e-3 * eps
+    safe = np.where(wide, d, 1.0)
+    exact = eps * (np.sign(b) * _logcosh(b / eps) - np.sign(a) * _logcosh(a / eps)) / safe
+    return np.where(wide, exact, np.abs(np.tanh(0.5 * (a + b) / eps)))
+
+
 @dataclass(frozen=True)
-class DirectionTerm(Term):
+class DirectionTerm(FrictionTerm):
     """Direction-dependent friction on top of Coulomb + viscous:
     -dTc/J |tanh(w/eps)| - dD/J |w|, so forward Tc+ = Tc + dTc, D+ = D + dD and
-    backward Tc- = Tc - dTc, D- = D - dD."""
+    backward Tc- = Tc - dTc, D- = D - dD.  Part of the friction integrated over the
+    step (its |sign| notch at a reversal is timed like the Coulomb term's switch)."""
 
     names: tuple[str, ...] = ("dtc_over_j", "dd_over_j")
     eps: float = 0.3
 
+    def measured(self, sig):
+        a, b = interval_velocities(sig)
+        return [-mean_abs_tanh(a, b, self.eps), -0.5 * (np.abs(a) + np.abs(b))]
+
     def simulate(self, sig, theta, omega, idx, state):
         return [-np.abs(np.tanh(omega / self.eps)), -np.abs(omega)]
+
+    def value_slope(self, sig, theta, omega):
+        t = np.tanh(omega / self.eps)
+        s = np.sign(omega)
+        return ([-np.abs(t), -np.abs(omega)], [-s * (1.0 - t * t) / self.eps, -s])
 
 
 class DirectionFriction(Effect):
