@@ -118,6 +118,8 @@ def test_composite_chain_names_both_effects_drops_look_alikes_and_sizes_them():
                                                         abs=1e-9)
     for x in d.dropped:
         assert x["effect"] not in chain and "not significant once" in x["why"]
+    # the verdict (kept for compatibility) never names an effect the chain dropped
+    assert d.verdict.effect == chain[0]
     for c in d.chain:
         assert c["significant"] and c["t_vs_null"] > 2
 

@@ -495,6 +495,12 @@ def diagnose(trace: Trace, model: GivenModel | None = None, *, chain: bool = Tru
                                 tests, ranked, refits, refined_folds, max_chain if chain else 1)
     remaining = _remaining(sig, st, mse_nom, floor, starts, H, steps, where_cells, ov,
                            max_chain if chain else 1)
+    if steps and verdict.effect not in {s["effect"] for s in steps}:
+        # the first effect added was dropped later (backward elimination): the verdict
+        # names the chain's first kept effect, so the output never contradicts itself
+        verdict = replace(verdict, effect=steps[0]["effect"],
+                          confused_with=list(steps[0]["confused_with"] or []),
+                          experiment=steps[0]["experiment"])
     return Diagnosis(nominal, where_cells, ranked, verdict, maps, steps, remaining, dropped)
 
 
