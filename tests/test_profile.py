@@ -99,7 +99,8 @@ def test_cvt_profile_contents():
     assert p.bench.parallel_calibration and p.targets.kt_rel > 0 and p.targets.eta_pp > 0
     cal = [s for s in p.steps if isinstance(s, CalibrateStep)]
     assert all(s.adaptive for s in cal) and len({s.disk for s in cal}) == 1
-    assert p.steps[3].adaptive and p.estimated_bench_time_s <= 20.0
+    # (every measurement at max_s: 20.2 s; measured on --sim 15-17 s)
+    assert p.steps[3].adaptive and p.estimated_bench_time_s <= 20.5
 
 
 def test_efficiency_levels_and_bench_time():
@@ -481,8 +482,8 @@ def test_adaptive_fields_are_validated_with_file_line_and_field(tmp_path):
     text = (PROFILES / "cvt.yaml").read_text()
     cases = [
         ("  kt_rel: 0.001 ", "  kt_rel: -0.001 ", "targets.kt_rel", "must be > 0"),
-        ("    max_s: 0.9 ", "    max_s: 0.1 ", "steps[3].max_s", "shorter than min_s"),
-        ("    max_s: 0.9 ", "    max_s: 0.9\n    settle_s: 0.3\n", "steps[3].settle_s", "remove settle_s"),
+        ("    max_s: 0.95 ", "    max_s: 0.1 ", "steps[3].max_s", "shorter than min_s"),
+        ("    max_s: 0.95 ", "    max_s: 0.95\n    settle_s: 0.3\n", "steps[3].settle_s", "remove settle_s"),
         ("targets:\n  kt_rel: 0.001", "targets:\n  kt_re: 0.001", "targets.kt_re", "unknown key"),
         ("    min_s: 2.0                       # per run", "    duration_s: 3.0\n    min_s: 2.0  # per run",
          "steps[0].duration_s", "adaptive"),
