@@ -67,6 +67,7 @@ MIN_TORQUE_REVERSALS = 4
 PREREQUISITE = ("backlash",)
 
 EXPERIMENTS = {
+    "presliding_friction": "add velocity reversals (slow ones show the friction build-up)",
     "coulomb_friction": "add velocity reversals or speed steps at different speeds "
                         "(Coulomb friction is a constant torque in one direction)",
     "current_offset": "vary the current level, e.g. acceleration steps or a multisine "
@@ -206,6 +207,9 @@ def assess(sig: Signals, floor: NoiseFloor, win: Windows, horizon: int,
     put("coulomb_friction", seen(u_coul, p_coul),
         f"{n_rev} velocity reversals; friction torque " + unique(u_coul, p_coul)
         + ("" if n_rev else "; one direction only: the same regressor as a current offset"))
+    # presliding shows only where the motion reverses (friction builds up again)
+    put("presliding_friction", n_rev > 0 and seen(u_coul, p_coul),
+        f"{n_rev} velocity reversals (presliding friction shows only at reversals)")
 
     moving = np.abs(w) > 3 * s_w
     w_strib = W_STRIBECK_FRACTION * w_top_all
