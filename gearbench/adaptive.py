@@ -26,13 +26,16 @@ import math
 
 import numpy as np
 
-from .analysis.streaming import (LevelMean, StreamingB2, Z95, slope_fit, slope_target_sem, t95)
+from .analysis.identify import t_quantile
+from .analysis.streaming import LevelMean, StreamingB2, Z95, slope_fit, slope_target_sem
 
 CHECK_S = 0.1                # calibration: how often the running b2 estimates are updated
 LEVEL_CHUNK_S = 0.02         # efficiency: chunk of the level means (below the ripple periods' tens)
 
 
-def _stop_ramp(speed: float, ramp_rad_s2: float, period_s: float) -> np.ndarray:
+def stop_ramp(speed: float, ramp_rad_s2: float, period_s: float) -> np.ndarray:
+    """Speed command from ``speed`` down to rest at ``ramp_rad_s2`` (at least 50 ms): every
+    segment ends with the motor stopped."""
     n = int(round(max(abs(speed) / ramp_rad_s2, 0.05) / period_s))
     return np.linspace(speed, 0.0, n + 1)[1:]
 
@@ -60,7 +63,7 @@ class CalibrationRuns:
         self.tails: dict[str, np.ndarray] = {}
         for m, r in runs.items():
             r["command"] = np.asarray(r["command"], float)[: self.max_n]
-        ramp_max = max(len(_stop_ramp(float(np.max(np.abs(r["command"]))), ramp_rad_s2, period_s))
+        ramp_max = max(len(stop_ramp(float(np.max(np.abs(r["command"]))), ramp_rad_s2, period_s))
                        if r["velocity"] else 0 for r in runs.values())
         self.ramp_rad_s2 = ramp_rad_s2
         self.max_samples = self.max_n + ramp_max
@@ -70,7 +73,7 @@ class CalibrationRuns:
         self.stop_at[m] = k
         self.stopped_by[m] = why
         last = float(r["command"][k - 1]) if k > 0 else 0.0
-        self.tails[m] = _stop_ramp(last, self.ramp_rad_s2, self.period_s) if r["velocity"] else np.zeros(0)
+        self.tails[m] = stop_ramp(last, self.ramp_rad_s2, self.period_s) if r["velocity"] else np.zeros(0)
 
     def setpoints(self, k: int) -> dict[str, float]:
         out = {}
@@ -94,7 +97,7 @@ class CalibrationRuns:
         b2, sd, dof = est
         self.b2[m] = b2
         share = self.runs[m]["share"](b2)
-        self.reached[m] = share * t95(dof) * sd / abs(b2) if b2 else math.inf
+        self.reached[m] = share * t_quantile(dof) * sd / abs(b2) if b2 else math.inf
 
     def update(self, k: int, cols: dict) -> bool:
         """Called with ``k`` samples recorded; returns True when the segment is over."""
@@ -151,7 +154,7 @@ class Staircase:
         self.chunk = max(1, int(round(LEVEL_CHUNK_S / period_s)))
         self.n_ramp = int(round(max(abs(speed) / ramp_rad_s2, 0.05) / period_s))
         self.up = np.linspace(0.0, speed, self.n_ramp)
-        self.down = _stop_ramp(speed, ramp_rad_s2, period_s)
+        self.down = stop_ramp(speed, ramp_rad_s2, period_s)
         self.max_samples = self.n_ramp + len(self.levels) * self.max_n + len(self.down)
         self.level = -1              # -1: ramping up; len(levels): stopping
         self.level_start = self.n_ramp

@@ -323,12 +323,12 @@ class Sequencer:
     def _staircase_segment(self, step, k: int, speed: float) -> Segment:
         """Adaptive efficiency at one speed: a continuous staircase (gearbench.adaptive)."""
         from .adaptive import Staircase
+        from .analysis.calibration import MotorCalibration
 
         p = self.profile
         kt_out = self._kt("out")
         out = self.motors_result.get("out")
-        loss_out = (lambda w, D=float(out["D"]), Tc=float(out["Tc"]): D * w + Tc * float(np.sign(w))) \
-            if out and np.isfinite(out.get("D", np.nan)) and np.isfinite(out.get("Tc", np.nan)) else None
+        loss_out = MotorCalibration.from_dict(out, "motor out").loss_torque_nm if out else None
         ctl = Staircase(speed=speed, currents_out_a=[-abs(t) / kt_out for t in step.torques_out_nm],
                         loss_out=loss_out,
                         torques_out_nm=list(step.torques_out_nm), period_s=self.period_s,
@@ -369,8 +369,9 @@ class Sequencer:
     def _stop_ramp(self, speed: float) -> np.ndarray:
         """Speed command from ``speed`` down to rest: every segment ends with the motor
         stopped, so the next one (or a mounting prompt) never starts on a spinning shaft."""
-        n = int(round(max(abs(speed) / RAMP_RAD_S2, 0.05) / self.period_s))
-        return np.linspace(speed, 0.0, n + 1)[1:]
+        from .adaptive import stop_ramp
+
+        return stop_ramp(speed, RAMP_RAD_S2, self.period_s)
 
     def _kt(self, motor: str) -> float:
         if motor in self.motors_result:

@@ -25,7 +25,6 @@ reported results still come from the full analysis of the recorded run
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
 
 from . import derivatives as dv
 
@@ -36,10 +35,6 @@ SETTLE_MARGIN = 2            # the window starts at twice the point found steady
 MIN_SETTLED_CHUNKS = 8       # settled chunks before a level may stop
 STEADY_SIGMAS = 2.0          # the settled window's halves must agree within 2 sigma
 TAPER_VARIANCE = 1.22        # white-noise variance factor of the Tukey-tapered mean (efficiency.taper)
-
-
-def t95(dof: float) -> float:
-    return float(stats.t.ppf(0.975, max(dof, 1.0)))
 
 
 class StreamingB2:
