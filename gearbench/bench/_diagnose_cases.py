@@ -54,6 +54,9 @@ INJECTIONS: dict[str, list[dict]] = {
                              {"counts_per_rev": 500}],
     "inertia_mismatch": [{"_disk": 1.5e-6}, {"_disk": 5e-6}, {"_disk": 1.5e-5}],
 }
+#: Injected on top of a Coulomb friction (they vary it): found as Coulomb friction
+#: first, then the variation.
+RIDES_ON = {"direction_friction": "coulomb_friction", "position_friction": "coulomb_friction"}
 #: Effects that need a disk on the shaft to exist at all.
 DISK_KGM2 = {"shaft_compliance": 1.5e-5, "backlash": 1.5e-5}
 #: Damping ratio of the backlash contact (a real keyed disk dissipates at impact; the
@@ -146,7 +149,12 @@ class Outcome:
 
     @property
     def isolated(self) -> bool:
-        return self.called == self.case.effect
+        """The verdict names the injected effect — or, for a friction that varies a
+        Coulomb term (injected with one), names Coulomb friction with the variation
+        named next in the chain (the verdict is the chain's first effect)."""
+        base = RIDES_ON.get(self.case.effect or "")
+        return self.called == self.case.effect or (
+            base is not None and self.called == base and self.case.effect in self.chain)
 
     @property
     def detected(self) -> bool:
@@ -177,6 +185,9 @@ class Outcome:
 
     @property
     def true_shrink(self) -> float | None:
+        if self.case.effect in RIDES_ON:   # scored only once Coulomb is in: its chain step
+            return next((c["shrink_heldout"] for c in self.diagnosis.chain
+                         if c["effect"] == self.case.effect), None)
         for c in self.diagnosis.candidates:
             if c.effect == self.case.effect:
                 return c.shrink

@@ -297,7 +297,8 @@ def _single(args, harness, NAMES) -> list[dict]:
         print(f"{(r or 'clean'):22s}" + "".join(f"{conf[r][c] or '.':>8}" for c in cols))
 
     print("\nDetection rate vs amplitude (isolated = verdict names it; [+confused] = named or "
-          "listed as confusable)")
+          "listed as confusable; direction/position friction ride on an injected Coulomb "
+          "friction: isolated = verdict Coulomb with the variation next in the chain)")
     by = defaultdict(list)
     for o in outs:
         if o.case.effect:

@@ -288,10 +288,16 @@ class StribeckFriction(Effect):
         # has low-speed motion to see it — else the regressor is ~0 and any fit is noise
         w = np.abs(sig.velocity_rad_s)
         top = 0.25 * float(np.max(w))
-        grid = [{"ws_rad_s": float(ws)} for ws in np.geomspace(top / 500, top, 7)]
+        # the sign's smoothing: a chosen Coulomb term's, else scanned like Coulomb's
+        # (a fixed width would be a speed in the user's unit)
+        eps = _chosen_eps(sig, base)
+        grid = [{"ws_rad_s": float(ws), "eps_rad_s": e}
+                for ws in np.geomspace(top / 500, top, 7)
+                for e in ([eps] if eps else _eps_grid(sig))]
         return [g for g in grid if np.mean(np.exp(-(w / g["ws_rad_s"]) ** 2)) > MIN_SUPPORT]
+
     def extra(self, hp):
-        return [StribeckTerm(ws=hp["ws_rad_s"])]
+        return [StribeckTerm(ws=hp["ws_rad_s"], eps=hp["eps_rad_s"])]
 
     def describe(self, model, base, hp):
         v, h = _pm(model, "ts_over_j", 1.0 / base.kt_over_j(model))
