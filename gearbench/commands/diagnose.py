@@ -140,10 +140,12 @@ def summary(d: dict, name: str) -> str:
         lines.append("verdict: none — the gap is at the noise floor")
     chain, rem = d.get("chain") or [], d.get("remaining") or {}
     if chain:
-        lines.append("chain (effects added one at a time, all refitted together; held-out):")
+        lines.append("chain (effects added one at a time, all refitted together; listed by "
+                     "held-out gain at the final settings):")
         for k, c in enumerate(chain, 1):
             lines.append(f"  {k}. {c['effect']:22s} shrink {c['shrink_heldout']:6.0%}  cumulative "
                          f"{c['cumulative_shrink']:6.0%}  ({c['gap_ratio_after']:.2f}x floor after)"
+                         + (f"  [added {c['added_at']}.]" if c.get("added_at", k) != k else "")
                          + (f"  [alike: {', '.join(c['confused_with'])}]" if c["confused_with"] else ""))
         lines.append("  size (error reopened without it, held-out): " + ", ".join(
             f"{c['effect']} {c['drop_one_gap_rad_s']:.3g}" for c in

@@ -581,6 +581,7 @@ def _chain(sig, sp, wins, win_all, st, floor, v_rms, ov, order, model, tests, ra
             if not reheld:
                 reheld = True
                 st = _hold_from_delay(sig, sp, wins, st, refits[name][1], win_all, order)
+                st = _retune(sig, sp, wins, st, win_all, order)
                 if float(np.mean(st.mse)) <= (1.0 + vd.MATERIAL) * floor.mse:
                     break
                 ranked, refits, refined_folds = rescore(st)
@@ -602,7 +603,10 @@ def _chain(sig, sp, wins, win_all, st, floor, v_rms, ov, order, model, tests, ra
             st = _respring(sig, sp, wins, st, win_all, order, floor, v_rms, ov)
             st = _retune(sig, sp, wins, st, win_all, order)
             st = _couple_offset(sig, sp, wins, st, win_all, order)
+            hold = st.base_all.hold
             st = _rehold(sig, sp, wins, st, win_all, order)
+            if st.base_all.hold != hold:    # the settings chosen under the old hold
+                st = _retune(sig, sp, wins, st, win_all, order)
         steps.append({"effect": name, "params": best.params,
                       "shrink_heldout": float(best.shrink),
                       "significant": bool(best.significant), "delta_bic": float(best.delta_bic),
