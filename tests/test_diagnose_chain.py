@@ -72,6 +72,27 @@ def test_chain_output_is_consistent_with_the_verdict():
     assert rem["share_of_gap"] == pytest.approx(1 - d["chain"][-1]["cumulative_shrink"], abs=1e-9)
 
 
+def test_folds_share_the_transients_of_a_square_wave():
+    """The independent simulator's Coulomb trace (a 1 s speed square wave): blocks
+    alternating in time put every step into one fold, whose partner, fitted on steady
+    speed, could not know Kt/J — Coulomb friction left 6.8x the floor, flagged as an
+    unknown effect.  Dealt by excitation, each fold gets half the steps and the chain
+    reaches the floor."""
+    f = DEV_DIR / "diag_a.csv"
+    if not f.exists():
+        pytest.skip("dev data not present (../shared/datasets/dev)")
+    from gearbench.analysis.diagnose import diagnose, simerror
+    from gearbench.analysis.diagnose.nominal import prepare
+
+    sig = prepare(Trace.read(f))
+    dw2 = np.append(np.diff(sig.velocity_rad_s), 0.0) ** 2
+    a, b = (float(np.sum(dw2[fo.fit_mask])) for fo in simerror.split(sig).folds)
+    assert 0.5 < a / b < 2.0
+    d = diagnose(Trace.read(f))
+    assert [c["effect"] for c in d.chain] == ["coulomb_friction"]
+    assert d.remaining["at_noise_floor"] and d.remaining["gap_ratio"] < 1.1
+
+
 # ------------------------------------------------ stepwise chain: null, elimination
 def test_a_candidate_must_beat_random_regressors():
     """The null test: a candidate no better on held-out horizons than random smooth
@@ -306,27 +327,25 @@ def test_cli_position_unit_options(tmp_path, capsys):
 
 
 # ------------------------------------------------ item 4: compliance vs the truth
-def test_shaft_under_an_ordinary_multisine_is_testable_and_found():
-    """A two-mass resonance (~40 Hz) under a 0.3-6 Hz multisine: the former rule
-    (excitation bandwidth must reach half the resonance) called it untestable and
-    named another effect alone; the true structure closes a significant part of the
-    gap on held-out data, so it is testable, significant, with the right resonance,
-    and named (as the verdict or among the effects this trace cannot tell apart —
-    Kt saturation closes as much here; see the scorecard).  The held-out shrink (0.28)
-    is capped by the data, not the model: the 0.3-6 Hz multisine rings the mode only in
-    the start transient (block 0; later blocks' 20-80 Hz twist is ~800x smaller), so the
-    fold fitted on the odd blocks cannot place the resonance (there equation error
-    trades k/J against Kt/J, and simulation error fits any wn as well) and cannot
-    predict that transient, 35-38 % of the nominal's held-out excess; the true model
-    itself simulates at the noise floor (0.97x; 0.63x after 1 s).  Hence 0.25."""
+def test_shaft_under_an_ordinary_multisine_is_testable_and_placed():
+    """A two-mass resonance (~29 Hz) under a 0.3-6 Hz multisine: the former rule
+    (excitation bandwidth must reach half the resonance) called it untestable; it is
+    testable, and the fit places the resonance (wn within 5 %) and closes part of the
+    gap on held-out data.  Not more: the multisine rings the mode only in the start
+    transient (one 0.5 s block; later blocks' twist is ~800x smaller, quasi-static), so
+    a model fitted without that block cannot learn the ring and one fitted with it is
+    scored without it — held-out validation cannot confirm a one-block effect.  Its
+    shrink was 0.28 while the folds alternated blocks in time (an artefact: the
+    transient bent the even fold's nominal fit, which the shaft mended); with blocks
+    dealt to the folds by excitation it is ~0.13 and not significant against the null,
+    and Kt saturation is the verdict (see the scorecard)."""
     case = harness.Case("shaft_compliance", "moderate", "multisine", 0,
                         harness.INJECTIONS["shaft_compliance"][1])
     d = harness.run_case(case, chain=False).diagnosis
     sc = next(c for c in d.candidates if c.effect == "shaft_compliance")
-    assert sc.testable and sc.significant and sc.shrink > 0.25
-    assert "shaft_compliance" in [d.verdict.effect, *d.verdict.confused_with]
+    assert sc.testable and sc.shrink > 0.05
     wn = np.sqrt(case.changes["shaft_stiffness"] / harness.DISK_KGM2["shaft_compliance"])
-    assert abs(sc.params["wn_rad_s"] / wn - 1) < 0.1
+    assert abs(sc.params["wn_rad_s"] / wn - 1) < 0.05
 
 
 def _two_mass(n, dt, J, Jd, k, c, th2_0):
