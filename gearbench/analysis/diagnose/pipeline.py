@@ -390,12 +390,18 @@ def _hold_from_delay(sig, sp, wins, st: _State, fits, win_all, order) -> _State:
     """The nominal's hold fraction set to the current timing a time-delay candidate
     found within one sample (``fits``: its per-fold fits); kept only if the held-out
     error falls."""
-    bases = [replace(b, hold=float(min(max(hp["delay_tau"], 0.0), 1.0)))
-             for b, (hp, _, _) in zip(st.bases, fits)]
+    return _with_holds(sig, sp, wins, st, win_all, order,
+                       [float(min(max(hp["delay_tau"], 0.0), 1.0)) for hp, _, _ in fits])
+
+
+def _with_holds(sig, sp, wins, st: _State, win_all, order, holds) -> _State:
+    """``st`` with the per-fold hold fractions ``holds``, refitted; kept only if it
+    predicts held-out data better."""
+    bases = [replace(b, hold=h) for b, h in zip(st.bases, holds)]
     folds, mse = _fit_bases(sig, sp, wins, bases, order, st.noise_removed)
     if not float(np.mean(mse)) < float(np.mean(st.mse)):
         return st
-    base_all = replace(st.base_all, hold=float(np.mean([b.hold for b in bases])))
+    base_all = replace(st.base_all, hold=float(np.mean(holds)))
     m_all, _ = fit_model(sig, base_all.terms(), win_all, base_all.fixed())
     return _State(bases, base_all, folds, mse, m_all, st.noise_removed)
 
@@ -413,13 +419,7 @@ def _rehold(sig, sp, wins, st: _State, win_all, order) -> _State:
     # other coefficients end where the clipped hold's kink (at 1, a sampler's usual
     # value) left them, which float rounding alone moved (a cogging trace in metres
     # kept 0.86 of its gap, in rad 0.93)
-    bases = [replace(b, hold=hold_fraction(m)) for b, m in zip(st.bases, folds)]
-    folds, mse = _fit_bases(sig, sp, wins, bases, order, st.noise_removed)
-    if not float(np.mean(mse)) < float(np.mean(st.mse)):
-        return st
-    base_all = replace(st.base_all, hold=float(np.mean([b.hold for b in bases])))
-    m_all, _ = fit_model(sig, base_all.terms(), win_all, base_all.fixed())
-    return _State(bases, base_all, folds, mse, m_all, st.noise_removed)
+    return _with_holds(sig, sp, wins, st, win_all, order, [hold_fraction(m) for m in folds])
 
 
 def _gate(ranked, tests):
