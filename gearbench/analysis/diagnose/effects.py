@@ -161,18 +161,24 @@ def _logcosh(x):
     return x + np.log1p(np.exp(-2.0 * x)) - np.log(2.0)
 
 
+def _interval_mean(antiderivative, value, a, b, eps: float):
+    """Mean of value(w/eps) while w goes linearly from a to b, from eps *
+    antiderivative(w/eps); the midpoint value where a and b nearly coincide."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    d = b - a
+    wide = np.abs(d) > 1e-3 * eps
+    safe = np.where(wide, d, 1.0)
+    exact = eps * (antiderivative(b / eps) - antiderivative(a / eps)) / safe
+    return np.where(wide, exact, value(0.5 * (a + b) / eps))
+
+
 def mean_tanh(a, b, eps: float):
     """Mean of tanh(w/eps) while w goes linearly from a to b (one sample interval).
 
     Friction acts over the whole interval a feature stands for; evaluated at its start
     it is half a sample early, and at a reversal (a torque step of 2 Tc) that timing
     error is an impulse the fit mends by shifting the current — a spurious delay."""
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    d = b - a
-    wide = np.abs(d) > 1e-3 * eps
-    safe = np.where(wide, d, 1.0)
-    exact = eps * (_logcosh(b / eps) - _logcosh(a / eps)) / safe
-    return np.where(wide, exact, np.tanh(0.5 * (a + b) / eps))
+    return _interval_mean(_logcosh, np.tanh, a, b, eps)
 
 
 def interval_velocities(sig):
@@ -692,12 +698,8 @@ class Backlash(Effect):
 def mean_abs_tanh(a, b, eps: float):
     """Mean of |tanh(w/eps)| while w goes linearly from a to b (antiderivative
     eps sgn(w) log cosh(w/eps))."""
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    d = b - a
-    wide = np.abs(d) > 1e-3 * eps
-    safe = np.where(wide, d, 1.0)
-    exact = eps * (np.sign(b) * _logcosh(b / eps) - np.sign(a) * _logcosh(a / eps)) / safe
-    return np.where(wide, exact, np.abs(np.tanh(0.5 * (a + b) / eps)))
+    return _interval_mean(lambda x: np.sign(x) * _logcosh(x), lambda x: np.abs(np.tanh(x)),
+                          a, b, eps)
 
 
 @dataclass(frozen=True)

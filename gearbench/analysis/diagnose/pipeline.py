@@ -395,15 +395,18 @@ def _hold_from_delay(sig, sp, wins, st: _State, fits, win_all, order) -> _State:
 
 
 def _with_holds(sig, sp, wins, st: _State, win_all, order, holds) -> _State:
-    """``st`` with the per-fold hold fractions ``holds``, refitted; kept only if it
-    predicts held-out data better."""
+    """``st`` with the per-fold hold fractions ``holds``, refitted, and the chosen
+    effects' settings re-chosen under the new hold (Coulomb + offset stopped at 1.19x
+    the floor with a width chosen under hold 0); kept only if it predicts held-out data
+    better."""
     bases = [replace(b, hold=h) for b, h in zip(st.bases, holds)]
     folds, mse = _fit_bases(sig, sp, wins, bases, order, st.noise_removed)
     if not float(np.mean(mse)) < float(np.mean(st.mse)):
         return st
     base_all = replace(st.base_all, hold=float(np.mean(holds)))
     m_all, _ = fit_model(sig, base_all.terms(), win_all, base_all.fixed())
-    return _State(bases, base_all, folds, mse, m_all, st.noise_removed)
+    return _retune(sig, sp, wins, _State(bases, base_all, folds, mse, m_all, st.noise_removed),
+                   win_all, order)
 
 
 def _rehold(sig, sp, wins, st: _State, win_all, order) -> _State:
@@ -513,7 +516,7 @@ def diagnose(trace: Trace, model: GivenModel | None = None, *, chain: bool = Tru
         "note": "scored once Coulomb friction is in the chain (it refines that term)"},
         mse_nom, mse_nom, 1, floor.mse, v_rms, overlap=ov) for name in REFINES_COULOMB]
     ranked = _gate(ranked, tests)
-    gap_open = float(np.mean(mse_nom)) > (1.0 + vd.MATERIAL) * floor.mse
+    gap_open = not _at_floor(mse_nom, floor)
     verdict = vd.verdict(ranked, gap_open, {k: t.experiment for k, t in tests.items()
                                             if not t.testable})
 
@@ -553,9 +556,6 @@ def _chain(sig, sp, wins, win_all, st, floor, v_rms, ov, order, model, tests, ra
     steps: list[dict] = []
     dropped: list[dict] = []
     H = sp.horizon
-    # held-out MSE of every model visited, by the names in it (settings are fixed once
-    # an effect is chosen, so the names identify the model)
-    seen = {(): st.mse}
     quant = {}                       # encoder quantisation step -> noise variance removed
 
     def rescore(st):
@@ -581,8 +581,7 @@ def _chain(sig, sp, wins, win_all, st, floor, v_rms, ov, order, model, tests, ra
             if not reheld:
                 reheld = True
                 st = _hold_from_delay(sig, sp, wins, st, refits[name][1], win_all, order)
-                st = _retune(sig, sp, wins, st, win_all, order)
-                if float(np.mean(st.mse)) <= (1.0 + vd.MATERIAL) * floor.mse:
+                if _at_floor(st.mse, floor):
                     break
                 ranked, refits, refined_folds = rescore(st)
             ranked = [sc for sc in ranked if not (
@@ -603,17 +602,13 @@ def _chain(sig, sp, wins, win_all, st, floor, v_rms, ov, order, model, tests, ra
             st = _respring(sig, sp, wins, st, win_all, order, floor, v_rms, ov)
             st = _retune(sig, sp, wins, st, win_all, order)
             st = _couple_offset(sig, sp, wins, st, win_all, order)
-            hold = st.base_all.hold
             st = _rehold(sig, sp, wins, st, win_all, order)
-            if st.base_all.hold != hold:    # the settings chosen under the old hold
-                st = _retune(sig, sp, wins, st, win_all, order)
         steps.append({"effect": name, "params": best.params,
                       "shrink_heldout": float(best.shrink),
                       "significant": bool(best.significant), "delta_bic": float(best.delta_bic),
                       "t_stat": float(best.t_stat),
                       "t_vs_null": best.t_vs_null, "null_shrink": best.null_shrink,
                       "confused_with": v.confused_with, "experiment": v.experiment})
-        seen[_key(steps)] = st.mse
         # backward elimination: is every earlier effect still significant given the rest?
         for e, hp in list(st.base_all.chosen[:-1]):
             if not _droppable(e.name, st.base_all):
@@ -630,7 +625,6 @@ def _chain(sig, sp, wins, win_all, st, floor, v_rms, ov, order, model, tests, ra
             st = _State(bases, base_all, folds_wo, mse_wo, m_all, st.noise_removed)
             gone = next(s for s in steps if s["effect"] == e.name)
             steps.remove(gone)
-            seen[_key(steps)] = st.mse
             dropped.append({"effect": e.name, "params": gone["params"],
                             "shrink_heldout_when_added": gone["shrink_heldout"],
                             "dropped_after": name, "t_stat_to_keep": float(keep.t_stat),
@@ -638,12 +632,13 @@ def _chain(sig, sp, wins, win_all, st, floor, v_rms, ov, order, model, tests, ra
                             "why": f"not significant once {name} was in the model "
                                    f"(t {keep.t_stat:.1f}, dBIC {keep.delta_bic:.0f})"})
         k += 1
-        at_floor = float(np.mean(st.mse)) <= (1.0 + vd.MATERIAL) * floor.mse
-        if at_floor or k >= max_steps:
+        if _at_floor(st.mse, floor) or k >= max_steps:
             break
         ranked, refits, refined_folds = rescore(st)
 
-    seen = {_key(steps): st.mse}    # nested models below: at the final settings
+    # held-out MSE of the final chain's nested models (at its final settings), by the
+    # names in them
+    seen = {_key(steps): st.mse}
     canon = _key(steps)
 
     def mse_of(names: tuple) -> np.ndarray:
@@ -691,6 +686,11 @@ def _chain(sig, sp, wins, win_all, st, floor, v_rms, ov, order, model, tests, ra
     return steps, st, dropped
 
 
+def _at_floor(mse: np.ndarray, floor: simerror.NoiseFloor) -> bool:
+    """Held-out error within a material margin of the noise floor."""
+    return float(np.mean(mse)) <= (1.0 + vd.MATERIAL) * floor.mse
+
+
 def _key(steps) -> tuple:
     return tuple(s["effect"] for s in steps)
 
@@ -727,7 +727,7 @@ def _remaining(sig, st, mse_nom, floor, starts, H, steps, where_nom, ov, max_ste
     whether a significant gap remains that no candidate explains."""
     gap0 = vd.excess(float(np.mean(mse_nom)), floor.mse)
     gap = vd.excess(float(np.mean(st.mse)), floor.mse)
-    at_floor = float(np.mean(st.mse)) <= (1.0 + vd.MATERIAL) * floor.mse
+    at_floor = _at_floor(st.mse, floor)
     # is what is left significantly above the floor (horizons are correlated: NW t)?
     t_gap = vd.paired_t(st.mse, np.full_like(st.mse, floor.mse), ov)
     left = bool(not at_floor and t_gap > vd.T_CRIT)
