@@ -31,8 +31,9 @@ from .drives.base import AxisConfig, DriveNetwork
 from .drives.registry import network_class
 from .errors import Aborted, GearbenchError
 from .profile import load_profile
-from .records import RecordStream
-from .sequencer import AutoOperator
+from .station.records import RecordStream
+from .station.sequencer import AutoOperator
+from .sim.truth import truth_of
 
 __all__ = ["load_profile", "open_network", "open_bench", "run_profile", "Bench", "RunResult",
            "MotorResult", "EfficiencyPointResult", "LimitCheck", "AutoOperator", "TerminalOperator"]
@@ -309,7 +310,7 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
     ``sim=True`` starts the emulated bench (the profile's ``simulation:`` plant) in a
     child process behind the same drive protocol. ``operator`` confirms mounting
     prompts (default: the terminal; ``AutoOperator()`` on the simulated bench).
-    ``subscribers`` are extra record consumers (callables, see gearbench.records).
+    ``subscribers`` are extra record consumers (callables, see gearbench.station.records).
     ``fixture`` does the physical mounting (default: nothing on a real bench, the
     emulator with ``sim``, or the drive network itself if it has ``mount()``, as an
     in-process simulated drive family does). On leaving, an unfinished run is
@@ -319,14 +320,14 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
     ``$GEARBENCH_CENTRAL`` or the station config), is pushed to it after it ends —
     whoever opens the bench (CLI, script, OpenHTF).
     """
-    from .central.config import central_url
-    from .central.push import CentralPush
-    from .console import ProgressDisplay
-    from .reanalysis import ProfileSnapshot
-    from .recorder import ParquetRecorder
-    from .report import ResultWriter
-    from .sequencer import Sequencer
-    from .station_db import StationDatabase
+    from .station.config import central_url
+    from .fleet.push import CentralPush
+    from .station.console import ProgressDisplay
+    from .fleet.reanalysis import ProfileSnapshot
+    from .station.recorder import ParquetRecorder
+    from .station.results import ResultWriter
+    from .station.sequencer import Sequencer
+    from .station.database import StationDatabase
 
     if not hasattr(profile, "steps"):
         profile = load_profile(profile)
@@ -354,14 +355,14 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
     with contextlib.ExitStack() as stack:
         stack.callback(stream.close)
         if rrd or live or connect:
-            from .live import open_live_view
+            from .reports.live import open_live_view
 
             view = open_live_view(live=live, connect=connect, rrd=rrd)
             if view is not None:
                 stream.subscribe(view)
         bus = profile.bench.bus
         if sim:
-            from .simbench import SimBench
+            from .emulate.launch import SimBench
 
             simbench = stack.enter_context(SimBench(profile, seed=seed))
             fixture, bus = fixture or simbench, simbench.bus_spec()
@@ -369,17 +370,16 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
             net = open_network(bus, profile)
         except GearbenchError as exc:   # the bench never started: still a record of the attempt
             Sequencer(profile, _NoDrives(), emit=stream.emit, operator=operator, serial=serial,
-                      out_dir=str(out), sim_truth=sim_plant, method=method).record_failed_start(exc)
+                      out_dir=str(out), sim_truth=truth_of(sim_plant), method=method).record_failed_start(exc)
             raise
         stack.callback(net.close)
-        if sim and callable(getattr(net, "watch_process", None)):
+        if sim:
             net.watch_process(simbench.proc.pid)   # the emulated drives share this host's CPUs
         # against real drives a writer that falls behind is a fault; in lockstep nothing can be missed
-        stream.realtime = not getattr(net, "lockstep", False)
-        if fixture is None and callable(getattr(net, "mount", None)):
-            fixture = net
+        stream.realtime = not net.lockstep
+        fixture = fixture or net.fixture()
         seq = Sequencer(profile, net, emit=stream.emit, operator=operator, fixture=fixture,
-                        serial=serial, out_dir=str(out), sim_truth=sim_plant, method=method)
+                        serial=serial, out_dir=str(out), sim_truth=truth_of(sim_plant), method=method)
         bench = Bench(profile, net, seq, stream)
         seq.begin()
         try:
@@ -390,7 +390,7 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
             raise
         except BaseException:
             net.stop_all()
-            seq._restore_signals()
+            seq.restore_signals()
             raise
         bench.finish()
     if stream.errors:

@@ -16,7 +16,7 @@ def in_ci() -> bool:
 def require_dev_data() -> None:
     """Skip (fail in CI, where ``../shared`` is always beside the clone) when the dev
     data sets are absent."""
-    from gearbench.bench._data import DEV_DIR
+    from gearbench.benchmarks._data import DEV_DIR
 
     if not (DEV_DIR / "truth.json").is_file():
         message = f"dev data not found at {DEV_DIR} (../shared/datasets/dev beside the checkout)"
@@ -34,8 +34,8 @@ def dev_data():
 def assert_claimed_accuracy(result: dict, plant: dict, motors=("in", "out")) -> None:
     """A run's Kt and every efficiency point against the simulated plant's own truth (at
     the commanded operating points, ``gearbench.sim.truth.simulation_truth``), at the
-    accuracy the README claims (``gearbench.bench.robustness.TARGETS``)."""
-    from gearbench.bench.robustness import TARGETS
+    accuracy the README claims (``gearbench.benchmarks.robustness.TARGETS``)."""
+    from gearbench.benchmarks.robustness import TARGETS
     from gearbench.sim.truth import simulation_truth
 
     truth = simulation_truth(plant, result["efficiency"])

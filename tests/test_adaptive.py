@@ -1,6 +1,6 @@
 """Adaptive measurement (issue 14): measurements stop when their statistical interval
 meets the profile's target, or at max_s, and say which. A short simulated case runs the
-real sequencer in-process against the simulated bench (gearbench.bench.cycle_time's
+real sequencer in-process against the simulated bench (gearbench.benchmarks.cycle_time's
 InProcessBench: the --sim physics without the bus), so each run takes seconds."""
 from dataclasses import replace
 from pathlib import Path
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gearbench.analysis.streaming import LevelMean, StreamingB2, slope_fit
-from gearbench.bench.cycle_time import run_inprocess
+from gearbench.benchmarks.cycle_time import run_inprocess
 from gearbench.profile import EfficiencyStep, load_profile
 from gearbench.profile.model import Targets
 from gearbench.sim import MotorParams, PlantParams, simulate_motor

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from gearbench.bench._data import DEV_DIR
+from gearbench.benchmarks._data import DEV_DIR
 from gearbench.cli import main
 from gearbench.trace import Trace
 

@@ -1,5 +1,5 @@
 """Fast subset of the diagnoser checks (issue 6); the full scorecard is
-``python -m gearbench.bench.diagnose_scorecard``."""
+``python -m gearbench.benchmarks.diagnose_scorecard``."""
 from __future__ import annotations
 
 import json
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from gearbench.analysis.diagnose import NAMES, diagnose
-from gearbench.plots import heatmap_png
+from gearbench.reports.plots import heatmap_png
 from gearbench.cli import main
 from gearbench.trace import Trace
 
@@ -47,7 +47,7 @@ def test_dev_parameters_recovered(dev_results):
 
 
 sim = pytest.importorskip("gearbench.sim")
-from gearbench.bench import _diagnose_cases as harness  # noqa: E402
+from gearbench.benchmarks import _diagnose_cases as harness  # noqa: E402
 
 
 @pytest.mark.parametrize("effect,excitation,min_shrink", [

@@ -6,14 +6,14 @@ import json
 import numpy as np
 import pytest
 
-from gearbench.bench._data import DEV_DIR
+from gearbench.benchmarks._data import DEV_DIR
 from gearbench.cli import main
 from gearbench.trace import Trace
 
 pytest.importorskip("gearbench.sim")
-from gearbench.bench import _diagnose_cases as harness  # noqa: E402
+from gearbench.benchmarks import _diagnose_cases as harness  # noqa: E402
 from gearbench.analysis.diagnose.bench import diagnose_bench  # noqa: E402
-from gearbench.bench._diagnose_cases import bench_case_trace  # noqa: E402
+from gearbench.benchmarks._diagnose_cases import bench_case_trace  # noqa: E402
 
 
 @pytest.mark.parametrize("effect", [None, "torsional_compliance", "ratio_ripple"])

@@ -4,7 +4,7 @@ import sys
 
 import pytest
 
-from gearbench.bench._data import DEV_DIR
+from gearbench.benchmarks._data import DEV_DIR
 
 DEV = DEV_DIR
 U = DEV / "calib_motor_a_unloaded.csv"

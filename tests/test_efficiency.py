@@ -8,7 +8,7 @@ from scipy import stats
 from gearbench.analysis.calibration import MotorCalibration, calibrate_motor
 from gearbench.analysis.efficiency import efficiency, steady_windows
 from gearbench.analysis.uncertainty import coverage_acceptance
-from gearbench.bench._data import DEV_DIR
+from gearbench.benchmarks._data import DEV_DIR
 from gearbench.errors import ExcitationError, TraceError
 from gearbench.trace import Trace
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gearbench.analysis import excitation_design as ed
+from gearbench.profile import excitation_design as ed
 from gearbench.cli import main
 from gearbench.errors import ProfileError
 from gearbench.profile import parse_profile_text

@@ -26,11 +26,11 @@ except ImportError:
         raise
     pytest.skip("psycopg not installed: pip install -e '.[test]'", allow_module_level=True)
 
-from gearbench.central.pgtemp import PostgreSQLUnavailable, TempPostgres, free_port  # noqa: E402
-from gearbench.central.push import CentralPush, push_pending  # noqa: E402
-from gearbench.central.query import RunQuery, open_results  # noqa: E402
-from gearbench.records import RunStop  # noqa: E402
-from gearbench.station_db import StationDatabase, store_run  # noqa: E402
+from gearbench.fleet.pgtemp import PostgreSQLUnavailable, TempPostgres, free_port  # noqa: E402
+from gearbench.fleet.push import CentralPush, push_pending  # noqa: E402
+from gearbench.fleet.query import RunQuery, open_results  # noqa: E402
+from gearbench.station.records import RunStop  # noqa: E402
+from gearbench.station.database import StationDatabase, store_run  # noqa: E402
 
 
 def gearbench_proc(*args, env=None, timeout=180):
@@ -71,8 +71,8 @@ def pg():
             pytest.fail(f"PostgreSQL needed in CI: {exc}")
         pytest.skip(f"no PostgreSQL server: {exc}")
     try:
-        from gearbench.central import migrations
-        from gearbench.central.push import connect
+        from gearbench.fleet import migrations
+        from gearbench.fleet.push import connect
 
         with connect(server.url) as conn:
             migrations.upgrade(conn)
@@ -152,7 +152,7 @@ def test_a_run_lands_in_the_central_database_and_history_is_the_same_on_both(pg,
 
 
 def test_golden_unit_baseline_then_compared(real_run):
-    from gearbench.golden import check_golden, compare
+    from gearbench.fleet.golden import check_golden, compare
 
     out, res = real_run
     assert json.loads((out / "golden.json").read_text())["status"] == "baseline-set"

@@ -1,8 +1,8 @@
-"""Fault campaign, fast subset: the harness of ``python -m gearbench.bench faults`` on a
+"""Fault campaign, fast subset: the harness of ``python -m gearbench.benchmarks faults`` on a
 handful of runs, so a regression of a bench-fault invariant shows in CI.
 
 Each run is a real ``gearbench run --sim`` subprocess with its emulator child; the
-fault is injected at a random (seeded) instant; ``gearbench.faultinject`` checks
+fault is injected at a random (seeded) instant; ``gearbench.emulate.faults`` checks
 the invariants (exit code, drives without torque and the time it took, samples kept
 and readable, counter gaps == lost, result.json/junit.xml/station database, no
 process left). Runs go two at a time to stay within the time budget.
@@ -15,7 +15,7 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 
 from gearbench.emulate.bench import EmulatedBench
-from gearbench.faultinject import FAULTS, INVARIANTS, matrix, run_fault
+from gearbench.emulate.faults import FAULTS, INVARIANTS, matrix, run_fault
 
 # one of each way a run can end: a drive gone silent (named, others stopped), a drive that
 # will not disable (named, no further segment), gearbench killed (emulator ends by itself,
@@ -58,7 +58,7 @@ def test_harness_sees_a_violation(outcomes):
     from copy import deepcopy
     from dataclasses import replace
 
-    from gearbench.faultinject import check_run
+    from gearbench.emulate.faults import check_run
 
     o = deepcopy(outcomes["drive-silent"])
     check_run(o, replace(FAULTS["drive-silent"], expect_exit=0, expect_status="passed", reason=""))

@@ -9,7 +9,7 @@ import pytest
 from gearbench.analysis.calibration import calibrate_motor
 from gearbench.analysis.identify import (D_J, TC_J, identify, identify_default,
                                          identify_paper, t_quantile)
-from gearbench.bench._data import DEV_DIR
+from gearbench.benchmarks._data import DEV_DIR
 from gearbench.errors import ExcitationError
 from gearbench.trace import Trace
 

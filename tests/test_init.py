@@ -11,7 +11,8 @@ import pytest
 
 from gearbench.cli import main
 from gearbench.profile import load_profile
-from gearbench.shipped import shipped_dir, shipped_profiles
+from gearbench.drives.shipped import shipped_dir
+from gearbench.profile.shipped import shipped_profiles
 
 
 @pytest.fixture

@@ -13,10 +13,10 @@ import pytest
 import rerun as rr
 
 from gearbench.cli import main
-from gearbench.live import RerunView, open_live_view
-from gearbench.live.blueprint import EFFICIENCY_TITLE
-from gearbench.live.replay import replay_records
-from gearbench.records import (Calibration, EfficiencyPoint, LimitResult, Message, Progress,
+from gearbench.reports.live import RerunView, open_live_view
+from gearbench.reports.live.blueprint import EFFICIENCY_TITLE
+from gearbench.reports.live.replay import replay_records
+from gearbench.station.records import (Calibration, EfficiencyPoint, LimitResult, Message, Progress,
                                RecordStream, RunStart, RunStop, SampleBatch, StepStart, StepStop)
 from gearbench.trace import Trace
 
@@ -220,7 +220,7 @@ def _free_port() -> int:
 
 def no_display(monkeypatch):
     """A headless machine, even if someone runs a viewer on the default port here."""
-    from gearbench.live import rerun_view
+    from gearbench.reports.live import rerun_view
 
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)

@@ -25,10 +25,10 @@ import numpy as np
 import pytest
 
 from browser import SCREENSHOTS, browser_factory  # noqa: F401  (fixture)
-from gearbench.plots import SPEED_COLOURS
+from gearbench.reports.plots import SPEED_COLOURS
 
 LIVE_VIEW_TIMEOUT_S = float(os.environ.get("GEARBENCH_LIVE_VIEW_TIMEOUT_S", 900))
-CURRENT_RGB = (228, 26, 28)          # gearbench.live.rerun_view: current series colour
+CURRENT_RGB = (228, 26, 28)          # gearbench.reports.live.rerun_view: current series colour
 WIDTH, HEIGHT = 1280, 800
 
 
@@ -47,7 +47,7 @@ def _mask(img: np.ndarray, rgb, tol: int = 40) -> np.ndarray:
 
 
 def what_is_drawn(png: Path) -> dict:
-    """Pixel facts of a screenshot of the default layout (see gearbench.live.blueprint:
+    """Pixel facts of a screenshot of the default layout (see gearbench.reports.live.blueprint:
     two motor columns of 2/6.4 of the width each, results + map on the right)."""
     import matplotlib.image
 

@@ -29,7 +29,7 @@ from gearbench.analysis.msa import (anova_gauge_rr, crossed_array, grr_verdict, 
                                     type1_study)
 from gearbench.cli import main
 from gearbench.errors import GearbenchError
-from gearbench.station_db import connect, store_run
+from gearbench.station.database import connect, store_run
 
 AIAG = {   # appraiser: part -> 3 trials (AIAG MSA 4th ed. gauge R&R data sheet)
     "A": [[0.29, 0.41, 0.64], [-0.56, -0.68, -0.58], [1.34, 1.17, 1.27], [0.47, 0.50, 0.64],
@@ -275,7 +275,7 @@ def test_bad_input_is_one_line_exit_2(argv, match, two_station_dbs, tmp_path, ca
 
 
 def test_sim_units_and_stations_differ_where_they_should():
-    from gearbench.msa import STATION_SPREAD, UNIT_SPREAD, _perturbed
+    from gearbench.fleet.gauge_study import STATION_SPREAD, UNIT_SPREAD, _perturbed
     import yaml
 
     from gearbench.sim import PlantParams
@@ -316,7 +316,7 @@ def test_sim_study_end_to_end(tmp_path, capsys):
 
 def test_one_estimate_reported_at_several_points_is_one_study():
     """A staircase reports one eq. 18 slope per speed at each of its torque points: one study."""
-    from gearbench.msa import efficiency_series
+    from gearbench.fleet.gauge_study import efficiency_series
 
     runs = []
     for n, (serial, st) in enumerate([(s, t) for s in ("A", "B") for t in ("s1", "s2")] * 2):

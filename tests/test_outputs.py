@@ -6,10 +6,10 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 
-from gearbench.recorder import ParquetRecorder, load_step_trace
-from gearbench.records import RunStop, SampleBatch, StepStart, StepStop
-from gearbench.report import ResultWriter
-from gearbench.station_db import StationDatabase, history
+from gearbench.station.recorder import ParquetRecorder, load_step_trace
+from gearbench.station.records import RunStop, SampleBatch, StepStart, StepStop
+from gearbench.station.results import ResultWriter
+from gearbench.station.database import StationDatabase, history
 
 
 def _batches(rec, step, n_batches, size=100):
@@ -33,8 +33,8 @@ def test_recorder_survives_kill_9(tmp_path):
     """A writer process killed hard keeps every flushed batch readable."""
     code = f"""
 import os, signal, numpy as np
-from gearbench.recorder import ParquetRecorder
-from gearbench.records import SampleBatch, StepStart
+from gearbench.station.recorder import ParquetRecorder
+from gearbench.station.records import SampleBatch, StepStart
 r = ParquetRecorder({str(tmp_path)!r})
 r(StepStart("eff", "efficiency"))
 for b in range(7):

@@ -5,7 +5,7 @@ import time
 
 import pytest
 
-from gearbench.records import (Message, OutputFailure, RecordStream, RunStop, SampleBatch, StepStart,
+from gearbench.station.records import (Message, OutputFailure, RecordStream, RunStop, SampleBatch, StepStart,
                                Subscriber)
 
 

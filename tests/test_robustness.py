@@ -1,4 +1,4 @@
-"""Robustness benchmark (gearbench/bench/robustness.py) on a small fixed subset, and
+"""Robustness benchmark (gearbench/benchmarks/robustness.py) on a small fixed subset, and
 the two identification fixes it motivated: the sub-sample Coulomb regressor and the
 standstill handling at reversals."""
 import numpy as np
@@ -9,7 +9,7 @@ from gearbench.analysis.identify import identify_default
 from scipy import stats
 
 from gearbench.analysis.uncertainty import coverage_acceptance
-from gearbench.bench import robustness as R
+from gearbench.benchmarks import robustness as R
 
 ALPHA = 0.01       # chance that a correct method fails one of the binomial checks below
 

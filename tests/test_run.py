@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gearbench.recorder import load_step_trace
+from gearbench.station.recorder import load_step_trace
 
 REPO = Path(__file__).resolve().parents[1]
 MOTORS_ONLY = REPO / "profiles" / "motors-only.yaml"
@@ -27,7 +27,7 @@ def gearbench(*args, timeout=120, **kw):
 def planned_samples(profile_path=MOTORS_ONLY) -> dict:
     """Samples per segment as the sequencer plans them (waveform + stop ramp)."""
     from gearbench.profile import load_profile
-    from gearbench.sequencer import Segment, Sequencer
+    from gearbench.station.sequencer import Segment, Sequencer
 
     seq = Sequencer(load_profile(profile_path), None, emit=lambda r: None, operator=None)
     return {a.name: len(next(iter(a.commands.values()))[1]) for a in seq.plan() if isinstance(a, Segment)}
@@ -128,11 +128,11 @@ def test_bench_fault_stops_drives_and_keeps_samples(tmp_path):
     """A drive fault mid-step: quick stop + disable, exit 3, every sample before it kept."""
     from gearbench.api import open_network
     from gearbench.profile import load_profile
-    from gearbench.recorder import ParquetRecorder
-    from gearbench.records import RecordStream
-    from gearbench.report import ResultWriter
-    from gearbench.sequencer import AutoOperator, Sequencer
-    from gearbench.simbench import SimBench
+    from gearbench.station.recorder import ParquetRecorder
+    from gearbench.station.records import RecordStream
+    from gearbench.station.results import ResultWriter
+    from gearbench.station.sequencer import AutoOperator, Sequencer
+    from gearbench.emulate.launch import SimBench
 
     profile = load_profile(MOTORS_ONLY)
     with SimBench(profile) as sim:

@@ -2,7 +2,7 @@
 `gearbench run profiles/cvt.yaml --sim` through the real CANopen stack, checked
 against the simulated plant's ``simulation_truth``.
 
-Targets (the README's claims, ``gearbench.bench.robustness.TARGETS``): Kt within 0.2 %,
+Targets (the README's claims, ``gearbench.benchmarks.robustness.TARGETS``): Kt within 0.2 %,
 every incremental efficiency within 0.2 pp, every absolute efficiency within 0.3 pp,
 ratio within 0.1 %, an efficiency map of at least 3 speeds x 4 torques, ≤ 60 s wall.
 The truth is the plant's at the commanded operating points, never at a measured value.
@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from gearbench.api import run_profile
-from gearbench.bench.robustness import TARGETS
+from gearbench.benchmarks.robustness import TARGETS
 from gearbench.sim.truth import simulation_truth
 
 PROFILE = Path(__file__).resolve().parents[1] / "profiles" / "cvt.yaml"

@@ -38,7 +38,9 @@ import numpy as np
 from ..errors import ExcitationError, GearbenchError, TraceError
 from ..trace import BENCH_COLUMNS, Trace
 from .calibration import MotorCalibration
+from .streaming import slope_fit
 from .uncertainty import DOF_MAX, effective_dof, interval
+from .windows import TAPER_ALPHA, taper  # noqa: F401  (taper: public here since 0.1)
 
 
 @dataclass(frozen=True)
@@ -186,26 +188,6 @@ def steady_windows(time_s: np.ndarray, in_command: np.ndarray, out_command: np.n
     return out
 
 
-TAPER_ALPHA = 0.5            # Tukey taper: fraction of the window in the cosine edges
-
-
-def taper(n: int, alpha: float = TAPER_ALPHA) -> np.ndarray:
-    """Tukey (tapered-cosine) weights for a window mean of ``n`` samples.
-
-    A flat mean of a ripple leaves up to amplitude/(π·periods) when the window does not
-    hold whole periods; the CVT's pulsation, each motor's cogging (in its own shaft
-    angle) and the output shaft's revolution have unrelated periods, so no window
-    length fits them all. Cosine edges over ``alpha·n/2`` samples at each end make the
-    weights C¹-smooth, so a ripple's residual falls as 1/periods³ (times the edges'
-    own period count squared) without knowing any period. White noise costs the
-    variance factor n·Σw²/(Σw)² = (1 − 5α/8)/(1 − α/2)²: 1.22 for α = 0.5, against
-    1.5 for the Hann window (α = 1) this replaced.
-    """
-    x = (np.arange(n) + 0.5) / n
-    if alpha <= 0:
-        return np.ones(n)
-    edge = np.minimum(x, 1.0 - x) / (alpha / 2)          # 0 at the ends, 1 past the edges
-    return np.where(edge < 1.0, 0.5 * (1.0 - np.cos(np.pi * np.minimum(edge, 1.0))), 1.0)
 
 
 def _mean_sem(x: np.ndarray, blocks: int = 10) -> tuple[float, float, float]:
@@ -330,7 +312,6 @@ def incremental_slope(windows: list[SteadyWindow]) -> tuple[float, float, float]
     the output current's over one speed's levels (zero load included); the reducer's
     no-load loss is the intercept. Returns (slope dI_in/dI_out, its standard error, dof:
     the smallest window dof, as each mean's error is known from its own blocks)."""
-    from .streaming import slope_fit
 
     x = np.array([w.current_out_a for w in windows])
     y = np.array([w.current_in_a for w in windows])

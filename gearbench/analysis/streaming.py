@@ -27,6 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import derivatives as dv
+from .windows import taper
 
 Z95 = 1.959963984540054
 BLOCK_FILTER_LENGTHS = 2     # a block spans two FIR lengths: residuals correlate over about one
@@ -186,8 +187,6 @@ class LevelMean:
 
 
 def _tapered_mean(x: np.ndarray) -> float:
-    from .efficiency import taper
-
     w = taper(len(x))
     return float(w @ x / w.sum())
 

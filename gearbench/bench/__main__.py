@@ -1,18 +1,7 @@
-"""``python -m gearbench.bench <name> [args]`` — run one benchmark; no name lists them."""
-from __future__ import annotations
-
+"""``python -m gearbench.bench`` — the old spelling of ``python -m gearbench.benchmarks``."""
 import sys
 
-from . import available, run
-
-
-def main(argv: list[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv or argv[0] in ("-h", "--help"):
-        print("usage: python -m gearbench.bench NAME [args]\nbenchmarks: " + ", ".join(available()))
-        return 0 if argv else 2
-    return run(argv[0], argv[1:])
-
+from ..benchmarks.__main__ import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -14,9 +14,9 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from ..central import migrations
-    from ..central.config import central_url, target_name
-    from ..central.push import connect
+    from ..fleet import migrations
+    from ..station.config import central_url, target_name
+    from ..fleet.push import connect
 
     url = central_url(args.url)
     name = target_name(url)

@@ -15,7 +15,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from ..analysis import excitation_design as ed
+    from ..profile import excitation_design as ed
     from ..errors import GearbenchError
     from ..profile import CalibrateStep, load_profile
     from ..profile.design import DesignProblem, design_waveform, motor_case
@@ -84,7 +84,7 @@ def _bench_time(per_sqrt_s: float, kt_rel_95: float) -> float:
 
 
 def _text(rec, pred, current, design, kt_target, step) -> list[str]:
-    from ..analysis.excitation_design import multisine_summary
+    from ..profile.excitation_design import multisine_summary
 
     a = rec["assumptions"]
     p = rec["design"]

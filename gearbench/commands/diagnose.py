@@ -168,7 +168,7 @@ def summary(d: dict, name: str) -> str:
 
 def write_report(result, folder: Path) -> list[str]:
     """Heat maps of the nominal model's residuals (matplotlib: axes, units, colour bar)."""
-    from ..plots import heatmap_png
+    from ..reports.plots import heatmap_png
 
     try:
         folder.mkdir(parents=True, exist_ok=True)

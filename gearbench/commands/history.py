@@ -23,7 +23,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from ..central.query import RunQuery, open_results
+    from ..fleet.query import RunQuery, open_results
     from ..errors import GearbenchError
 
     if args.serial is None and not any((args.station, args.profile, args.since, args.until, args.verdict)):

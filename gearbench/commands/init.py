@@ -50,7 +50,7 @@ def add_arguments(p) -> None:
 
 def run(args) -> int:
     from .. import __version__
-    from ..shipped import shipped_dir
+    from ..drives.shipped import shipped_dir
 
     root = Path(args.dir)
     if root.exists() and not root.is_dir():

@@ -1,12 +1,14 @@
 """gearbench msa: measurement-system analysis (gauge R&R, AIAG MSA 4th ed.) of the tester."""
 from __future__ import annotations
 
+import functools
 import json
 import sys
 import time
 from datetime import datetime, timezone
 from pathlib import Path
 
+from ..api import AutoOperator, run_profile
 from ..errors import GearbenchError
 
 NAME = "msa"
@@ -38,7 +40,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from ..msa import check_design, format_table, read_databases, run_sim_study, select_runs, study
+    from ..fleet.gauge_study import check_design, format_table, read_databases, run_sim_study, select_runs, study
 
     if not 0 < args.alpha < 1:
         raise GearbenchError(f"--alpha {args.alpha}: a significance level between 0 and 1, e.g. 0.05")
@@ -55,7 +57,8 @@ def run(args) -> int:
         t0 = time.monotonic()
         print(f"gearbench msa: {args.units} units × {args.stations} stations × {repeats} trials = "
               f"{args.units * args.stations * repeats} simulated runs into {out}", file=sys.stderr)
-        dbs = run_sim_study(args.profile, units=args.units, repeats=repeats, stations=args.stations,
+        runner = functools.partial(run_profile, operator=AutoOperator())
+        dbs = run_sim_study(args.profile, runner, units=args.units, repeats=repeats, stations=args.stations,
                             out_dir=out, seed=args.seed)
         print(f"gearbench msa: runs done in {time.monotonic() - t0:.0f} s wall", file=sys.stderr)
         runs = read_databases(dbs)

@@ -30,7 +30,7 @@ def add_arguments(p) -> None:
 
 
 def _from_central(args) -> list[str]:
-    from ..central.query import RunQuery, open_results
+    from ..fleet.query import RunQuery, open_results
 
     with open_results(args.central) as db:
         runs = db.runs(RunQuery(serial=args.q_serial, station=args.q_station, since=args.q_since,
@@ -41,7 +41,7 @@ def _from_central(args) -> list[str]:
 
 def run(args) -> int:
     from ..errors import GearbenchError
-    from ..reanalysis import analysis_version, reanalyse_many, store_analyses
+    from ..fleet.reanalysis import analysis_version, reanalyse_many, store_analyses
 
     dirs = list(args.run_dirs)
     if not dirs:

@@ -14,7 +14,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from ..unit_report import write_pdf, write_report
+    from ..reports.unit_report import write_pdf, write_report
 
     path = write_report(args.run_dir, args.out)
     print(f"gearbench report: wrote {path}")

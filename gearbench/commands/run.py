@@ -51,7 +51,7 @@ def run(args) -> int:
                              "run from a terminal or pass --yes for an unattended run")
     db = Path(args.db) if args.db else out.resolve().parent / "station.sqlite"  # as open_bench
     if args.golden:
-        from ..golden import mark_golden
+        from ..fleet.golden import mark_golden
         from ..profile import load_profile
 
         mark_golden(db, serial, load_profile(args.profile).name)
@@ -68,7 +68,7 @@ def run(args) -> int:
 
 def _report(out: Path) -> None:
     """report.html beside result.json; a report problem never changes the unit's verdict."""
-    from ..unit_report import write_report
+    from ..reports.unit_report import write_report
 
     try:
         print(f"gearbench run: report {write_report(out)}", file=sys.stderr)
@@ -77,8 +77,8 @@ def _report(out: Path) -> None:
 
 
 def _golden(db: Path, out: Path, result: dict) -> int:
-    from ..golden import check_golden, format_report
-    from ..report import write_result_json
+    from ..fleet.golden import check_golden, format_report
+    from ..station.results import write_result_json
 
     rep = check_golden(db, result)
     write_result_json(out / "golden.json", rep)

@@ -33,8 +33,8 @@ def add_arguments(p) -> None:
 
 def run(args) -> int:
     from ..analysis.spc import RULES
-    from ..central.query import RunQuery, open_results
-    from ..spc import charts, require_charts, write_png
+    from ..fleet.query import RunQuery, open_results
+    from ..fleet.control_charts import charts, require_charts, write_png
 
     source = args.central or args.db
     q = RunQuery(station=args.station, profile=args.profile, since=args.since, until=args.until,

@@ -16,8 +16,8 @@ def run(args) -> int:
     import sys
     from pathlib import Path
 
-    from ..central.config import central_url
-    from ..central.push import push_pending
+    from ..station.config import central_url
+    from ..fleet.push import push_pending
     from ..errors import GearbenchError
 
     db = Path(args.db)

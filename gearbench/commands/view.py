@@ -22,8 +22,8 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from ..live import open_live_view
-    from ..live.replay import replay_records
+    from ..reports.live import open_live_view
+    from ..reports.live.replay import replay_records
 
     live = args.live or not (args.rrd or args.connect)
     records = replay_records(args.result_dir)
@@ -53,7 +53,7 @@ def _open_report(run_dir) -> None:
     import os
     import webbrowser
 
-    from ..unit_report import write_report
+    from ..reports.unit_report import write_report
 
     if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         return   # no display: the viewer notice already said so

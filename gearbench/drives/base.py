@@ -92,6 +92,10 @@ class DriveNetwork(ABC):
     """
 
     family: str = "abstract"
+    # True when the drives move only on this master's SYNC and answer every one (a
+    # simulated bench): nothing can be missed, so no real-time priority and no
+    # fault for a writer that falls behind
+    lockstep: bool = False
 
     def __init__(self, **options):
         self.options = options
@@ -139,6 +143,19 @@ class DriveNetwork(ABC):
     def supervision(self) -> dict:
         """What supervision saw (host stalls tolerated, frames dropped...); families extend it."""
         return {}
+
+    def watch_process(self, pid: int) -> None:
+        """The drives are played by process ``pid`` on this host (the emulator): a family
+        whose supervision can tell a CPU-starved drive from a silent one uses it."""
+
+    def mount(self, *, coupling: str, disk_kgm2: dict[str, float]) -> None:
+        """Physically change the bench (disks, reducer). Only a network that simulates the
+        bench in this process overrides it; on a real bench the operator mounts at the prompt."""
+        raise NotImplementedError(f"{type(self).__name__} cannot mount anything")
+
+    def fixture(self):
+        """The network itself when it overrides ``mount`` (it is then the bench's fixture), else None."""
+        return self if type(self).mount is not DriveNetwork.mount else None
 
     def acquisition_threads(self) -> list[int]:
         """Native ids of the family's threads on the acquisition path (e.g. the bus

@@ -63,7 +63,7 @@ from canopen.emcy import EmcyError
 from canopen.sdo import SdoAbortedError, SdoCommunicationError, SdoVariable
 
 from ..errors import BenchFault, DriveError
-from ..shipped import shipped_driver
+from .shipped import shipped_driver
 from .base import AxisConfig, Drive, DriveNetwork, Mode, Sample
 from .buses import open_bus, parse_bus
 from .supervision import HostStallMonitor, Liveness

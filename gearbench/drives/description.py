@@ -31,7 +31,7 @@ from ..errors import DriveError
 
 def _drivers_dirs(eds: str | None = None) -> list[Path]:
     """Where descriptions are looked for: beside the EDS (a station's drivers/), then shipped."""
-    from ..shipped import shipped_dir
+    from .shipped import shipped_dir
     dirs = [Path(eds).resolve().parent] if eds else []
     return list(dict.fromkeys(dirs + [shipped_dir("drivers").resolve()]))
 
@@ -532,18 +532,6 @@ def _check_pdos(m: DriveModel, problem) -> None:
             if total > 64:
                 problem(f"0x{mapping + n:04X}", f"{kind}{n + 1} would carry {total} bits: more than 8 bytes",
                         "a classic CAN frame holds 64 bits; the drive's objects are too wide")
-
-
-def needed_modes(profile, motor: str) -> set[str]:
-    """'velocity'/'torque' modes the profile's steps need from ``motor``."""
-    from ..profile import CalibrateStep, EfficiencyStep
-    kinds = set()
-    for s in profile.steps:
-        if isinstance(s, CalibrateStep) and s.motor == motor:
-            kinds.add(s.mode)
-        elif isinstance(s, EfficiencyStep):
-            kinds.add("velocity" if motor == "in" else "torque")
-    return kinds
 
 
 def role_problems(m: DriveModel, kinds: set[str], motor: str) -> list[Problem]:

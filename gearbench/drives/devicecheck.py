@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import DriveError, ProfileError
-from .description import Problem, needed_modes, resolve, role_problems
+from .description import Problem, resolve, role_problems
 
 DEFAULT_BITRATE = 1_000_000
 BUS_WARN, BUS_REFUSE = 0.60, 0.90
@@ -70,7 +70,7 @@ def _check_canopen(profile, report: DeviceReport) -> None:
             report.errors.append(str(exc))
             continue
         models[name] = model
-        kinds = needed_modes(profile, name)
+        kinds = profile.drive_modes(name)
         problems = [p for p in model.problems if "torque" not in p.problem or "torque" in kinds] + \
             role_problems(model, kinds, name)
         for p in problems:

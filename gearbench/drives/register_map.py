@@ -23,7 +23,7 @@ from typing import Mapping
 import yaml
 
 from ..errors import ProfileError
-from ..shipped import shipped_driver
+from .shipped import shipped_driver
 
 #: type name -> (struct code, number of 16-bit words)
 TYPES: dict[str, tuple[str, int]] = {

@@ -16,7 +16,7 @@ reply is one JSON line ``{"ok": true, ...}`` or ``{"ok": false, "error": ...}``)
   SDO or heartbeat), like a cut cable;
 - ``{"cmd": "status"}`` — sample index, time, states and modes.
 
-Fault injection (test facility of ``gearbench.faultinject``; any command but ``status``
+Fault injection (test facility of ``gearbench.emulate.faults``; any command but ``status``
 may carry ``"at_s"``: it is then applied when world time reaches it, between two steps):
 
 - ``{"cmd": "heartbeat", "axis": "in", "on": false}`` — only the heartbeat stops (PDOs, SDO

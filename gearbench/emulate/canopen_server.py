@@ -43,7 +43,7 @@ from canopen.sdo import SdoAbortedError
 from ..drives.buses import BusSpec, open_bus
 from ..drives.description import DriveModel, ObjRef, axis_units, modes_to_bits, resolve, unit_objects
 from ..errors import DriveError
-from ..shipped import shipped_driver
+from ..drives.shipped import shipped_driver
 from .bench import EmulatedBench
 from .cia402_axis import Cia402Axis
 

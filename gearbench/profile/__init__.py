@@ -30,7 +30,7 @@ def load_profile(path: str | Path) -> Profile:
     drive paths resolve against the profile's folder, the station, then the shipped
     drive descriptions (``gearbench.shipped``).
     """
-    from ..shipped import find_profile, shipped_profiles
+    from .shipped import find_profile, shipped_profiles
 
     p = find_profile(path)
     shown = str(path) if p == Path(path) else str(p)

@@ -1,7 +1,7 @@
 """``design: optimal`` multisines: their parameters from the motors they calibrate.
 
 The profile loader calls ``design_waveform`` once per designed waveform with every
-calibrate step that uses it; the design (``gearbench.analysis.excitation_design``)
+calibrate step that uses it; the design (``gearbench.profile.excitation_design``)
 keeps each of those motors (with its disk) inside its limits and minimises the worst
 predicted Kt variance per bench second. The rule is in docs/excitation-design.md.
 """
@@ -25,7 +25,7 @@ class DesignProblem(ValueError):
 def motor_case(motor, disk, params: dict):
     """``MotorCase`` for ``motor`` (MotorSpec) with ``disk`` (DiskSpec) under the design
     knobs in ``params`` (a multisine's parameters, defaults filled in)."""
-    from ..analysis.excitation_design import MotorCase
+    from .excitation_design import MotorCase
 
     if motor.rotor_inertia_kgm2 is None:
         raise DesignProblem(("motors", motor.name), "design: optimal needs the rotor inertia",
@@ -54,7 +54,7 @@ def design_waveform(params: dict, uses: list, period_s: float, also_fit_s=()):
     → (complete params, Design). One waveform, one command: the shortest run sets the
     whole-period grid and every motor's limits hold; the period also divides
     ``also_fit_s`` (an adaptive step's shortest stop) where it can. Raises ``DesignProblem``."""
-    from ..analysis.excitation_design import design_multisine
+    from .excitation_design import design_multisine
 
     cases = [motor_case(m, d, params) for m, d, _ in uses]
     durations = sorted({round(dur, 9) for _, _, dur in uses})

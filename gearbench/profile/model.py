@@ -244,6 +244,16 @@ class Profile:
     def operating_points(self) -> int:
         return sum(s.operating_points for s in self.steps if isinstance(s, EfficiencyStep))
 
+    def drive_modes(self, motor: str) -> set[str]:
+        """'velocity'/'torque': the drive modes this profile's steps need from ``motor``."""
+        kinds = set()
+        for s in self.steps:
+            if isinstance(s, CalibrateStep) and s.motor == motor:
+                kinds.add(s.mode)
+            elif isinstance(s, EfficiencyStep):
+                kinds.add("velocity" if motor == "in" else "torque")
+        return kinds
+
     @property
     def estimated_bench_time_s(self) -> float:
         """Motor-running time on a real tester: 2 runs per calibration + every efficiency

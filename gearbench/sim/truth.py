@@ -127,3 +127,11 @@ def simulation_truth(plant: PlantParams | dict, points: list[dict]) -> dict:
                     "eta_absolute": op["eta_absolute"], "torque_in_nm": op["torque_in_nm"],
                     "current_in_a": op["current_in_a"]})
     return {"motors": truth["motors"], "ratio": truth["ratio"], "efficiency": eff}
+
+
+def truth_of(plant):
+    """The sequencer's hook for a simulated run: efficiency points → ``simulation_truth``
+    of ``plant`` at the same commanded points (None for a real bench)."""
+    if plant is None:
+        return None
+    return lambda efficiency: simulation_truth(plant, efficiency)

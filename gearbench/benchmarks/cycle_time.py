@@ -1,0 +1,428 @@
+"""Cycle time against accuracy: bench time vs Kt and efficiency error, three procedures.
+
+    python -m gearbench.benchmarks cycle_time [--plants N] [--seeds 0 1] [--png FILE] [--no-chain]
+
+Procedures:
+  classic   profiles/cvt-classic.yaml — fixed lengths: 4 calibration runs of 3 s one
+            after the other, 15 levels of 0.3 s settle + 2.7 s measure, eq. 18 per point.
+  adaptive  profiles/cvt.yaml — both motors calibrated at once, every run and every level
+            stopped when its statistical 95 % interval meets ``targets`` (min_s..max_s),
+            efficiency as one torque staircase per speed, eq. 18 as a regression slope.
+  paper     the paper's procedure: a speed step from rest per calibration run (3 s, the
+            four runs one after the other) identified with method="paper" (as
+            bench/accuracy.py runs it), on the classic efficiency levels.
+
+Plants: the profile's own simulated plant (cvt.yaml ``simulation:``), and random plants
+drawn as in the robustness benchmark (``robustness.draw_case``: motors, disks, drive
+loops, reducer) with the profile's operating grid scaled to each plant (3 speeds x 4
+braking torques, 50-130 % of the output motor's rated current). Each plant runs the
+real sequencer in-process against the simulated bench stepped one sample per SYNC
+(``InProcessBench``: the same physics as ``--sim``, without the CANopen stack); one run
+of each profile also goes through the real ``--sim`` CANopen chain.
+
+Scored against the simulator's truth: |Kt error| per motor (%), |incremental| and
+|absolute| efficiency error at every one of the 12 points (pp), bench time (s); a plant
+meets the goal when both Kt are within 0.2 % and all 12 incremental efficiencies within
+0.2 pp. Writes a PNG of error versus bench time.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from ..drives.base import AxisConfig, Drive, DriveNetwork, Mode, Sample
+from ..sim.truth import truth_of
+
+NAME = "cycle_time"
+REPO = Path(__file__).resolve().parents[2]
+PROFILES = {"classic": REPO / "profiles" / "cvt-classic.yaml", "adaptive": REPO / "profiles" / "cvt.yaml"}
+GOAL = {"kt_pct": 0.2, "inc_pp": 0.2}
+MODES = {Mode.VELOCITY: "velocity", Mode.TORQUE: "torque"}
+
+
+# ------------------------------------------------------------- in-process bench
+class _Drive(Drive):
+    def __init__(self, net: "InProcessBench", config: AxisConfig):
+        super().__init__(config)
+        self.net = net
+
+    def enable(self, mode: Mode) -> None:
+        self.net.world.set_mode(self.name, MODES[mode])
+
+    def set_setpoint(self, value: float) -> None:
+        self.net.world.set_setpoint(self.name, value)
+
+    def quick_stop(self) -> None:
+        self.net.world.set_mode(self.name, "velocity")
+
+    def disable(self) -> None:
+        # decelerate, then remove power: between segments no bench time is counted
+        world = self.net.world
+        world.set_mode(self.name, "velocity")
+        for _ in range(2000):
+            if abs(world.step()[self.name].velocity_rad_s) < 0.5:
+                break
+        world.set_mode(self.name, "off")
+
+    def reset_fault(self) -> None:
+        pass
+
+
+class InProcessBench(DriveNetwork):
+    """The simulated bench (``gearbench.sim.BenchWorld``) as a drive network, stepped one
+    period per ``sample()`` in this process; also the fixture that mounts disks/reducer.
+    Same physics and noise as the emulator behind ``--sim``, no bus in between."""
+
+    family = "inprocess"
+    lockstep = True
+
+    def __init__(self, plant, *, seed: int = 0):
+        super().__init__()
+        self.plant = plant
+        self.seed = seed
+        self.world = None
+        self._k = 0
+
+    def open(self) -> None: ...
+
+    def add_drive(self, config: AxisConfig) -> Drive:
+        self.drives[config.name] = _Drive(self, config)
+        return self.drives[config.name]
+
+    def start(self, period_s: float) -> None:
+        from ..sim import BenchWorld
+
+        self.period_s = period_s
+        self.world = BenchWorld(self.plant, seed=self.seed)
+
+    def _sample(self) -> dict[str, Sample]:
+        meas = self.world.step()
+        self._k += 1
+        k = self._k
+        return {n: Sample(k, k * self.period_s, m.position_rad, m.velocity_rad_s, m.current_a)
+                for n, m in meas.items() if n in self.drives}
+
+    def mount(self, *, coupling: str, disk_kgm2: dict[str, float]) -> None:
+        self.world.mount(coupling=coupling, disk_kgm2=disk_kgm2)
+
+    def _close(self) -> None:
+        self.world = None
+
+
+def run_inprocess(profile, plant, *, seed: int = 0, method: str = "default") -> dict:
+    """Run ``profile`` with the real sequencer against ``plant`` in this process; the
+    result dict as result.json would hold it (``simulation_truth`` included)."""
+    from ..station.sequencer import AutoOperator, Sequencer
+
+    net = InProcessBench(plant, seed=seed)
+    net.open()
+    for name, m in profile.motors.items():
+        net.add_drive(AxisConfig(name, m.address, m.drive, m.rated_current_a, m.current_limit_a,
+                                 m.speed_limit_rad_s, m.counts_per_rev))
+    net.start(profile.bench.period_s)
+    seq = Sequencer(profile, net, emit=lambda rec: None, operator=AutoOperator(), fixture=net,
+                    sim_truth=truth_of(plant), method=method)
+    try:
+        return seq.run()
+    finally:
+        net.close()
+
+
+# ------------------------------------------------------------------- scoring
+def score(res: dict) -> dict:
+    """|errors| against the simulator's truth: Kt % per motor, incremental and absolute
+    efficiency pp per point, bench time, and whether the goal is met."""
+    if res.get("status") not in ("passed", "failed"):
+        return {"error": res.get("reason", res.get("status")), "bench_time_s": res.get("bench_time_s", 0.0)}
+    truth = res["simulation_truth"]
+    kt = [abs(100 * (res["motors"][m]["Kt"] / truth["motors"][m]["Kt"] - 1)) for m in res["motors"]]
+    inc = [abs(100 * (p["eta_incremental"] - t["eta_incremental"]))
+           for p, t in zip(res["efficiency"], truth["efficiency"])]
+    ab = [abs(100 * (p["eta_absolute"] - t["eta_absolute"]))
+          for p, t in zip(res["efficiency"], truth["efficiency"])]
+    meets = (len(kt) == 2 and len(inc) == 12 and max(kt) <= GOAL["kt_pct"]
+             and max(inc) <= GOAL["inc_pp"])
+    return {"kt": kt, "inc": inc, "abs": ab, "bench_time_s": res["bench_time_s"], "meets": meets,
+            "stopped_by_max": sum(m.get("stopped_by") == "max" for m in res.get("measurements", []))}
+
+
+# ------------------------------------------------------------------- plants
+def random_plant(index: int, seed: int, profile):
+    """A robustness-benchmark plant (``robustness.draw_case``) with the profile's grid
+    scaled to it: the returned profile brakes at 50-130 % of the plant's output rated
+    current, at 3 speeds spanning the drawn bench speed, disks as drawn."""
+    from .robustness import draw_case
+
+    case = draw_case(index, seed)
+    p = case.plant
+    mo = p.motor_out
+    speed = case.bench_speed_rad_s
+    speeds = [round(speed * f, 1) for f in (0.6, 0.8, 1.0)]
+    rated = mo.rated_current_a
+    torques = [round(mo.Kt * rated * f, 6) for f in (0.5, 0.75, 1.0, 1.3)]
+    return case, _adapt_profile(profile, case, speeds, torques)
+
+
+def _adapt_profile(profile, case, speeds, torques):
+    """``profile`` re-targeted at the drawn plant (motor data, disks, grid, excitation),
+    keeping its procedure (fixed or adaptive, sequential or parallel)."""
+    from ..profile.model import CalibrateStep, DiskSpec, EfficiencyStep
+
+    p = case.plant
+    motors = dict(profile.motors)
+    for name, m in (("in", p.motor_in), ("out", p.motor_out)):
+        motors[name] = replace(motors[name], kt_datasheet=m.Kt * 1.03, rated_current_a=m.rated_current_a,
+                               current_limit_a=m.current_limit_a, speed_limit_rad_s=1e4,
+                               rotor_inertia_kgm2=m.J, counts_per_rev=m.counts_per_rev)
+    disks = dict(profile.disks)
+    steps = []
+    waves = dict(profile.waveforms)
+    for s in profile.steps:
+        if isinstance(s, CalibrateStep):
+            dname = f"disk_{s.motor}"
+            disks[dname] = DiskSpec(dname, case.disks_kgm2[s.motor], 0.005, "measured")
+            wname = f"excite_{s.motor}"
+            waves[wname] = _case_waveform(case, s.motor, wname)
+            s = replace(s, disk=dname, waveform=wname)
+        elif isinstance(s, EfficiencyStep):
+            s = replace(s, speeds_in_rad_s=speeds, torques_out_nm=torques)
+        steps.append(s)
+    reducer = replace(profile.reducer, ratio=None, efficiency_range=(0.5, 1.0))
+    return replace(profile, motors=motors, disks=disks, waveforms=waves, steps=steps, reducer=reducer,
+                   limits=[])
+
+
+class _Table:
+    """A recorded command as a waveform: ``render`` looks the drawn samples up (held
+    past the end)."""
+
+    def __init__(self, samples: np.ndarray, period_s: float):
+        self.samples = np.asarray(samples, float)
+        self.period_s = period_s
+
+    def __call__(self, t):
+        k = np.minimum(np.round(np.asarray(t) / self.period_s).astype(int), len(self.samples) - 1)
+        return self.samples[k]
+
+
+def _case_waveform(case, motor: str, name: str):
+    """The drawn plant's own calibration command (robustness: a multisine sized to the
+    drive's current limit with its disk), repeated to cover any max_s."""
+    cmd = np.asarray(case.commands[motor], float)
+    return _table_waveform(name, np.tile(cmd, 4), 1e-3, len(cmd) * 1e-3)
+
+
+def _table_waveform(name: str, samples: np.ndarray, period_s: float, natural_s: float | None = None):
+    """A waveform that plays ``samples`` (held past the end)."""
+    from ..profile.model import WaveformSpec
+
+    table = _Table(samples, period_s)
+
+    class _Spec(WaveformSpec):
+        def render(self, time_s):
+            return table(time_s)
+
+        @property
+        def natural_period_s(self):
+            return natural_s
+
+    return _Spec(name, "table", {})
+
+
+def paper_profile(profile, step_rad_s: float):
+    """The paper's procedure on ``profile``'s bench: each calibration run a speed step
+    from rest (0 -> ``step_rad_s`` at 0.2 s, as bench/accuracy.py), fixed lengths; run
+    with method="paper"."""
+    from ..profile.model import CalibrateStep
+
+    n = int(round(max(s.duration_s for s in profile.steps if isinstance(s, CalibrateStep))
+                  / profile.bench.period_s)) + 10
+    t = np.arange(n) * profile.bench.period_s
+    wave = _table_waveform("paper_step", np.where(t >= 0.2, step_rad_s, 0.0), profile.bench.period_s)
+    steps = [replace(s, waveform="paper_step") if isinstance(s, CalibrateStep) else s for s in profile.steps]
+    return replace(profile, waveforms={**profile.waveforms, "paper_step": wave}, steps=steps)
+
+
+# ------------------------------------------------------------------- running
+def procedures(plant_profile: dict, step_rad_s: float) -> dict:
+    """{name: (profile, method)} for the three procedures on one plant."""
+    return {"classic": (plant_profile["classic"], "default"),
+            "adaptive": (plant_profile["adaptive"], "default"),
+            "paper": (paper_profile(plant_profile["classic"], step_rad_s), "paper")}
+
+
+def run_plants(n_plants: int, seeds, *, which=("classic", "adaptive", "paper"), log=print,
+               cvt_seeds=None) -> list[dict]:
+    """Every procedure on the profile's own plant (one run per noise seed in ``cvt_seeds``,
+    default ``seeds``) and on ``n_plants`` random plants per draw seed in ``seeds``.
+    Returns rows {group, plant, seed, procedure, **score}."""
+    from ..profile import load_profile
+    from ..sim import PlantParams
+
+    base = {k: load_profile(p) for k, p in PROFILES.items()}
+    rows = []
+    plant = PlantParams.from_dict(base["adaptive"].simulation)
+    for seed in (seeds if cvt_seeds is None else cvt_seeds):
+        for name, (prof, method) in procedures(base, 230.0).items():
+            if name not in which:
+                continue
+            rows.append(_one("cvt plant", "cvt", seed, name, prof, plant, method, log))
+    for seed in seeds:
+        for index in range(n_plants):
+            case, _ = random_plant(index, seed, base["classic"])
+            profs = {k: random_plant(index, seed, base[k])[1] for k in ("classic", "adaptive")}
+            step = float(min(0.9 * case.bench_speed_rad_s * 1.2, 330.0))
+            for name, (prof, method) in procedures(profs, step).items():
+                if name not in which:
+                    continue
+                rows.append(_one("random plants", f"{seed}/{index}", case.plant.seed, name, prof,
+                                 case.plant, method, log))
+    return rows
+
+
+def _one(group, plant_id, seed, name, prof, plant, method, log) -> dict:
+    t0 = time.perf_counter()
+    try:
+        res = run_inprocess(prof, plant, seed=int(seed), method=method)
+        s = score(res)
+    except Exception as exc:          # a failure is a result here, not a crash
+        s = {"error": f"{type(exc).__name__}: {str(exc)[:120]}", "bench_time_s": float("nan")}
+    row = {"group": group, "plant": plant_id, "seed": seed, "procedure": name, **s}
+    if log:
+        if "error" in s:
+            log(f"  {group:<14}{plant_id:>7} {name:<9} ERROR {s['error']}")
+        else:
+            log(f"  {group:<14}{plant_id:>7} {name:<9} bench {s['bench_time_s']:6.1f} s  Kt max "
+                f"{max(s['kt']):6.3f} %  inc max {max(s['inc']):6.3f} pp  abs max {max(s['abs']):6.3f} pp"
+                f"  {'meets' if s['meets'] else 'MISSES'}  ({time.perf_counter() - t0:.1f} s wall)")
+    return row
+
+
+def run_chain(log=print) -> list[dict]:
+    """One run of each shipped profile through the real --sim CANopen chain."""
+    from ..api import run_profile
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in ("adaptive", "classic"):
+            t0 = time.perf_counter()
+            res = run_profile(PROFILES[name], sim=True, out_dir=Path(tmp) / name, serial="CYCLE",
+                              yes=True, quiet=True)
+            s = score(res)
+            rows.append({"group": "--sim chain", "plant": "cvt", "seed": "", "procedure": name, **s})
+            if log:
+                log(f"  --sim chain    {name:<9} bench {s['bench_time_s']:6.1f} s  Kt max {max(s['kt']):.3f} %  "
+                    f"inc max {max(s['inc']):.3f} pp  abs max {max(s['abs']):.3f} pp "
+                    f"({time.perf_counter() - t0:.0f} s wall)")
+    return rows
+
+
+# ------------------------------------------------------------------- report
+def summary(rows: list[dict]) -> list[dict]:
+    out = []
+    groups = []
+    for r in rows:
+        key = (r["group"], r["procedure"])
+        if key not in groups:
+            groups.append(key)
+    for g, p in groups:
+        rs = [r for r in rows if (r["group"], r["procedure"]) == (g, p)]
+        ok = [r for r in rs if "error" not in r]
+
+        def stat(q, f):
+            vals = [f(r[q]) for r in ok if r[q]]
+            return (float(np.mean(vals)), float(np.max(vals))) if vals else (math.nan, math.nan)
+        out.append({"group": g, "procedure": p, "runs": len(rs), "errors": len(rs) - len(ok),
+                    "bench_mean": float(np.mean([r["bench_time_s"] for r in ok])) if ok else math.nan,
+                    "bench_max": float(np.max([r["bench_time_s"] for r in ok])) if ok else math.nan,
+                    "kt": stat("kt", max), "inc": stat("inc", max), "abs": stat("abs", max),
+                    "meets": sum(bool(r.get("meets")) for r in rs) / max(len(rs), 1),
+                    "at_max": float(np.mean([r.get("stopped_by_max", 0) for r in ok])) if ok else math.nan})
+    return out
+
+
+def print_table(summ: list[dict]) -> None:
+    print(f"{'plants':<15}{'procedure':<10}{'runs':>5}{'fail':>5}{'bench s':>15}{'|Kt err| % (max/plant)':>24}"
+          f"{'|incr err| pp':>17}{'|abs err| pp':>17}{'meet goal':>11}{'at max':>8}")
+    print(f"{'':<35}{'mean    max':>15}{'mean    max':>24}{'mean    max':>17}{'mean    max':>17}")
+    for s in summ:
+        f2 = lambda v: f"{v[0]:7.3f} {v[1]:7.3f}"
+        print(f"{s['group']:<15}{s['procedure']:<10}{s['runs']:>5}{s['errors']:>5}"
+              f"{s['bench_mean']:7.1f} {s['bench_max']:7.1f}{f2(s['kt']):>24}{f2(s['inc']):>17}{f2(s['abs']):>17}"
+              f"{100 * s['meets']:10.0f}%{s['at_max']:8.1f}")
+
+
+def plot(rows: list[dict], path: Path) -> Path | None:
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("cycle_time: matplotlib is not installed; no plot (pip install matplotlib)")
+        return None
+    colours = {"classic": "tab:blue", "adaptive": "tab:green", "paper": "tab:red"}
+    markers = {"cvt plant": "*", "random plants": "o", "--sim chain": "D"}
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.8))
+    for ax, (q, label, goal) in zip(axes, (("kt", "max |Kt error| of the two motors, %", GOAL["kt_pct"]),
+                                           ("inc", "max |incremental efficiency error|, pp", GOAL["inc_pp"]),
+                                           ("abs", "max |absolute efficiency error|, pp", None))):
+        for r in rows:
+            if "error" in r or not r.get(q):
+                continue
+            ax.scatter(r["bench_time_s"], max(r[q]), c=colours[r["procedure"]], marker=markers[r["group"]],
+                       s=60 if r["group"] != "random plants" else 18, alpha=0.75,
+                       edgecolors="k" if r["group"] != "random plants" else "none")
+        if goal is not None:
+            ax.axhline(goal, color="k", ls="--", lw=0.8)
+        ax.axvline(20.0, color="grey", ls=":", lw=0.8)
+        ax.set_yscale("log")
+        ax.set_xlabel("bench time, s")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    handles = [plt.Line2D([], [], marker="o", ls="", color=c, label=p) for p, c in colours.items()]
+    handles += [plt.Line2D([], [], marker=m, ls="", color="grey", label=g) for g, m in markers.items()]
+    axes[0].legend(handles=handles, fontsize=8, loc="upper right")
+    fig.suptitle("gearbench cycle time vs accuracy (dashed: goal, dotted: 20 s)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m gearbench.benchmarks cycle_time", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--plants", type=int, default=10, help="random plants per draw seed (default 10)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1], help="random-plant draw seeds (default 0 1)")
+    ap.add_argument("--cvt-runs", type=int, default=5, help="noise seeds on the cvt plant (default 5)")
+    ap.add_argument("--procedures", nargs="+", default=["classic", "adaptive", "paper"])
+    ap.add_argument("--png", default="results/cycle_time.png", help="plot file (default results/cycle_time.png)")
+    ap.add_argument("--no-chain", action="store_true", help="skip the runs through the --sim CANopen chain")
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    print(f"cycle_time: the cvt plant x {args.cvt_runs} noise seeds + {len(args.seeds)} draw seed(s) x "
+          f"{args.plants} random plants, "
+          f"procedures {', '.join(args.procedures)}; goal: Kt <= {GOAL['kt_pct']} % and incremental "
+          f"efficiency <= {GOAL['inc_pp']} pp at all 12 points", flush=True)
+    rows = run_plants(args.plants, args.seeds, which=tuple(args.procedures),
+                      log=lambda s: print(s, flush=True), cvt_seeds=range(args.cvt_runs))
+    if not args.no_chain:
+        rows += run_chain(log=lambda s: print(s, flush=True))
+    print()
+    print_table(summary(rows))
+    png = plot(rows, Path(args.png))
+    if png:
+        print(f"plot: {png}")
+    print(f"benchmark time {time.perf_counter() - t0:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

@@ -1,0 +1,143 @@
+"""Benchmark: SYNC interval jitter by producer, and lockstep samples/s, on one CAN bus.
+
+``python -m gearbench.benchmarks sync_jitter [--bus socketcan:vcan0] [--period-s 0.001] [--duration-s 5]
+[--producers kernel thread loop] [--lockstep-samples 2000]``
+
+Two CiA 402 drives (``gearbench emulate`` in another process) sampled in paced mode
+with each SYNC producer in turn: ``kernel`` (socketcan broadcast manager), ``thread``
+(a thread at absolute deadlines), ``loop`` (the sample loop paces and sends SYNC
+itself). An independent listener (its own python-can bus on the same channel) takes
+the bus's receive timestamp of every SYNC; the figure is the deviation of each SYNC
+interval from the period (p50 / p99 / max), the SYNC rate achieved, and the samples
+the master got and lost. Then lockstep (SYNC as fast as the drives answer): samples/s.
+On socketcan run it where vcan0 exists, e.g. ``.ci/vcan -- .venv/bin/python -m
+gearbench.benchmarks sync_jitter`` in the CI guest (software-emulated: its figures are
+the emulator's, not a real kernel's).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+
+from ..drives.base import AxisConfig, Mode
+from ..drives.buses import open_bus, parse_bus
+from ..drives.cia402 import CiA402Network
+from ..errors import BenchFault
+
+NET = dict(heartbeat_ms=500, timeout_s=3.0, sdo_timeout_s=1.0, state_timeout_s=3.0)
+if os.environ.get("GEARBENCH_VCAN_EMULATED"):   # .ci/vcan's TCG guest: Python 20-100x slower, bounds to match
+    NET.update(timeout_s=20.0, sdo_timeout_s=10.0, state_timeout_s=10.0, master_timeout_ms=20000)
+
+
+class SyncListener:
+    """Receive timestamps of SYNC (0x080) frames on its own bus connection."""
+
+    def __init__(self, bus: str):
+        self.bus = open_bus(bus, can_filters=[{"can_id": 0x80, "can_mask": 0x7FF}])
+        self.stamps: list[float] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            msg = self.bus.recv(0.1)
+            if msg is not None and msg.arbitration_id == 0x80:
+                self.stamps.append(msg.timestamp)
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join(2)
+        self.bus.shutdown()
+
+
+def _drives(net: CiA402Network, period_s: float) -> None:
+    din = net.add_drive(AxisConfig("in", 1, ""))
+    dout = net.add_drive(AxisConfig("out", 2, ""))
+    net.start(period_s)
+    din.enable(Mode.VELOCITY)
+    dout.enable(Mode.TORQUE)
+    din.set_setpoint(100.0)
+    dout.set_setpoint(0.1)
+
+
+def paced(bus: str, producer: str, period_s: float, duration_s: float) -> dict:
+    with CiA402Network(bus=bus, lockstep=False, sync=producer, **NET) as net:
+        _drives(net, period_s)
+        net.sample()                                   # producer started, first answer in
+        with SyncListener(bus) as listener:
+            got, t_end = 0, time.perf_counter() + duration_s
+            first_index = net.sync_count
+            while time.perf_counter() < t_end:
+                net.sample()
+                got += 1
+            syncs = net.sync_count - first_index
+        stamps = np.array(listener.stamps)
+    dev_us = np.abs(np.diff(stamps) - period_s) * 1e6 if len(stamps) > 2 else np.array([np.nan])
+    span = stamps[-1] - stamps[0] if len(stamps) > 1 else np.nan
+    return {"producer": producer, "syncs_seen": len(stamps), "rate_hz": (len(stamps) - 1) / span,
+            "p50_us": np.percentile(dev_us, 50), "p99_us": np.percentile(dev_us, 99), "max_us": dev_us.max(),
+            "samples": got, "lost": syncs - got}
+
+
+def lockstep(bus: str, period_s: float, n: int) -> dict:
+    with CiA402Network(bus=bus, lockstep=True, **NET) as net:
+        _drives(net, period_s)
+        net.sample()
+        t0 = time.perf_counter()
+        for _ in range(n):
+            net.sample()
+        wall = time.perf_counter() - t0
+        return {"samples": n, "wall_s": wall, "samples_per_s": n / wall, "lost": net.lost_samples}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m gearbench.benchmarks sync_jitter", description=__doc__.splitlines()[0])
+    default_bus = f"socketcan:{os.environ.get('GEARBENCH_VCAN', 'vcan0')}"
+    p.add_argument("--bus", default=default_bus, help=f"CAN bus (default {default_bus})")
+    p.add_argument("--period-s", type=float, default=1e-3, help="SYNC period (s)")
+    p.add_argument("--duration-s", type=float, default=5.0, help="wall time per paced producer (s)")
+    p.add_argument("--producers", nargs="+", default=None, choices=["kernel", "thread", "loop"],
+                   help="default: kernel (socketcan only), thread, loop")
+    p.add_argument("--lockstep-samples", type=int, default=2000)
+    args = p.parse_args(argv)
+    bus = str(parse_bus(args.bus))
+    producers = args.producers or (["kernel"] if bus.startswith("socketcan:") else []) + ["thread", "loop"]
+    proc = subprocess.Popen([sys.executable, "-m", "gearbench", "emulate", "--can", bus],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        if proc.stdout.readline().strip() != "ready":
+            raise SystemExit("gearbench emulate did not start")
+        print(f"SYNC producers on {bus}: period {args.period_s * 1e3:g} ms, {args.duration_s:g} s each, "
+              f"two drives answering (paced)")
+        print(f"{'producer':<10}{'SYNCs':>7}{'rate Hz':>9}{'|dT-T| p50 us':>15}{'p99 us':>9}{'max us':>9}"
+              f"{'samples':>9}{'lost':>7}")
+        for producer in producers:
+            try:
+                r = paced(bus, producer, args.period_s, args.duration_s)
+            except BenchFault as exc:   # e.g. an emulator starved at this rate: a result, not a crash
+                print(f"{producer:<10}bench fault: {str(exc)[:150]}")
+                continue
+            print(f"{r['producer']:<10}{r['syncs_seen']:>7}{r['rate_hz']:>9.1f}{r['p50_us']:>15.0f}"
+                  f"{r['p99_us']:>9.0f}{r['max_us']:>9.0f}{r['samples']:>9}{r['lost']:>7}")
+        r = lockstep(bus, args.period_s, args.lockstep_samples)
+        print(f"lockstep on {bus}: {r['samples']} samples of both drives in {r['wall_s']:.1f} s = "
+              f"{r['samples_per_s']:.0f} samples/s, lost {r['lost']}")
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(30)
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,86 @@
+"""From recorded steps to results: the sequencer's bridge to the pure analysis.
+
+Recorded steps carry columns ``<motor>.<quantity>``; the analysis functions take
+the single-motor and bench layouts. This module only re-arranges columns and
+calls ``gearbench.analysis``; no numbers are computed here.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..analysis.calibration import MotorCalibration, calibrate_motor
+from ..analysis.efficiency import efficiency as _efficiency
+from .recorder import bench_trace, motor_trace
+from ..errors import TraceError
+from ..trace import Trace
+
+MAX_LOST_FRACTION = 0.01   # more lost samples than this: the step is not analysed
+
+
+def fill_lost_samples(step: Trace) -> Trace:
+    """Put a recorded step back on its regular sample grid.
+
+    Samples lost on the bus leave gaps in the ``sample`` counter. Up to 1 % of a
+    step is filled by linear interpolation (the count goes into ``meta``) so the
+    derivative filters stay aligned; more than that is refused, never hidden.
+    """
+    if "sample" not in step or len(step) < 2:
+        return step
+    idx = np.asarray(step["sample"], dtype=np.int64)
+    full = np.arange(idx[0], idx[-1] + 1)
+    missing = len(full) - len(idx)
+    if missing == 0:
+        return step
+    if missing > MAX_LOST_FRACTION * len(full):
+        raise TraceError(f"step {step.source}: {missing} of {len(full)} samples were lost on the "
+                         f"bus; check the bus load/wiring and repeat the step")
+    per = (step.time_s[-1] - step.time_s[0]) / (idx[-1] - idx[0])
+    cols = {n: np.interp(full, idx, step[n]) for n in step.names if n != "sample"}
+    meta = dict(step.meta, interpolated_samples=int(missing))
+    return Trace(step.time_s[0] + (full - idx[0]) * per, {"sample": full, **cols}, meta, step.source)
+
+
+def calibrate(unloaded: Trace, loaded: Trace, *, motor: str, disk_kgm2: float,
+              method: str = "default", disk_std_kgm2: float = 0.0, disk_name: str = "") -> dict:
+    """Kt, J, D, Tc of ``motor`` from its unloaded and disk runs (corrected eq. 17);
+    ``disk_std_kgm2`` (the disk's standard uncertainty) enters Kt's uncertainty and
+    ``disk_name`` records which disk (motors sharing one share its error)."""
+    fu, fl = fill_lost_samples(unloaded), fill_lost_samples(loaded)
+    u, l_ = motor_trace(fu, motor), motor_trace(fl, motor)
+    u.source, l_.source = f"step {unloaded.source}", f"step {loaded.source}"
+    out = calibrate_motor(u, l_, disk_kgm2, method=method, disk_std_kgm2=disk_std_kgm2,
+                          disk_name=disk_name).to_dict()
+    # interpolated samples are stated with the result they entered (positions: result.json lost_at_sample)
+    out["interpolated_samples"] = fu.meta.get("interpolated_samples", 0) + fl.meta.get("interpolated_samples", 0)
+    return out
+
+
+def efficiency(step: Trace, motor_in: dict, motor_out: dict, *, ratio: float | None,
+               settle_s: float, skip_samples: int = 0,
+               windows: list[tuple[int, int]] | None = None, incremental: str = "secant") -> dict:
+    """Efficiency points of one recorded efficiency segment (eq. 18 and P_out/P_in).
+
+    ``motor_in``/``motor_out`` are calibration dicts, or ``{"Kt": ...}`` alone (datasheet
+    value, no loss model) for a motor the profile does not calibrate. ``windows``: the
+    steady ranges as drive sample-counter values [first, last) (an adaptive run's
+    settled levels); they survive filled-in lost samples."""
+    filled = fill_lost_samples(step)
+    trimmed = filled.slice(skip_samples, None)
+    ranges = None
+    if windows is not None:
+        counter = np.asarray(trimmed["sample"], dtype=np.int64)
+        ranges = [(int(np.searchsorted(counter, a)), int(np.searchsorted(counter, b))) for a, b in windows]
+    bench = bench_trace(trimmed)
+    bench.source = f"step {step.source}"
+    m_in, m_out = _calibration(motor_in, "motor in"), _calibration(motor_out, "motor out")
+    out = _efficiency(bench, m_in, m_out, ratio=ratio, settle_s=settle_s, windows=ranges,
+                      incremental=incremental).to_dict()
+    for pt in out.get("points", []):
+        pt["interpolated_samples"] = filled.meta.get("interpolated_samples", 0)
+    return out
+
+
+def _calibration(d: dict, where: str) -> MotorCalibration:
+    if set(d) == {"Kt"}:
+        return MotorCalibration.from_kt(d["Kt"], where)
+    return MotorCalibration.from_dict(d, where)
