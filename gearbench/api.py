@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable
 
+from .analysis.calibration import MotorCalibration
+from .analysis.efficiency import EfficiencyPoint
 from .drives.base import AxisConfig, DriveNetwork
 from .drives.registry import network_class
 from .errors import Aborted, GearbenchError
@@ -36,7 +38,7 @@ from .station.sequencer import AutoOperator
 from .sim.truth import truth_of
 
 __all__ = ["load_profile", "open_network", "open_bench", "run_profile", "Bench", "RunResult",
-           "MotorResult", "EfficiencyPointResult", "LimitCheck", "AutoOperator", "TerminalOperator"]
+           "MotorCalibration", "EfficiencyPoint", "MotorResult", "EfficiencyPointResult", "LimitCheck", "AutoOperator", "TerminalOperator"]
 
 
 # ---------------------------------------------------------------------- operators
@@ -53,56 +55,10 @@ class TerminalOperator:
 
 
 # ------------------------------------------------------------------ typed results
-def _pair(v) -> tuple[float, float]:
-    return (float(v[0]), float(v[1])) if v is not None else (float("nan"), float("nan"))
-
-
-@dataclass(frozen=True)
-class MotorResult:
-    """One motor's identified parameters (Kt from two inertias, paper eq. 17 corrected)."""
-
-    motor: str
-    kt_nm_per_a: float
-    kt_ci95_nm_per_a: tuple[float, float]
-    inertia_kgm2: float
-    viscous_nm_s_per_rad: float
-    coulomb_nm: float
-    method: str
-    fit: dict = field(default_factory=dict, repr=False)
-
-    @classmethod
-    def from_dict(cls, motor: str, d: dict) -> "MotorResult":
-        """From the ``motors.<m>`` entry of result.json (keys Kt, Kt_ci95, J, D, Tc)."""
-        return cls(motor, float(d["Kt"]), _pair(d.get("Kt_ci95")), float(d.get("J", "nan")),
-                   float(d.get("D", "nan")), float(d.get("Tc", "nan")), str(d.get("method", "")),
-                   dict(d.get("fit") or {}))
-
-
-@dataclass(frozen=True)
-class EfficiencyPointResult:
-    """One operating point (eq. 18 incremental efficiency and P_out/P_in)."""
-
-    speed_setpoint_rad_s: float
-    speed_in_rad_s: float
-    torque_out_nm: float
-    torque_in_nm: float
-    eta_incremental: float
-    eta_incremental_ci95: tuple[float, float]
-    eta_absolute: float
-    eta_absolute_ci95: tuple[float, float]
-    power_in_w: float
-    power_out_w: float
-    out_command_a: float          # output motor current command of this level (the set torque)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "EfficiencyPointResult":
-        """From one entry of result.json's ``efficiency`` list."""
-        return cls(float(d.get("speed_setpoint_rad_s", d["speed_in_rad_s"])), float(d["speed_in_rad_s"]),
-                   float(d["torque_out_nm"]), float(d.get("torque_in_nm", "nan")),
-                   float(d["eta_incremental"]), _pair(d.get("eta_incremental_ci95")),
-                   float(d.get("eta_absolute", "nan")), _pair(d.get("eta_absolute_ci95")),
-                   float(d.get("power_in_w", "nan")), float(d.get("power_out_w", "nan")),
-                   float(d.get("out_command", "nan")))
+# A motor's identification and an efficiency point are the analysis's own frozen
+# dataclasses, the same objects the records carry; the old names stay for one release.
+MotorResult = MotorCalibration
+EfficiencyPointResult = EfficiencyPoint
 
 
 @dataclass(frozen=True)
@@ -136,9 +92,9 @@ class RunResult:
     passed: bool
     exit_code: int
     reason: str
-    motors: dict[str, MotorResult]
+    motors: dict[str, MotorCalibration]
     ratio: float | None
-    efficiency: tuple[EfficiencyPointResult, ...]
+    efficiency: tuple[EfficiencyPoint, ...]
     limits: tuple[LimitCheck, ...]
     out_dir: str
     samples: int
@@ -152,9 +108,9 @@ class RunResult:
         """From a result dict (``run_profile``'s return value or a result.json)."""
         return cls(str(d.get("serial", "")), str(d.get("run_id", "")), str(d.get("profile", "")),
                    str(d["status"]), bool(d["passed"]), int(d["exit_code"]), str(d.get("reason", "")),
-                   {m: MotorResult.from_dict(m, v) for m, v in (d.get("motors") or {}).items()},
+                   {m: MotorCalibration.from_dict(v, f"motors.{m}", m) for m, v in (d.get("motors") or {}).items()},
                    None if d.get("ratio") is None else float(d["ratio"]),
-                   tuple(EfficiencyPointResult.from_dict(p) for p in d.get("efficiency") or ()),
+                   tuple(EfficiencyPoint.from_dict(p) for p in d.get("efficiency") or ()),
                    tuple(LimitCheck.from_dict(x) for x in d.get("limits") or ()),
                    str(d.get("out_dir", "")), int(d.get("samples", 0)), int(d.get("lost_samples", 0)),
                    float(d.get("bench_time_s", 0.0)), float(d.get("wall_time_s", 0.0)), dict(d))
@@ -234,7 +190,7 @@ class Bench:
         return [s for s in self.profile.steps if isinstance(s, kind)
                 and all(getattr(s, k) == v for k, v in match.items())]
 
-    def calibrate(self, motor: str) -> MotorResult:
+    def calibrate(self, motor: str) -> MotorCalibration:
         """Run the profile's calibrate step for ``motor``; its Kt, J, D, Tc."""
         from .profile import CalibrateStep
 
@@ -243,7 +199,7 @@ class Bench:
             raise GearbenchError(f"{self.profile.path}: no calibrate step for motor '{motor}'; "
                                  f"add one under steps: (kind: calibrate, motor: {motor})")
         self.run_step(steps[0])
-        return MotorResult.from_dict(motor, self.sequencer.motors_result[motor])
+        return self.sequencer.calibrations[motor]
 
     def load(self) -> None:
         """The operator mounts the reducer (the profile's load step, or the default prompt)."""
@@ -252,7 +208,7 @@ class Bench:
         steps = self._steps(LoadStep)
         self.run_step(steps[0] if steps else LoadStep(prompt=""))
 
-    def efficiency(self) -> list[EfficiencyPointResult]:
+    def efficiency(self) -> list[EfficiencyPoint]:
         """Run the profile's efficiency step(s); the operating points they measured."""
         from .profile import EfficiencyStep
 
@@ -260,20 +216,20 @@ class Bench:
         if not steps:
             raise GearbenchError(f"{self.profile.path}: no efficiency step; add one under steps: "
                                  f"(kind: efficiency, speeds_in_rad_s: [...], torques_out_nm: [...])")
-        n0 = len(self.sequencer.efficiency)
+        n0 = len(self.sequencer.points)
         for s in steps:
             self.run_step(s)
-        return [EfficiencyPointResult.from_dict(p) for p in self.sequencer.efficiency[n0:]]
+        return self.sequencer.points[n0:]
 
     @property
-    def motors(self) -> dict[str, MotorResult]:
+    def motors(self) -> dict[str, MotorCalibration]:
         """Motors calibrated so far."""
-        return {m: MotorResult.from_dict(m, d) for m, d in self.sequencer.motors_result.items()}
+        return dict(self.sequencer.calibrations)
 
     @property
-    def points(self) -> list[EfficiencyPointResult]:
+    def points(self) -> list[EfficiencyPoint]:
         """Efficiency points measured so far, in run order."""
-        return [EfficiencyPointResult.from_dict(p) for p in self.sequencer.efficiency]
+        return list(self.sequencer.points)
 
     def kt_used(self, motor: str) -> float:
         """The Kt the next steps use for ``motor``: calibrated, else the datasheet's."""

@@ -45,6 +45,31 @@ class MotorCalibration:
     loss_covariance: tuple[tuple[float, float], tuple[float, float]] = ((0.0, 0.0), (0.0, 0.0))
     Kt_std: float = 0.0
     Kt_dof: float = DOF_MAX
+    # where it came from on a bench: the motor's name in the profile, and how many lost
+    # samples were filled in before the fit (a station sets both)
+    motor: str = ""
+    interpolated_samples: int = 0
+
+    # the same numbers under SI-suffixed names (the Python API's spelling)
+    @property
+    def kt_nm_per_a(self) -> float:
+        return self.Kt
+
+    @property
+    def kt_ci95_nm_per_a(self) -> tuple[float, float]:
+        return self.Kt_ci95
+
+    @property
+    def inertia_kgm2(self) -> float:
+        return self.J
+
+    @property
+    def viscous_nm_s_per_rad(self) -> float:
+        return self.D
+
+    @property
+    def coulomb_nm(self) -> float:
+        return self.Tc
 
     def loss_torque_nm(self, speed_rad_s: float) -> float:
         """Friction torque D ω + Tc sign(ω) the motor itself consumes at ``speed_rad_s``."""
@@ -54,11 +79,13 @@ class MotorCalibration:
         return {"Kt": self.Kt, "Kt_std": self.Kt_std, "Kt_dof": self.Kt_dof,
                 "Kt_ci95": list(self.Kt_ci95), "J": self.J, "D": self.D,
                 "Tc": self.Tc, "method": self.method,
-                "fit": {**self.fit, "loss_covariance": [list(r) for r in self.loss_covariance]}}
+                "fit": {**self.fit, "loss_covariance": [list(r) for r in self.loss_covariance]},
+                **({"interpolated_samples": self.interpolated_samples} if self.motor else {})}
 
     @classmethod
-    def from_dict(cls, d: dict, where: str = "calibration") -> "MotorCalibration":
-        """Read a ``calibrate --json`` object; raise naming ``where`` and the key."""
+    def from_dict(cls, d: dict, where: str = "calibration", motor: str = "") -> "MotorCalibration":
+        """Read a ``calibrate --json`` object (or a ``motors.<m>`` entry of result.json,
+        ``motor`` its name); raise naming ``where`` and the key."""
         if not isinstance(d, dict):
             raise GearbenchError(f"{where}: expected a JSON object from 'gearbench calibrate "
                                  f"--json', got {type(d).__name__}")
@@ -97,7 +124,8 @@ class MotorCalibration:
         except (TypeError, ValueError, AssertionError):
             raise GearbenchError(f"{where}: 'fit.loss_covariance' must be a 2x2 list") from None
         return cls(vals["Kt"], (lo, hi), vals["J"], vals["D"], vals["Tc"],
-                   str(d.get("method", "unknown")), fit, loss_cov, unc["Kt_std"], unc["Kt_dof"])
+                   str(d.get("method", "unknown")), fit, loss_cov, unc["Kt_std"], unc["Kt_dof"],
+                   motor, int(d.get("interpolated_samples", 0) or 0))
 
     @classmethod
     def from_kt(cls, kt: float, where: str = "--kt") -> "MotorCalibration":

@@ -31,7 +31,7 @@ speed range its calibration runs covered (``loss_extrapolated``).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -68,7 +68,7 @@ class SteadyWindow:
 
 @dataclass(frozen=True)
 class EfficiencyPoint:
-    window: SteadyWindow
+    window: SteadyWindow = field(compare=False)   # its statistics are not all written out
     speed_in_rad_s: float
     torque_in_nm: float           # delivered into the input shaft, along its rotation
     torque_out_nm: float          # delivered by the output shaft, along its rotation (load)
@@ -94,6 +94,44 @@ class EfficiencyPoint:
     incremental_method: str = "secant"
     eta_incremental_secant: float | None = None
     eta_incremental_secant_ci95: tuple[float, float] | None = None
+    # set by a station: the speed the profile commanded (the point's stable name) and how
+    # many lost samples were filled in
+    speed_setpoint_rad_s: float | None = None
+    interpolated_samples: int = 0
+
+    @property
+    def out_command_a(self) -> float:
+        """The output motor's current command of this level (the set braking torque)."""
+        return self.window.out_command
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "EfficiencyPoint":
+        """From one entry of result.json's ``efficiency`` (or ``gearbench efficiency --json``).
+        The window's statistics that are not written out (sample range, mean currents) come
+        back as 0 / NaN; everything ``to_dict`` writes round-trips."""
+        nan = float("nan")
+
+        def pair(v):
+            return (nan, nan) if v is None else (float(v[0]), float(v[1]))
+
+        def opt_pair(v):
+            return None if v is None else pair(v)
+        w = SteadyWindow(0, 0, float(d.get("t_mid_s", nan)), float(d.get("in_command", nan)),
+                         float(d.get("out_command", nan)), nan, nan, nan, nan,
+                         float(d["speed_in_rad_s"]), float(d.get("speed_out_rad_s", nan)))
+        sp = d.get("speed_setpoint_rad_s")
+        return cls(w, float(d["speed_in_rad_s"]), float(d.get("torque_in_nm", nan)), float(d["torque_out_nm"]),
+                   float(d.get("delta_current_in_a", nan)), float(d.get("delta_current_out_a", nan)),
+                   float(d["eta_incremental"]), pair(d.get("eta_incremental_ci95")),
+                   float(d.get("eta_absolute", nan)), pair(d.get("eta_absolute_ci95")),
+                   float(d.get("power_in_w", nan)), float(d.get("power_out_w", nan)),
+                   bool(d.get("loss_extrapolated", False)), opt_pair(d.get("loss_speed_range_in_rad_s")),
+                   opt_pair(d.get("loss_speed_range_out_rad_s")),
+                   float(d.get("eta_incremental_std", 0.0)), float(d.get("eta_incremental_dof", DOF_MAX)),
+                   float(d.get("eta_absolute_std", 0.0)), float(d.get("eta_absolute_dof", DOF_MAX)),
+                   str(d.get("incremental_method", "secant")), d.get("eta_incremental_secant"),
+                   opt_pair(d.get("eta_incremental_secant_ci95")),
+                   None if sp is None else float(sp), int(d.get("interpolated_samples", 0) or 0))
 
     def to_dict(self) -> dict:
         w = self.window
@@ -116,7 +154,10 @@ class EfficiencyPoint:
                 "t_mid_s": w.t_mid_s, "speed_out_rad_s": w.speed_out_rad_s,
                 "loss_extrapolated": self.loss_extrapolated,
                 "loss_speed_range_in_rad_s": _as_list(self.loss_speed_range_in_rad_s),
-                "loss_speed_range_out_rad_s": _as_list(self.loss_speed_range_out_rad_s)}
+                "loss_speed_range_out_rad_s": _as_list(self.loss_speed_range_out_rad_s),
+                **({} if self.speed_setpoint_rad_s is None else
+                   {"interpolated_samples": self.interpolated_samples,
+                    "speed_setpoint_rad_s": self.speed_setpoint_rad_s})}
 
 
 def _as_list(r):

@@ -6,9 +6,12 @@ calls ``gearbench.analysis``; no numbers are computed here.
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from ..analysis.calibration import MotorCalibration, calibrate_motor
+from ..analysis.efficiency import EfficiencyResult
 from ..analysis.efficiency import efficiency as _efficiency
 from .recorder import bench_trace, motor_trace
 from ..errors import TraceError
@@ -41,29 +44,27 @@ def fill_lost_samples(step: Trace) -> Trace:
 
 
 def calibrate(unloaded: Trace, loaded: Trace, *, motor: str, disk_kgm2: float,
-              method: str = "default", disk_std_kgm2: float = 0.0, disk_name: str = "") -> dict:
+              method: str = "default", disk_std_kgm2: float = 0.0, disk_name: str = "") -> MotorCalibration:
     """Kt, J, D, Tc of ``motor`` from its unloaded and disk runs (corrected eq. 17);
     ``disk_std_kgm2`` (the disk's standard uncertainty) enters Kt's uncertainty and
     ``disk_name`` records which disk (motors sharing one share its error)."""
     fu, fl = fill_lost_samples(unloaded), fill_lost_samples(loaded)
     u, l_ = motor_trace(fu, motor), motor_trace(fl, motor)
     u.source, l_.source = f"step {unloaded.source}", f"step {loaded.source}"
-    out = calibrate_motor(u, l_, disk_kgm2, method=method, disk_std_kgm2=disk_std_kgm2,
-                          disk_name=disk_name).to_dict()
+    cal = calibrate_motor(u, l_, disk_kgm2, method=method, disk_std_kgm2=disk_std_kgm2, disk_name=disk_name)
     # interpolated samples are stated with the result they entered (positions: result.json lost_at_sample)
-    out["interpolated_samples"] = fu.meta.get("interpolated_samples", 0) + fl.meta.get("interpolated_samples", 0)
-    return out
+    filled = fu.meta.get("interpolated_samples", 0) + fl.meta.get("interpolated_samples", 0)
+    return replace(cal, motor=motor, interpolated_samples=filled)
 
 
-def efficiency(step: Trace, motor_in: dict, motor_out: dict, *, ratio: float | None,
-               settle_s: float, skip_samples: int = 0,
-               windows: list[tuple[int, int]] | None = None, incremental: str = "secant") -> dict:
-    """Efficiency points of one recorded efficiency segment (eq. 18 and P_out/P_in).
-
-    ``motor_in``/``motor_out`` are calibration dicts, or ``{"Kt": ...}`` alone (datasheet
-    value, no loss model) for a motor the profile does not calibrate. ``windows``: the
-    steady ranges as drive sample-counter values [first, last) (an adaptive run's
-    settled levels); they survive filled-in lost samples."""
+def efficiency(step: Trace, motor_in: MotorCalibration, motor_out: MotorCalibration, *,
+               ratio: float | None, settle_s: float, speed_setpoint_rad_s: float,
+               skip_samples: int = 0, windows: list[tuple[int, int]] | None = None,
+               incremental: str = "secant") -> EfficiencyResult:
+    """Efficiency points of one recorded efficiency segment (eq. 18 and P_out/P_in), each
+    stamped with the commanded speed. ``windows``: the steady ranges as drive
+    sample-counter values [first, last) (an adaptive run's settled levels); they survive
+    filled-in lost samples."""
     filled = fill_lost_samples(step)
     trimmed = filled.slice(skip_samples, None)
     ranges = None
@@ -72,15 +73,8 @@ def efficiency(step: Trace, motor_in: dict, motor_out: dict, *, ratio: float | N
         ranges = [(int(np.searchsorted(counter, a)), int(np.searchsorted(counter, b))) for a, b in windows]
     bench = bench_trace(trimmed)
     bench.source = f"step {step.source}"
-    m_in, m_out = _calibration(motor_in, "motor in"), _calibration(motor_out, "motor out")
-    out = _efficiency(bench, m_in, m_out, ratio=ratio, settle_s=settle_s, windows=ranges,
-                      incremental=incremental).to_dict()
-    for pt in out.get("points", []):
-        pt["interpolated_samples"] = filled.meta.get("interpolated_samples", 0)
-    return out
-
-
-def _calibration(d: dict, where: str) -> MotorCalibration:
-    if set(d) == {"Kt"}:
-        return MotorCalibration.from_kt(d["Kt"], where)
-    return MotorCalibration.from_dict(d, where)
+    res = _efficiency(bench, motor_in, motor_out, ratio=ratio, settle_s=settle_s, windows=ranges,
+                      incremental=incremental)
+    n_filled = filled.meta.get("interpolated_samples", 0)
+    return replace(res, points=tuple(replace(p, speed_setpoint_rad_s=speed_setpoint_rad_s,
+                                             interpolated_samples=n_filled) for p in res.points))

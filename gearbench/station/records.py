@@ -19,6 +19,9 @@ from typing import Callable, Iterable
 
 import numpy as np
 
+from ..analysis.calibration import MotorCalibration
+from ..analysis.efficiency import EfficiencyPoint as AnalysedPoint
+
 
 @dataclass(frozen=True)
 class Record:
@@ -96,20 +99,30 @@ class Progress(Record):
 
 @dataclass(frozen=True)
 class Calibration(Record):
-    """A motor's identified parameters: keys Kt, Kt_ci95, J, D, Tc, method, fit."""
+    """A motor's identification (``gearbench.analysis.calibration.MotorCalibration``)."""
 
     motor: str
-    params: dict
+    result: MotorCalibration
     kind = "calibration"
+
+    @property
+    def params(self) -> dict:
+        """As written out (result.json ``motors.<m>``)."""
+        return self.result.to_dict()
 
 
 @dataclass(frozen=True)
 class EfficiencyPoint(Record):
-    """One operating point: speed_in_rad_s, torque_out_nm, eta_incremental,
-    eta_absolute and intervals."""
+    """One operating point (``gearbench.analysis.efficiency.EfficiencyPoint``: eq. 18's
+    incremental and the absolute efficiency, with intervals)."""
 
-    point: dict
+    result: AnalysedPoint
     kind = "efficiency_point"
+
+    @property
+    def point(self) -> dict:
+        """As written out (one entry of result.json ``efficiency``)."""
+        return self.result.to_dict()
 
 
 @dataclass(frozen=True)

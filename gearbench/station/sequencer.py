@@ -32,7 +32,9 @@ from ..errors import Aborted, BenchFault, GearbenchError
 from . import analyse, limits
 from . import plan as planning
 from .plan import Analyse, CalibrationAnalysis, Known, Prompt, Segment
-from .records import (Calibration, EfficiencyPoint, Message, OutputFailure, Progress,
+from ..analysis.efficiency import EfficiencyPoint
+from .records import EfficiencyPoint as EfficiencyPointRecord
+from .records import (Calibration, Message, OutputFailure, Progress,
                       RunStart, RunStop, SampleBatch, StepStart, StepStop)
 from ..trace import Trace
 
@@ -91,8 +93,8 @@ class Sequencer:
         self._samples_total = 1
         self._wall0 = 0.0
         self.traces: dict[str, Trace] = {}
-        self.motors_result: dict[str, dict] = {}
-        self.efficiency: list[dict] = []
+        self.calibrations: dict[str, MotorCalibration] = {}   # motor -> its identification
+        self.points: list[EfficiencyPoint] = []               # every efficiency point so far
         self.ratio: float | None = None
         self.prompts: list[dict] = []              # operator prompts and when each was confirmed
         self.lost_by_step: dict[str, int] = {}
@@ -150,9 +152,9 @@ class Sequencer:
     # -------------------------------------------------------------- the plan
     def known(self) -> Known:
         """What this run has found so far, as later steps' commands need it."""
-        out = self.motors_result.get("out")
+        out = self.calibrations.get("out")
         return Known(kt={m: self._kt(m) for m in self.profile.motors},
-                     loss_out=MotorCalibration.from_dict(out, "motor out").loss_torque_nm if out else None,
+                     loss_out=out.loss_torque_nm if out else None,
                      b2_unloaded=self._b2_unloaded)
 
     def plan(self) -> list:
@@ -172,8 +174,8 @@ class Sequencer:
         return self.adaptive[segment].b2.get(motor, float("nan"))
 
     def _kt(self, motor: str) -> float:
-        if motor in self.motors_result:
-            return float(self.motors_result[motor]["Kt"])
+        if motor in self.calibrations:
+            return self.calibrations[motor].Kt
         return float(self.profile.motors[motor].kt_datasheet)
 
     # ------------------------------------------------------------------- run
@@ -422,7 +424,7 @@ class Sequencer:
             unloaded, loaded = (self._motor_run(self.traces[name], m) for name in (action.unloaded, action.loaded))
             cal = analyse.calibrate(unloaded, loaded, motor=m, disk_kgm2=action.disk_kgm2, method=self.method,
                                     disk_std_kgm2=action.disk_std_kgm2, disk_name=action.disk_name)
-            self.motors_result[m] = cal
+            self.calibrations[m] = cal
             self.emit(Calibration(m, cal))
             return
         seg = self.traces[action.segment]
@@ -430,17 +432,28 @@ class Sequencer:
         if "windows" not in seg.meta and ("windows", action.segment) in self._recorded:
             seg.meta["windows"] = self._recorded[("windows", action.segment)]
         adaptive = "windows" in seg.meta or action.adaptive
-        res = analyse.efficiency(seg, self.motors_result.get("in") or {"Kt": self._kt("in")},
-                                 self.motors_result.get("out") or {"Kt": self._kt("out")},
+        res = analyse.efficiency(seg, self._calibration("in"), self._calibration("out"),
                                  ratio=ratio, settle_s=seg.meta["settle_s"],
-                                 skip_samples=seg.meta["n_ramp"],
-                                 windows=seg.meta.get("windows"),
+                                 speed_setpoint_rad_s=action.speed_rad_s,
+                                 skip_samples=seg.meta["n_ramp"], windows=seg.meta.get("windows"),
                                  incremental="slope" if adaptive else "secant")
-        self.ratio = res["ratio"]
-        for pt in res["points"]:
-            pt.setdefault("speed_setpoint_rad_s", action.speed_rad_s)
-            self.efficiency.append(pt)
-            self.emit(EfficiencyPoint(pt))
+        self.ratio = res.ratio
+        for pt in res.points:
+            self.points.append(pt)
+            self.emit(EfficiencyPointRecord(pt))
+
+    def _calibration(self, motor: str) -> MotorCalibration:
+        """The motor's calibration, else its datasheet Kt alone (no loss model)."""
+        return self.calibrations.get(motor) or MotorCalibration.from_kt(self._kt(motor), f"motor {motor}")
+
+    # results as written out (result.json, limits): plain dicts made in one place
+    @property
+    def motors_result(self) -> dict[str, dict]:
+        return {m: c.to_dict() for m, c in self.calibrations.items()}
+
+    @property
+    def efficiency(self) -> list[dict]:
+        return [p.to_dict() for p in self.points]
 
     def _motor_run(self, trace: Trace, motor: str) -> Trace:
         ctl = self.adaptive.get(trace.source)

@@ -16,6 +16,8 @@ from typing import Callable, Iterator
 
 import numpy as np
 
+from ...analysis.calibration import MotorCalibration
+from ...analysis.efficiency import EfficiencyPoint as AnalysedPoint
 from ...errors import GearbenchError
 from ...station.records import (Calibration, EfficiencyPoint, LimitResult, Record, RunStart, RunStop,
                        SampleBatch, StepStart, StepStop)
@@ -111,10 +113,15 @@ def replay_records(result_dir: str | Path, *, batch: int = REPLAY_BATCH) -> Iter
         lost = int(np.sum(np.diff(sample) - 1)) if len(sample) > 1 else 0
         yield StepStop(name, "ok", len(trace), max(lost, 0))
     for motor, params in (result.get("motors") or {}).items():
-        if isinstance(params, dict):
-            yield Calibration(motor, params)
+        try:
+            yield Calibration(motor, MotorCalibration.from_dict(params, f"motors.{motor}", motor))
+        except GearbenchError:
+            continue   # a run that ended before this motor's calibration was complete
     for point in result.get("efficiency") or []:
-        yield EfficiencyPoint(point)
+        try:
+            yield EfficiencyPoint(AnalysedPoint.from_dict(point))
+        except (KeyError, TypeError, ValueError):
+            continue
     for lim in result.get("limits") or []:
         yield LimitResult(str(lim["name"]), lim.get("value"), lim.get("low"), lim.get("high"),
                           bool(lim.get("passed")), str(lim.get("quantity", "")))
