@@ -36,6 +36,20 @@ from .profile import load_profile
 from .station.records import RecordStream
 from .station.sequencer import AutoOperator
 from .sim.truth import truth_of
+from .profile import CalibrateStep
+from .profile import LoadStep
+from .profile import EfficiencyStep
+from .station.config import central_url
+from .fleet.push import CentralPush
+from .station.console import ProgressDisplay
+from .fleet.reanalysis import ProfileSnapshot
+from .station.recorder import ParquetRecorder
+from .station.results import ResultWriter
+from .station.sequencer import Sequencer
+from .station.database import StationDatabase
+from .drives.devicecheck import require_devices
+from .reports.live import open_live_view
+from .emulate.launch import SimBench
 
 __all__ = ["load_profile", "open_network", "open_bench", "run_profile", "Bench", "RunResult",
            "MotorCalibration", "EfficiencyPoint", "MotorResult", "EfficiencyPointResult", "LimitCheck", "AutoOperator", "TerminalOperator"]
@@ -64,7 +78,6 @@ EfficiencyPointResult = EfficiencyPoint
 @dataclass(frozen=True)
 class LimitCheck:
     """One profile limit applied to one value (efficiency limits: one per point)."""
-
     name: str
     quantity: str
     value: float | None
@@ -84,7 +97,6 @@ class RunResult:
 
     ``status``: passed | failed (a limit) | fault | aborted; ``exit_code`` 0 / 1 / 3.
     """
-
     serial: str
     run_id: str
     profile: str
@@ -192,8 +204,6 @@ class Bench:
 
     def calibrate(self, motor: str) -> MotorCalibration:
         """Run the profile's calibrate step for ``motor``; its Kt, J, D, Tc."""
-        from .profile import CalibrateStep
-
         steps = self._steps(CalibrateStep, motor=motor)
         if not steps:
             raise GearbenchError(f"{self.profile.path}: no calibrate step for motor '{motor}'; "
@@ -203,15 +213,11 @@ class Bench:
 
     def load(self) -> None:
         """The operator mounts the reducer (the profile's load step, or the default prompt)."""
-        from .profile import LoadStep
-
         steps = self._steps(LoadStep)
         self.run_step(steps[0] if steps else LoadStep(prompt=""))
 
     def efficiency(self) -> list[EfficiencyPoint]:
         """Run the profile's efficiency step(s); the operating points they measured."""
-        from .profile import EfficiencyStep
-
         steps = self._steps(EfficiencyStep)
         if not steps:
             raise GearbenchError(f"{self.profile.path}: no efficiency step; add one under steps: "
@@ -276,18 +282,8 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
     ``$GEARBENCH_CENTRAL`` or the station config), is pushed to it after it ends —
     whoever opens the bench (CLI, script, OpenHTF).
     """
-    from .station.config import central_url
-    from .fleet.push import CentralPush
-    from .station.console import ProgressDisplay
-    from .fleet.reanalysis import ProfileSnapshot
-    from .station.recorder import ParquetRecorder
-    from .station.results import ResultWriter
-    from .station.sequencer import Sequencer
-    from .station.database import StationDatabase
-
     if not hasattr(profile, "steps"):
         profile = load_profile(profile)
-    from .drives.devicecheck import require_devices
     require_devices(profile)   # every drive description checked, all problems at once, before anything moves
     if sim and not profile.simulation:
         raise GearbenchError(f"{profile.path}: --sim needs a 'simulation:' section describing "
@@ -311,14 +307,12 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
     with contextlib.ExitStack() as stack:
         stack.callback(stream.close)
         if rrd or live or connect:
-            from .reports.live import open_live_view
 
             view = open_live_view(live=live, connect=connect, rrd=rrd)
             if view is not None:
                 stream.subscribe(view)
         bus = profile.bench.bus
         if sim:
-            from .emulate.launch import SimBench
 
             simbench = stack.enter_context(SimBench(profile, seed=seed))
             fixture, bus = fixture or simbench, simbench.bus_spec()
@@ -355,7 +349,6 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
 
 class _NoDrives(DriveNetwork):
     """Stands in for a network that could not be opened, so a failed start is recorded."""
-
     family = "none"
 
     def open(self) -> None: ...

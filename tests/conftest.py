@@ -99,3 +99,22 @@ def cvt_sim_run(tmp_path_factory):
               f"{json.loads((out / 'result.json').read_text()).get('reason', '')[:300]}")
     assert p.returncode == 0, p.stderr[-3000:]
     return out
+
+
+def start_emulator(can: str):
+    """``gearbench emulate --can CAN`` in a child process, once it says ``ready``."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", "gearbench", "emulate", "--can", str(can)],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    ready = proc.stdout.readline().strip()
+    assert ready == "ready", proc.stderr.read()
+    return proc
+
+
+def emulator_command(proc, cmd: dict) -> dict:
+    """One fixture command (JSON line) to a ``gearbench emulate`` child, and its answer."""
+    proc.stdin.write(json.dumps(cmd) + "\n")
+    proc.stdin.flush()
+    return json.loads(proc.stdout.readline())

@@ -3,7 +3,6 @@
 The bus is ``bus_for_tests()``: socketcan on $GEARBENCH_VCAN when set (CI with vcan),
 else udp_multicast on a free port. Test ids and output name the bus used.
 """
-import json
 import math
 import os
 import signal
@@ -16,6 +15,7 @@ import pytest
 from canopen import Network
 from canopen.profiles.p402 import BaseNode402
 
+from conftest import emulator_command, start_emulator
 from gearbench.drives.base import AxisConfig, Mode
 from gearbench.drives.buses import bus_for_tests
 from gearbench.drives.cia402 import CiA402Network
@@ -32,20 +32,14 @@ SLOW_NET = dict(heartbeat_ms=500, timeout_s=20.0, sdo_timeout_s=10.0, state_time
 def emulator(request):
     bus = request.param
     print(f"\nCANopen tests over {bus}")
-    proc = subprocess.Popen([sys.executable, "-m", "gearbench", "emulate", "--can", str(bus)],
-                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    ready = proc.stdout.readline().strip()
-    assert ready == "ready", proc.stderr.read()
+    proc = start_emulator(bus)
     yield bus, proc
     if proc.poll() is None:
         proc.send_signal(signal.SIGTERM)
         proc.wait(10)
 
 
-def fixture_cmd(proc, cmd: dict) -> dict:
-    proc.stdin.write(json.dumps(cmd) + "\n")
-    proc.stdin.flush()
-    return json.loads(proc.stdout.readline())
+fixture_cmd = emulator_command
 
 
 def test_independent_basenode402_client_turns_the_motor(emulator):

@@ -13,18 +13,16 @@ Debian's ``candump`` records the bus as an independent witness of what went over
 """
 from __future__ import annotations
 
-import json
 import os
 import signal
 import statistics
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 
-from conftest import in_ci, require_tool
+from conftest import emulator_command, in_ci, require_tool, start_emulator
 from gearbench.drives.base import AxisConfig, Mode
 from gearbench.drives.cia402 import CiA402Network
 from gearbench.errors import BenchFault
@@ -66,19 +64,13 @@ def deadline():
 
 @pytest.fixture(scope="module", params=[BUS], ids=[ID])
 def emulator(vcan, request):
-    proc = subprocess.Popen([sys.executable, "-m", "gearbench", "emulate", "--can", request.param],
-                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    ready = proc.stdout.readline().strip()
-    assert ready == "ready", proc.stderr.read()
+    proc = start_emulator(request.param)
     yield proc
     proc.send_signal(signal.SIGTERM)
     proc.wait(30)
 
 
-def command(proc, cmd: dict) -> dict:
-    proc.stdin.write(json.dumps(cmd) + "\n")
-    proc.stdin.flush()
-    return json.loads(proc.stdout.readline())
+command = emulator_command
 
 
 class Candump:

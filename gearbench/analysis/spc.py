@@ -105,8 +105,42 @@ def run_rules(z: np.ndarray, mr: np.ndarray | None = None, mr_ucl: float | None 
 
 def individuals_chart(values, *, quantity: str = "", baseline: int | None = None,
                       rules: tuple[str, ...] | None = None) -> ControlChart:
-    """An individuals / moving-range chart of ``values`` in time order, flagging the
-    ``rules`` given (default: all of ``RULES``)."""
+    """An individuals / moving-range chart of ``values`` in time order.
+
+    Limits from the first ``baseline`` points (phase I): centre = their mean, sigma =
+    MR-bar/d2, limits centre ± 3 sigma; moving-range limit D4·MR-bar (module docstring).
+
+    Parameters
+    ----------
+    values : array_like
+        The quantity per run, in time order (at least ``MIN_POINTS``, all finite).
+    quantity : str, optional
+        Its name, for messages and the chart.
+    baseline : int, optional
+        Points that set the limits (default ``DEFAULT_BASELINE``, at most all).
+    rules : tuple of str, optional
+        Which of ``RULES`` to flag (default: all).
+
+    Returns
+    -------
+    ControlChart
+        Centre, limits and the rules each point breaks.
+
+    References
+    ----------
+    Western Electric Co., *Statistical Quality Control Handbook*, 1956 (rules 1-4);
+    L. S. Nelson, "The Shewhart control chart — tests for special causes", J. Quality
+    Technology 16(4), 1984 (rule 5); D. C. Montgomery, *Introduction to Statistical
+    Quality Control*, 7th ed., sec. 6.4 (individuals and moving-range charts, d2, D4).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> x = np.r_[np.random.default_rng(0).normal(1.0, 0.01, 30), 1.1]
+    >>> chart = individuals_chart(x, quantity="Kt")
+    >>> 30 in chart.flags and "1" in chart.flags[30]
+    True
+    """
     x = np.asarray(values, float)
     if len(x) < MIN_POINTS or not np.all(np.isfinite(x)):
         raise GearbenchError(f"{quantity or 'series'}: {len(x)} finite values; a control chart needs "

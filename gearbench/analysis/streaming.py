@@ -192,9 +192,39 @@ def _tapered_mean(x: np.ndarray) -> float:
 
 
 def slope_fit(x: np.ndarray, y: np.ndarray, sem_y: np.ndarray, sem_x: np.ndarray | None = None):
-    """Weighted straight line y = a + b x through level means with known standard errors
-    (the x errors enter through the slope: σ² = σ_y² + b² σ_x², two passes).
-    Returns (a, b, standard error of b)."""
+    """Weighted straight line y = a + b x through level means with known standard errors.
+
+    The x errors enter through the slope (effective variance σ² = σ_y² + b² σ_x², two
+    passes): the staircase's input current on output current, whose slope is eq. 18's
+    incremental efficiency.
+
+    Parameters
+    ----------
+    x, y : ndarray
+        Level means (A).
+    sem_y : ndarray
+        Standard errors of ``y``.
+    sem_x : ndarray, optional
+        Standard errors of ``x`` (default 0).
+
+    Returns
+    -------
+    a, b, sem_b : float
+        Intercept, slope, and the slope's standard error (NaN, NaN, inf when x does not vary).
+
+    References
+    ----------
+    J. R. Taylor, *An Introduction to Error Analysis*, 2nd ed., sec. 8.4 (errors in
+    both variables, effective variance); T. Yukawa et al., "Estimation of gear
+    efficiency in reduction gears", eq. 18.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> a, b, sb = slope_fit(np.array([0., 1, 2, 3]), np.array([1., 3, 5, 7]), np.full(4, 0.1))
+    >>> round(a, 6), round(b, 6)
+    (1.0, 2.0)
+    """
     x, y, sy = (np.asarray(v, float) for v in (x, y, sem_y))
     sx = np.zeros_like(x) if sem_x is None else np.asarray(sem_x, float)
     b = 0.0

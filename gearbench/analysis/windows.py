@@ -18,6 +18,29 @@ def taper(n: int, alpha: float = TAPER_ALPHA) -> np.ndarray:
     own period count squared) without knowing any period. White noise costs the
     variance factor n·Σw²/(Σw)² = (1 − 5α/8)/(1 − α/2)²: 1.22 for α = 0.5, against
     1.5 for the Hann window (α = 1) this replaced.
+
+    Parameters
+    ----------
+    n : int
+        Samples in the window.
+    alpha : float, optional
+        Fraction of the window in the cosine edges (0: flat mean, 1: Hann).
+
+    Returns
+    -------
+    ndarray
+        Weights, 1 in the middle, falling to 0 at both ends.
+
+    References
+    ----------
+    F. J. Harris, "On the use of windows for harmonic analysis with the discrete
+    Fourier transform", Proc. IEEE 66(1), 1978, sec. V (the Tukey / tapered-cosine window).
+
+    Examples
+    --------
+    >>> w = taper(8)
+    >>> [round(float(v), 3) for v in w]
+    [0.146, 0.854, 1.0, 1.0, 1.0, 1.0, 0.854, 0.146]
     """
     x = (np.arange(n) + 0.5) / n
     if alpha <= 0:

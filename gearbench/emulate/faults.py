@@ -39,8 +39,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..drives.cia402 import STARVED_LIMIT_FACTOR
+from ..station.recorder import read_partial
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 PROFILES = {"canopen": REPO / "tests" / "data" / "faults-canopen.yaml",
             "modbus": REPO / "tests" / "data" / "faults-modbus.yaml"}
 SEGMENT_S = 1.076            # the fault profiles' segments (1 s + fade), world time
@@ -293,8 +294,6 @@ def _traces(out: Path) -> dict:
     import numpy as np
     import pyarrow.parquet as pq
 
-    from ..station.recorder import read_partial
-
     found = {}
     for p in sorted(out.glob("trace-*.parquet")) + sorted(out.glob("trace-*.arrows")):
         try:
@@ -310,34 +309,67 @@ def _safe(step: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", step)
 
 
-def check_run(o: Outcome, fault: Fault) -> None:
-    """Judge a finished run (its folder ``o.run_dir``) against ``fault``'s expectations."""
-    import numpy as np
+@dataclass
+class _Evidence:
+    """What a finished fault run left behind, read once for every invariant."""
+    out: Path                      # the run's output folder
+    db: Path                       # the station database
+    events: list[dict]             # the emulator's journal
+    injected: list[dict]           # journal lines of injected commands (not mounts)
+    result: dict | None            # result.json, if written
+    reason: str                    # the run's stated reason: result.json, else database, else stderr
+    t_fault: float | None          # wall time of the fault
+    arrays: dict                   # trace file -> sample counters
+    unreadable: dict               # trace file -> why it could not be read
 
-    run_dir = Path(o.run_dir)
-    out, db, journal = run_dir / "out" / "run", run_dir / "station.sqlite", run_dir / "journal.jsonl"
-    err = (run_dir / "stderr.txt").read_text(errors="replace")
-    fault_wall = o.figures.get("fault_wall_s")
+
+def check_run(o: Outcome, fault: Fault) -> None:
+    """Judge a finished run (its folder ``o.run_dir``) against ``fault``'s expectations:
+    one entry in ``o.invariants`` per invariant (module docstring), figures in ``o.figures``."""
     o.invariants = inv = {}
-    # --- no process left (the emulator ends by itself when gearbench is gone)
+    inv["no_process_left"] = _no_process_left(o, fault)
+    ev = _evidence(o)
+    inv["exit_code"] = _exit_code(o, fault, ev)
+    inv["drives_stopped"] = _drives_stopped(o, fault, ev)
+    inv["samples_kept"] = _samples_kept(o, fault, ev)
+    inv["no_interpolation"] = _no_interpolation(o, fault, ev)
+    inv["records_consistent"] = _records_consistent(o, fault, ev)
+    o.figures["heartbeat_gaps"] = ((ev.result or {}).get("supervision") or {}).get("heartbeat_gaps")
+    if fault.name == "heartbeat-lost" and ev.result is not None and not o.figures["heartbeat_gaps"]:
+        inv["exit_code"] = (False, "heartbeat stopped but supervision.heartbeat_gaps is 0 (not counted)")
+    if fault.name == "pdo-drop-burst" and ev.result is not None:
+        o.figures["dropped_frames"] = (ev.result.get("supervision") or {}).get("dropped_frames")
+
+
+def _no_process_left(o: Outcome, fault: Fault) -> tuple:
+    """No gearbench or emulator process of the run alive (the emulator ends by itself when
+    gearbench is gone); any left are killed, never left to the next run."""
+    run_dir = Path(o.run_dir)
     deadline = time.monotonic() + 15
     left = _our_processes(str(run_dir))
     while left and time.monotonic() < deadline:
         time.sleep(0.2)
         left = _our_processes(str(run_dir))
     t_gone = None
-    events = _journal(journal)
-    exit_ev = [e for e in events if e.get("event") == "exit"]
+    exit_ev = [e for e in _journal(run_dir / "journal.jsonl") if e.get("event") == "exit"]
+    fault_wall = o.figures.get("fault_wall_s")
     if exit_ev and fault_wall is not None and fault.name == "sigkill-gearbench":
         t_gone = round(exit_ev[-1]["wall_s"] - fault_wall, 2)
         o.figures["emulator_exit_s"] = t_gone
-    for pid in left:      # never leave them to the next run
+    for pid in left:
         try:
             os.kill(pid, signal.SIGKILL)
         except OSError:
             pass
-    inv["no_process_left"] = (not left, f"left: {left}" if left else
-                              (f"emulator ended {t_gone} s after the kill" if t_gone is not None else "none left"))
+    return (not left, f"left: {left}" if left else
+            (f"emulator ended {t_gone} s after the kill" if t_gone is not None else "none left"))
+
+
+def _evidence(o: Outcome) -> _Evidence:
+    run_dir = Path(o.run_dir)
+    out, db = run_dir / "out" / "run", run_dir / "station.sqlite"
+    err = (run_dir / "stderr.txt").read_text(errors="replace")
+    events = _journal(run_dir / "journal.jsonl")
     result = None
     try:
         result = json.loads((out / "result.json").read_text())
@@ -353,160 +385,158 @@ def check_run(o: Outcome, fault: Fault) -> None:
     # the truth where it could be written: result.json, else the station database, else stderr
     reason = str((result or {}).get("reason", "")) or db_reason or err
     o.figures["reason"] = reason.strip().splitlines()[-1][:300] if reason.strip() else ""
-
-    # --- exit code
-    inv["exit_code"] = (o.rc == fault.expect_exit, f"exit {o.rc}, expected {fault.expect_exit}")
-    if fault.reason and o.rc == fault.expect_exit and fault.reason not in reason:
-        inv["exit_code"] = (False, f"exit {o.rc} but the reason does not say {fault.reason!r}: {reason[-300:]}")
-
-    # --- fault instant: the injected command's journal line, or the harness's action
+    # the fault instant: the harness's action, else the injected command's journal line
     injected = [e for e in events if e.get("event") == "command" and e.get("cmd") != "mount"]
+    fault_wall = o.figures.get("fault_wall_s")
     t_fault = fault_wall if fault_wall is not None else (injected[0]["wall_s"] if injected else None)
-    if fault.plan == "mark" and fault_wall is None and fault.expect_exit != 0:
-        inv["exit_code"] = (False, "the planned instant never came (run ended before it)") \
-            if inv["exit_code"][0] else inv["exit_code"]
     o.figures["fault_t_s"] = injected[0]["t_s"] if injected else None
+    traces = _traces(out) if out.exists() else {}
+    return _Evidence(out, db, events, injected, result, reason, t_fault,
+                     {k: v for k, v in traces.items() if not isinstance(v, str)},
+                     {k: v for k, v in traces.items() if isinstance(v, str)})
 
-    # --- drives stopped: final state of each axis and when it got there
+
+def _exit_code(o: Outcome, fault: Fault, ev: _Evidence) -> tuple:
+    ok = (o.rc == fault.expect_exit, f"exit {o.rc}, expected {fault.expect_exit}")
+    if fault.reason and o.rc == fault.expect_exit and fault.reason not in ev.reason:
+        ok = (False, f"exit {o.rc} but the reason does not say {fault.reason!r}: {ev.reason[-300:]}")
+    if fault.plan == "mark" and o.figures.get("fault_wall_s") is None and fault.expect_exit != 0 and ok[0]:
+        ok = (False, "the planned instant never came (run ended before it)")
+    return ok
+
+
+def _drives_stopped(o: Outcome, fault: Fault, ev: _Evidence) -> tuple:
+    """Every axis without torque within the bound after the fault, or named as NOT disabled."""
     final, since = {}, {}
-    for e in events:
+    for e in ev.events:
         if e.get("event") == "state":
             final[e["axis"]] = e["new"]
             since[e["axis"]] = e["wall_s"]
     if fault.name == "sigkill-gearbench":
-        exit_ev = [e for e in events if e.get("event") == "exit"]
-        inv["drives_stopped"] = (None, "nobody left to stop them: lockstep world frozen, emulator "
-                                       f"ended ({exit_ev[0]['why'] if exit_ev else 'no exit line'})")
-    elif fault.name == "sigkill-emulator":
-        named = all(f"'{a}'" in reason and "did NOT" in reason for a in ("in", "out"))
-        inv["drives_stopped"] = (named, "both drives named as NOT disabled" if named
-                                 else f"the stop report does not name both dead drives: {reason[-300:]}")
-    else:
-        bad, times = [], []
-        for a in sorted(final):
-            if final[a] not in NO_TORQUE:
-                if f"'{a}'" in reason and "did NOT" in reason:
-                    continue     # truthfully reported: gearbench cannot reach it (silent, refusing)
-                bad.append(f"{a} ended {final[a]} and the fault does not name it")
-            elif t_fault is not None and since[a] >= t_fault:
-                times.append(since[a] - t_fault)
-        # a silence verdict comes after the silence limit; an emulated drive starved of CPU is
-        # given up to STARVED_LIMIT_FACTOR limits (drives.cia402), counted in the result
-        starved = ((result or {}).get("supervision") or {}).get("starved_deferrals")
-        bound = STOP_BOUND_S + (SILENCE_S * (STARVED_LIMIT_FACTOR if starved else 1)
-                                if fault.name in ("drive-silent", "modbus-disconnect", "modbus-slow") else 0.0)
-        # lost samples are judged when the step's data are analysed: the drives stop at the
-        # segment's regular end, not at the drop
-        if t_fault is not None and fault.expect_exit == 3 and fault.name != "pdo-drop-burst":
-            o.figures["stop_s"] = round(max(times), 3) if times else 0.0
-            if times and max(times) > bound:
-                bad.append(f"last axis without torque {max(times):.2f} s after the fault (bound {bound:g} s)")
-        inv["drives_stopped"] = (not bad, "; ".join(bad) or f"final {final}")
+        exit_ev = [e for e in ev.events if e.get("event") == "exit"]
+        return (None, "nobody left to stop them: lockstep world frozen, emulator "
+                      f"ended ({exit_ev[0]['why'] if exit_ev else 'no exit line'})")
+    if fault.name == "sigkill-emulator":
+        named = all(f"'{a}'" in ev.reason and "did NOT" in ev.reason for a in ("in", "out"))
+        return (named, "both drives named as NOT disabled" if named
+                else f"the stop report does not name both dead drives: {ev.reason[-300:]}")
+    bad, times = [], []
+    for a in sorted(final):
+        if final[a] not in NO_TORQUE:
+            if f"'{a}'" in ev.reason and "did NOT" in ev.reason:
+                continue     # truthfully reported: gearbench cannot reach it (silent, refusing)
+            bad.append(f"{a} ended {final[a]} and the fault does not name it")
+        elif ev.t_fault is not None and since[a] >= ev.t_fault:
+            times.append(since[a] - ev.t_fault)
+    # a silence verdict comes after the silence limit; an emulated drive starved of CPU is
+    # given up to STARVED_LIMIT_FACTOR limits (drives.cia402), counted in the result
+    starved = ((ev.result or {}).get("supervision") or {}).get("starved_deferrals")
+    bound = STOP_BOUND_S + (SILENCE_S * (STARVED_LIMIT_FACTOR if starved else 1)
+                            if fault.name in ("drive-silent", "modbus-disconnect", "modbus-slow") else 0.0)
+    # lost samples are judged when the step's data are analysed: the drives stop at the
+    # segment's regular end, not at the drop
+    if ev.t_fault is not None and fault.expect_exit == 3 and fault.name != "pdo-drop-burst":
+        o.figures["stop_s"] = round(max(times), 3) if times else 0.0
+        if times and max(times) > bound:
+            bad.append(f"last axis without torque {max(times):.2f} s after the fault (bound {bound:g} s)")
+    return (not bad, "; ".join(bad) or f"final {final}")
 
-    # --- samples on disk
-    traces = _traces(out) if out.exists() else {}
-    unreadable = {k: v for k, v in traces.items() if isinstance(v, str)}
-    arrays = {k: v for k, v in traces.items() if not isinstance(v, str)}
+
+def _samples_kept(o: Outcome, fault: Fault, ev: _Evidence) -> tuple:
+    """Every trace readable and holding what result.json says was acquired."""
+    arrays, unreadable, result = ev.arrays, ev.unreadable, ev.result
     on_disk = int(sum(len(v) for v in arrays.values()))
     o.figures["samples_on_disk"] = on_disk
     if fault.name in ("disk-full", "read-only", "vanished-dir"):
         # the disk refused the samples: what it did hold must be readable, and the run a fault
-        inv["samples_kept"] = (not unreadable, "readable: " + (", ".join(sorted(arrays)) or "none")
-                               + (f"; unreadable {unreadable}" if unreadable else ""))
-    elif result is not None:
+        return (not unreadable, "readable: " + (", ".join(sorted(arrays)) or "none")
+                + (f"; unreadable {unreadable}" if unreadable else ""))
+    if result is not None:
         bad = [f"{k}: {v}" for k, v in unreadable.items()]
         for step, n in result.get("steps", {}).items():
-            stem = f"trace-{_safe(step)}.parquet"
-            got = len(arrays.get(stem, ()))
+            got = len(arrays.get(f"trace-{_safe(step)}.parquet", ()))
             if got != n:
                 bad.append(f"{step}: {got} samples on disk, result.json says {n}")
         if on_disk != result.get("samples"):
             bad.append(f"{on_disk} samples on disk, result.json says {result.get('samples')}")
-        inv["samples_kept"] = (not bad, "; ".join(bad) or f"{on_disk} samples, all readable")
-    elif fault.name == "sigkill-gearbench":
-        mark = [e for e in injected if e.get("cmd") == "mark"]
+        return (not bad, "; ".join(bad) or f"{on_disk} samples, all readable")
+    if fault.name == "sigkill-gearbench":
+        mark = [e for e in ev.injected if e.get("cmd") == "mark"]
         last = max((int(v[-1]) for v in arrays.values() if len(v)), default=0)
         want = round(mark[0]["t_s"] / 1e-3) - KILL_LOSS_BOUND if mark else 0
         ok = not unreadable and (last >= want or not mark)
-        inv["samples_kept"] = (ok, f"last sample on disk {last}, kill at sample ~{want + KILL_LOSS_BOUND}; "
-                                   f"{len(arrays)} files readable" + (f"; unreadable {unreadable}" if unreadable else ""))
-    else:
-        inv["samples_kept"] = (False, "no result.json")
+        return (ok, f"last sample on disk {last}, kill at sample ~{want + KILL_LOSS_BOUND}; "
+                    f"{len(arrays)} files readable" + (f"; unreadable {unreadable}" if unreadable else ""))
+    return (False, "no result.json")
 
-    # --- no interpolation: counter gaps == lost count, no repeats
+
+def _no_interpolation(o: Outcome, fault: Fault, ev: _Evidence) -> tuple:
+    """Sample-counter gaps on disk == lost samples in result.json; no repeated counter."""
+    import numpy as np
+
     gaps, repeats = {}, []
-    for k, v in arrays.items():
+    for k, v in ev.arrays.items():
         d = np.diff(v)
         gaps[k] = int(np.sum(d[d > 1] - 1))
         if np.any(d < 1):
             repeats.append(k)
     o.figures["gaps"] = sum(gaps.values())
-    if result is not None and not unreadable:
-        lost = int(result.get("lost_samples", -1))
-        by_step = result.get("lost_samples_by_step", {})
-        bad = [f"{s}: {gaps.get(f'trace-{_safe(s)}.parquet', 0)} gaps on disk, {n} lost"
-               for s, n in by_step.items() if f"trace-{_safe(s)}.parquet" in arrays
-               and gaps[f"trace-{_safe(s)}.parquet"] != n]
-        if fault.name not in ("disk-full", "read-only", "vanished-dir") and sum(gaps.values()) != lost:
-            bad.append(f"{sum(gaps.values())} gaps on disk, lost_samples {lost}")
-        if fault.name == "cpu-hog" and lost:
-            bad.append(f"{lost} samples lost under the CPU hog")
-        o.figures["lost"] = lost
-        inv["no_interpolation"] = (not bad and not repeats,
-                                   "; ".join(bad + [f"repeated counter in {r}" for r in repeats])
-                                   or f"gaps {sum(gaps.values())} == lost {lost}")
-    else:
-        inv["no_interpolation"] = (not repeats and (fault.name != "sigkill-gearbench" or not o.figures["gaps"]),
-                                   f"no result.json; gaps on disk {o.figures['gaps']}, repeats {repeats}")
+    if ev.result is None or ev.unreadable:
+        return (not repeats and (fault.name != "sigkill-gearbench" or not o.figures["gaps"]),
+                f"no result.json; gaps on disk {o.figures['gaps']}, repeats {repeats}")
+    lost = int(ev.result.get("lost_samples", -1))
+    bad = [f"{s}: {gaps.get(f'trace-{_safe(s)}.parquet', 0)} gaps on disk, {n} lost"
+           for s, n in ev.result.get("lost_samples_by_step", {}).items()
+           if f"trace-{_safe(s)}.parquet" in ev.arrays and gaps[f"trace-{_safe(s)}.parquet"] != n]
+    if fault.name not in ("disk-full", "read-only", "vanished-dir") and sum(gaps.values()) != lost:
+        bad.append(f"{sum(gaps.values())} gaps on disk, lost_samples {lost}")
+    if fault.name == "cpu-hog" and lost:
+        bad.append(f"{lost} samples lost under the CPU hog")
+    o.figures["lost"] = lost
+    return (not bad and not repeats, "; ".join(bad + [f"repeated counter in {r}" for r in repeats])
+            or f"gaps {sum(gaps.values())} == lost {lost}")
 
-    # --- records: result.json, junit.xml, station database
+
+def _records_consistent(o: Outcome, fault: Fault, ev: _Evidence) -> tuple:
+    """result.json, junit.xml and the station database agree with the exit code and each other."""
     rows = []
     try:
-        with sqlite3.connect(db) as con:
+        with sqlite3.connect(ev.db) as con:
             rows = con.execute("SELECT run_id, status, exit_code FROM runs").fetchall()
     except sqlite3.Error:
         pass
-    bad = []
+    result, bad = ev.result, []
     if fault.expect_status is None:   # killed: nothing may claim the run finished
         if result is not None or rows:
             bad.append(f"a killed run left result.json={result is not None} db rows={rows}")
+        return (not bad, "; ".join(bad) or "result.json, junit.xml, database agree")
+    if len(rows) != 1:
+        bad.append(f"{len(rows)} runs in the station database")
     else:
-        if len(rows) != 1:
-            bad.append(f"{len(rows)} runs in the station database")
-        else:
-            run_id, status, code = rows[0]
-            if status != fault.expect_status and fault.expect_exit == o.rc:
-                bad.append(f"database status {status}, expected {fault.expect_status}")
-            if code != o.rc:
-                bad.append(f"database exit code {code}, process exit {o.rc}")
-        disk_fault = fault.name in ("disk-full", "read-only", "vanished-dir")
-        if result is None:
-            if not disk_fault:
-                bad.append("no result.json")
-            elif fault.reason not in reason:
-                bad.append("no result.json and stderr does not name the output failure")
-        else:
-            if (result.get("status"), result.get("exit_code")) != (fault.expect_status, o.rc):
-                bad.append(f"result.json {result.get('status')}/{result.get('exit_code')}, process exit {o.rc}")
-            if rows and rows[0][0] != result.get("run_id"):
-                bad.append("result.json and the database name different runs")
-        junit = out / "junit.xml"
-        if junit.exists():
-            suite = ET.parse(junit).getroot()
-            errors = int(suite.get("errors", 0))
-            if errors != (1 if fault.expect_status in ("fault", "aborted") else 0):
-                bad.append(f"junit.xml errors={errors} for status {fault.expect_status}")
-        elif not disk_fault:
-            bad.append("no junit.xml")
-    inv["records_consistent"] = (not bad, "; ".join(bad) or "result.json, junit.xml, database agree")
-
-    o.figures["heartbeat_gaps"] = ((result or {}).get("supervision") or {}).get("heartbeat_gaps")
-    if fault.name == "heartbeat-lost" and result is not None:
-        hb = o.figures["heartbeat_gaps"] or 0
-        if not hb:
-            inv["exit_code"] = (False, "heartbeat stopped but supervision.heartbeat_gaps is 0 (not counted)")
-    if fault.name == "pdo-drop-burst" and result is not None:
-        o.figures["dropped_frames"] = (result.get("supervision") or {}).get("dropped_frames")
+        _, status, code = rows[0]
+        if status != fault.expect_status and fault.expect_exit == o.rc:
+            bad.append(f"database status {status}, expected {fault.expect_status}")
+        if code != o.rc:
+            bad.append(f"database exit code {code}, process exit {o.rc}")
+    disk_fault = fault.name in ("disk-full", "read-only", "vanished-dir")
+    if result is None:
+        if not disk_fault:
+            bad.append("no result.json")
+        elif fault.reason not in ev.reason:
+            bad.append("no result.json and stderr does not name the output failure")
+    else:
+        if (result.get("status"), result.get("exit_code")) != (fault.expect_status, o.rc):
+            bad.append(f"result.json {result.get('status')}/{result.get('exit_code')}, process exit {o.rc}")
+        if rows and rows[0][0] != result.get("run_id"):
+            bad.append("result.json and the database name different runs")
+    junit = ev.out / "junit.xml"
+    if junit.exists():
+        errors = int(ET.parse(junit).getroot().get("errors", 0))
+        if errors != (1 if fault.expect_status in ("fault", "aborted") else 0):
+            bad.append(f"junit.xml errors={errors} for status {fault.expect_status}")
+    elif not disk_fault:
+        bad.append("no junit.xml")
+    return (not bad, "; ".join(bad) or "result.json, junit.xml, database agree")
 
 
 # ---------------------------------------------------------------------- the matrix

@@ -34,6 +34,10 @@ import yaml
 from ..analysis.msa import (ALPHA_INTERACTION, anova_gauge_rr, crossed_array, range_gauge_rr,
                            type1_study)
 from ..errors import Aborted, GearbenchError
+from .query import RunQuery, open_results
+from ..sim import PlantParams
+from ..profile import load_profile
+from ..station.database import connect
 
 COMPLETE = ("passed", "failed")      # a faulted/aborted run measured nothing complete
 EFFICIENCY_KEYS = ("eta_incremental", "eta_absolute")
@@ -233,8 +237,6 @@ def _cell_counts(runs):
 
 def read_databases(targets: list[str]) -> list[dict]:
     """Runs (with their result) from station SQLite files or a central postgresql:// URL."""
-    from .query import RunQuery, open_results
-
     runs, seen = [], {}
     for t in targets:
         with open_results(t) as db:
@@ -317,8 +319,6 @@ def _perturbed(sim: dict, *, unit: int, station: int, seed: int,
                unit_spread: dict, station_spread: dict) -> dict:
     """The ``simulation:`` block of one unit on one station: the profile's plant with the
     unit's reducer efficiency and drag and the station's motors drawn from seeded spreads."""
-    from ..sim import PlantParams
-
     base = PlantParams.from_dict(sim, "simulation")
     out = copy.deepcopy(sim)
     rs = np.random.default_rng([seed, 1, station])
@@ -359,9 +359,6 @@ def run_sim_study(profile_path, run_profile: Callable, *, units: int, repeats: i
     next trial. Each run has its own emulator noise seed. ``run_profile`` is
     ``gearbench.api.run_profile`` with an operator bound (the fleet does not run benches
     itself: it is handed the station's runner)."""
-    from ..profile import load_profile
-    from ..station.database import connect
-
     check_design(units, repeats, stations)
     progress = progress or sys.stderr      # looked up now: a default bound at import goes stale
     profile = load_profile(profile_path)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import sqlite3
 from pathlib import Path
+from ..station.database import connect
 
 RATIO_REL_TOL = 0.002   # the ratio has no interval; 0.2 % is far above encoder resolution
 Z95 = 1.959964
@@ -67,8 +68,6 @@ def compare(baseline: dict, result: dict) -> list[dict]:
 
 def mark_golden(db_path: str | Path, serial: str, profile: str) -> None:
     """Register ``serial`` as a reference unit for ``profile`` on this station."""
-    from ..station.database import connect
-
     con = connect(db_path)
     try:
         with con:
@@ -82,8 +81,6 @@ def check_golden(db_path: str | Path, result: dict) -> dict:
     unit becomes its baseline. Returns ``{status, baseline_run_id, rows}`` with status
     baseline-set | matches | deviates | not-judged."""
     import json
-
-    from ..station.database import connect
 
     con = connect(db_path)
     try:

@@ -29,6 +29,8 @@ from ..station.records import RunStop, Subscriber
 from ..station.results import _clean
 from . import migrations
 from ..station.config import target_name, trace_store
+from ..station.recorder import _safe
+from ..station.database import connect as sqlite_connect, station_id
 
 CONNECT_TIMEOUT_S = 3       # a tester on a dead network gives up fast; sync retries later
 PUSH_WAIT_S = 6.0           # at most this long at the end of a run for the background push
@@ -37,7 +39,6 @@ BATCH_RUNS = 50             # runs per transaction
 
 class CentralUnreachable(GearbenchError):
     """The central database did not answer (network, server down): not bad input."""
-
     exit_code = 3
 
 
@@ -85,8 +86,6 @@ def _num(v):
 def trace_uris(result: dict, out_dir: str, store: str | None) -> list[tuple[str, str, int]]:
     """(step, uri, samples) of a run's trace files: in the archive store when the
     station has one (``store/<run folder>/trace-<step>.parquet``), else on the station."""
-    from ..station.recorder import _safe
-
     base = f"{store.rstrip('/')}/{Path(out_dir).name}" if store else out_dir
     return [(step, f"{base}/trace-{_safe(step)}.parquet", int(n))
             for step, n in (result.get("steps") or {}).items()]
@@ -162,8 +161,6 @@ def push_pending(db_path: str | Path, url: str, *, batch: int = BATCH_RUNS,
 
     Never raises for a network problem: the report says what is still pending."""
     import psycopg
-
-    from ..station.database import connect as sqlite_connect, station_id
 
     db_path = Path(db_path)
     target = target_name(url)

@@ -17,6 +17,11 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from ..errors import GearbenchError
+from ..station.database import connect as sqlite_connect, station_id
+from ..station.config import target_name
+from .migrations import require_current
+from .push import connect as pg_connect
+from ..station.database import measurements_of
 
 VERDICTS = ("passed", "failed", "fault", "aborted")
 
@@ -79,13 +84,12 @@ class SqliteResults:
     """A station database (its station is the one it belongs to)."""
 
     def __init__(self, path: str | Path):
-        from ..station.database import connect, station_id
 
         self.path = Path(path)
         if not self.path.exists():
             raise GearbenchError(f"{self.path}: no station database here; pass --db PATH "
                                  f"(gearbench run writes it next to its output folder)")
-        self.con = connect(self.path)
+        self.con = sqlite_connect(self.path)
         self.con.row_factory = sqlite3.Row
         self.station = station_id(self.con, self.path)
         golden = {tuple(r) for r in self.con.execute("SELECT serial, profile FROM golden")}
@@ -128,16 +132,12 @@ class CentralResults:
     """The central PostgreSQL database."""
 
     def __init__(self, url: str):
-        from ..station.config import target_name
-        from .migrations import require_current
-        from .push import connect
 
         self.name = target_name(url)
-        self.conn = connect(url)
+        self.conn = pg_connect(url)
         require_current(self.conn, self.name)
 
     def runs(self, q: RunQuery = RunQuery(), *, with_result: bool = False) -> list[dict]:
-        from ..station.database import measurements_of
 
         where, args = _where(q, "%s", "r.station_id")
         if q.golden is not None:

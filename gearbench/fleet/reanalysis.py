@@ -20,6 +20,16 @@ from typing import Callable, Iterable
 
 from ..errors import GearbenchError
 from ..station.records import Subscriber
+from .. import __version__
+from ..profile import load_profile
+from ..station.plan import CalibrationAnalysis, EfficiencyAnalysis, Segment
+from ..station.sequencer import Sequencer
+from ..trace import Trace
+from ..station.recorder import _safe
+from ..station.results import _clean
+from .migrations import require_current
+from .push import connect
+from ..station.config import target_name
 
 _VERSION: str | None = None
 
@@ -33,11 +43,10 @@ def analysis_version() -> str:
     the code that turns traces into results changes."""
     global _VERSION
     if _VERSION is None:
-        from .. import __version__
 
-        here = Path(__file__).parent
+        here = Path(__file__).resolve().parent.parent      # gearbench/
         h = hashlib.sha256()
-        for p in sorted([*(here / "analysis").rglob("*.py"), here / "pipeline.py"]):
+        for p in sorted([*(here / "analysis").rglob("*.py"), here / "station" / "analyse.py"]):
             h.update(p.relative_to(here).as_posix().encode())
             h.update(p.read_bytes())
         _VERSION = f"{__version__}+{h.hexdigest()[:10]}"
@@ -59,8 +68,6 @@ def _fs(run_dir: str):
 def _load_profile(fs, root: str, result: dict, run_dir: str, profile: str | None):
     """The profile the run used: ``--profile``, else the run folder's snapshot
     (``profile.yaml``), else the recorded path; refused if its sha256 differs."""
-    from ..profile import load_profile
-
     want = result.get("profile_sha256")
     if profile:
         cands = [profile]
@@ -102,10 +109,6 @@ class ProfileSnapshot(Subscriber):
 def reanalyse_result(result: dict, traces: Callable[[str], "object"], profile, method: str) -> dict:
     """The result a run would have had with this analysis and ``method``; ``traces(step)``
     gives a recorded step as a Trace. No file I/O here."""
-    from ..station.plan import CalibrationAnalysis, EfficiencyAnalysis, Segment
-    from ..station.sequencer import Sequencer
-    from ..trace import Trace
-
     # records go nowhere: the archive is read, not re-recorded
     seq = Sequencer(profile, None, emit=lambda rec: None, operator=None, serial=result.get("serial", ""),
                     out_dir=result.get("out_dir", ""), method=method)
@@ -182,8 +185,6 @@ def reanalyse_run(run_dir: str, method: str = "default", profile: str | None = N
 
 
 def _reanalyse_files(fs, root: str, run_dir: str, old: dict, method: str, profile: str | None) -> dict:
-    from ..station.recorder import _safe
-    from ..trace import Trace
 
     prof = _load_profile(fs, root, old, run_dir, profile)
     local = getattr(fs, "protocol", None) in ("file", ("file", "local"), ("file", "local", "local"))
@@ -217,7 +218,6 @@ def _reanalyse_files(fs, root: str, run_dir: str, old: dict, method: str, profil
 
 
 def _write_new(fs, path: str, result: dict) -> None:
-    from ..station.results import _clean
 
     text = json.dumps(_clean(result), indent=2, allow_nan=False) + "\n"
     tmp = f"{path}.tmp"
@@ -320,11 +320,6 @@ def reanalyse_many(run_dirs: Iterable[str], *, method: str = "default", profile:
 def store_analyses(url: str, summaries: list[dict]) -> tuple[int, int]:
     """Record re-analyses in the central database (analyses table); returns
     (stored, runs not in the central database)."""
-    from .migrations import require_current
-    from .push import connect
-    from ..station.config import target_name
-    from ..station.results import _clean
-
     stored = missing = 0
     with connect(url) as conn:
         require_current(conn, target_name(url))

@@ -17,6 +17,7 @@ from .model import (BenchSpec, BusSpec, CalibrateStep, DiskSpec, EfficiencyStep,
                     Profile, ReducerSpec, Step, Targets, WaveformSpec)
 from .parse import build_profile
 from .yamlmarks import load_with_marks
+from .shipped import find_profile, shipped_profiles
 
 __all__ = ["load_profile", "parse_profile_text", "Profile", "BenchSpec", "BusSpec", "MotorSpec", "ReducerSpec",
            "DiskSpec", "WaveformSpec", "CalibrateStep", "LoadStep", "EfficiencyStep", "Step", "LimitSpec", "Targets",
@@ -30,8 +31,6 @@ def load_profile(path: str | Path) -> Profile:
     drive paths resolve against the profile's folder, the station, then the shipped
     drive descriptions (``gearbench.shipped``).
     """
-    from .shipped import find_profile, shipped_profiles
-
     p = find_profile(path)
     shown = str(path) if p == Path(path) else str(p)
     try:

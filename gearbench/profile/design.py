@@ -8,6 +8,8 @@ predicted Kt variance per bench second. The rule is in docs/excitation-design.md
 from __future__ import annotations
 
 from .waveforms import DESIGNED_KEYS
+from .excitation_design import MotorCase
+from .excitation_design import design_multisine
 
 DEFAULT_MIN_SPEED_SHARE = 0.10   # of speed_limit_rad_s: clear of stick/Stribeck and low-order cogging
 DEFAULT_MAX_SPEED_SHARE = 0.90   # of speed_limit_rad_s: headroom for the speed loop's overshoot
@@ -25,8 +27,6 @@ class DesignProblem(ValueError):
 def motor_case(motor, disk, params: dict):
     """``MotorCase`` for ``motor`` (MotorSpec) with ``disk`` (DiskSpec) under the design
     knobs in ``params`` (a multisine's parameters, defaults filled in)."""
-    from .excitation_design import MotorCase
-
     if motor.rotor_inertia_kgm2 is None:
         raise DesignProblem(("motors", motor.name), "design: optimal needs the rotor inertia",
                             f"add 'rotor_inertia_kgm2:' to motors.{motor.name} (datasheet value)")
@@ -54,8 +54,6 @@ def design_waveform(params: dict, uses: list, period_s: float, also_fit_s=()):
     → (complete params, Design). One waveform, one command: the shortest run sets the
     whole-period grid and every motor's limits hold; the period also divides
     ``also_fit_s`` (an adaptive step's shortest stop) where it can. Raises ``DesignProblem``."""
-    from .excitation_design import design_multisine
-
     cases = [motor_case(m, d, params) for m, d, _ in uses]
     durations = sorted({round(dur, 9) for _, _, dur in uses})
     duration = durations[0]

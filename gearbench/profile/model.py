@@ -11,12 +11,12 @@ from typing import Union
 import numpy as np
 
 from . import waveforms as _wf
+from ..analysis.uncertainty import tolerance_std
 
 
 @dataclass(frozen=True)
 class BusSpec:
     """Where the drives are: a CAN bus (``cia402``) or a Modbus TCP endpoint (``modbus``)."""
-
     family: str                      # "cia402" | "modbus" | a plugin family name
     interface: str | None = None     # cia402: "udp_multicast" | "socketcan" | "virtual"
     channel: str | None = None       # cia402: "can0", "vcan0", a multicast group; None = interface default
@@ -39,7 +39,6 @@ class BenchSpec:
 @dataclass(frozen=True)
 class MotorSpec:
     """One motor + drive. ``drive`` is the resolved absolute path of its description file."""
-
     name: str                        # "in" | "out"
     drive: str
     address: int                     # CANopen node id / Modbus unit id
@@ -66,7 +65,6 @@ class DiskSpec:
     ``inertia_tolerance_rel`` is read by ``inertia_source`` (``datasheet``: ± limits,
     rectangular; ``measured``: expanded uncertainty at 95 %, k = 2); ``inertia_std_kgm2``
     is the standard uncertainty it implies (``gearbench.analysis.uncertainty``)."""
-
     name: str
     inertia_kgm2: float
     inertia_tolerance_rel: float = 0.0
@@ -74,7 +72,6 @@ class DiskSpec:
 
     @property
     def inertia_std_kgm2(self) -> float:
-        from ..analysis.uncertainty import tolerance_std
 
         return tolerance_std(self.inertia_tolerance_rel * self.inertia_kgm2, self.inertia_source)
 
@@ -82,7 +79,6 @@ class DiskSpec:
 @dataclass(frozen=True)
 class WaveformSpec:
     """A named command waveform; ``params`` are complete (defaults filled in) and validated."""
-
     name: str
     kind: str                        # one of gearbench.profile.waveforms.KINDS
     params: dict
@@ -102,7 +98,6 @@ class WaveformSpec:
 class CalibrateStep:
     """Run ``motor`` alone with ``waveform`` for ``duration_s``, prompt to mount ``disk``,
     run again, prompt to remove it (Kt from two inertias, paper eq. 17 corrected)."""
-
     motor: str
     disk: str
     waveform: str
@@ -129,7 +124,6 @@ class CalibrateStep:
 @dataclass(frozen=True)
 class LoadStep:
     """The operator mounts the reducer between the motors (sim: coupling="reducer")."""
-
     prompt: str
     name: str = "load"
 
@@ -152,7 +146,6 @@ class EfficiencyStep:
     ``max_s`` per level, settling included); eq. 18 becomes the regression slope of
     input on output torque over the staircase (``gearbench.analysis.efficiency``).
     """
-
     speeds_in_rad_s: list[float]
     torques_out_nm: list[float]
     settle_s: float
@@ -200,7 +193,6 @@ class LimitSpec:
     ``motors.<m>.D`` | ``motors.<m>.Tc`` | ``ratio`` | ``efficiency.eta_incremental`` |
     ``efficiency.eta_absolute`` (efficiency limits apply to every operating point).
     """
-
     name: str
     quantity: str
     low: float | None
@@ -218,7 +210,6 @@ class Targets:
     the part acquisition time shrinks): ``kt_rel`` relative on Kt, ``eta_pp`` on the
     incremental efficiency in percentage points. Fixed terms (the disk's tolerance, the
     b2 model term) are not shrunk by time and are not targeted (docs/profile-format.md)."""
-
     kt_rel: float | None = None
     eta_pp: float | None = None
 

@@ -23,7 +23,6 @@ from .yamlmarks import MarkedDoc, did_you_mean, one_line
 
 _MISSING = object()
 _NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_.-]{0,63}$")
-REPO_ROOT = Path(__file__).resolve().parents[2]
 
 TOP_KEYS = ("name", "description", "bench", "motors", "reducer", "disks", "waveforms", "steps", "limits",
             "simulation", "targets")

@@ -15,6 +15,11 @@ from pathlib import Path
 from .. import __version__
 from ..errors import GearbenchError
 from ..station.results import finite_or_none
+from ..station.recorder import load_step_trace
+from ..analysis.model_check import torque_balance
+from .plots import torque_fit_png
+from .plots import efficiency_map_png
+from .plots import trace_thumbnail_png
 
 _CSS = """
 body{font-family:system-ui,-apple-system,'Segoe UI',Roboto,sans-serif;margin:24px auto;max-width:1050px;color:#222}
@@ -78,7 +83,6 @@ def load_run(run_dir: str | Path) -> dict:
 
 
 def _traces(run_dir: Path) -> dict:
-    from ..station.recorder import load_step_trace
 
     out = {}
     for p in sorted(run_dir.glob("trace-*.parquet"), key=lambda p: p.stat().st_mtime):
@@ -90,8 +94,6 @@ def _traces(run_dir: Path) -> dict:
 
 
 def _motor_section(result: dict, traces: dict) -> str:
-    from ..analysis.model_check import torque_balance
-    from .plots import torque_fit_png
 
     motors = result.get("motors") or {}
     if not motors:
@@ -139,7 +141,6 @@ def _motor_section(result: dict, traces: dict) -> str:
 
 
 def _efficiency_section(result: dict) -> str:
-    from .plots import efficiency_map_png
 
     pts = result.get("efficiency") or []
     ratio = result.get("ratio")
@@ -177,7 +178,6 @@ def _limits_section(result: dict) -> str:
 
 
 def _samples_section(result: dict, traces: dict) -> str:
-    from .plots import trace_thumbnail_png
 
     steps = result.get("steps") or {}
     lost = result.get("lost_samples_by_step") or {}

@@ -338,8 +338,6 @@ class Staircase:
 
 def _unsettled_stats(cols: dict, a: int, k: int) -> dict:
     """Means and white-noise standard errors of samples a..k (a level that did not settle)."""
-    from ..analysis.streaming import LevelMean
-
     acc = LevelMean()
     acc.add_chunk(cols["in.current_a"][a:k], cols["out.current_a"][a:k])
     sig_in, sig_out = acc._sigma(0)

@@ -10,6 +10,7 @@ import sqlite3
 from pathlib import Path
 
 from .records import RunStop, Subscriber
+from .config import default_station
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS runs (
@@ -46,7 +47,6 @@ def station_id(con: sqlite3.Connection, db_path: str | Path | None = None) -> st
     row = con.execute("SELECT value FROM meta WHERE key = 'station'").fetchone()
     if row:
         return row[0]
-    from .config import default_station
 
     sid = default_station(db_path)
     with con:

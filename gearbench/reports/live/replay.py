@@ -22,6 +22,7 @@ from ...errors import GearbenchError
 from ...station.records import (Calibration, EfficiencyPoint, LimitResult, Record, RunStart, RunStop,
                        SampleBatch, StepStart, StepStop)
 from ...trace import Trace
+from ...station.recorder import load_step_trace
 
 REPLAY_BATCH = 10_000   # samples per SampleBatch: large batches are cheapest to log
 
@@ -65,8 +66,6 @@ def load_result(result_dir: Path) -> dict:
 
 def find_traces(result_dir: Path, result: dict) -> list[tuple[str, Trace]]:
     """(step name, trace) in acquisition order."""
-    from ...station.recorder import load_step_trace
-
     files = {p.stem[len("trace-"):]: p for p in sorted(result_dir.glob("trace-*.arrows"))}
     files.update({p.stem[len("trace-"):]: p for p in sorted(result_dir.glob("trace-*.parquet"))})
     names = {_safe(step): step for step in (result.get("steps") or {})}
