@@ -8,7 +8,6 @@ import time
 from datetime import datetime, timezone
 from pathlib import Path
 
-from ..api import AutoOperator, run_profile
 from ..errors import GearbenchError
 
 NAME = "msa"
@@ -57,6 +56,8 @@ def run(args) -> int:
         t0 = time.monotonic()
         print(f"gearbench msa: {args.units} units × {args.stations} stations × {repeats} trials = "
               f"{args.units * args.stations * repeats} simulated runs into {out}", file=sys.stderr)
+        from ..api import AutoOperator, run_profile
+
         runner = functools.partial(run_profile, operator=AutoOperator())
         dbs = run_sim_study(args.profile, runner, units=args.units, repeats=repeats, stations=args.stations,
                             out_dir=out, seed=args.seed)
