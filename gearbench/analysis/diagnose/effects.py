@@ -19,6 +19,7 @@ from dataclasses import dataclass, replace
 import numba
 import numpy as np
 
+from . import fastsim as fs
 from .nominal import GivenModel, GivenNominal, Model, Signals, Term, nominal_terms
 from .nominal import kt_over_j as _kt_over_j
 
@@ -217,6 +218,9 @@ class FrictionTerm(Term):
     def shape(self, sig, theta, omega):
         return [np.ones_like(omega)]
 
+    def fast(self, sig):
+        return [(None, [(fs.F_TANH + fs.S_ONE, 1.0, self.eps)])]
+
 
 @dataclass(frozen=True)
 class CoulombTerm(FrictionTerm):
@@ -241,6 +245,9 @@ class StribeckTerm(FrictionTerm):
         t = np.tanh(omega / self.eps)
         e = np.exp(-(omega / self.ws) ** 2)
         return [-t * e], [-((1.0 - t * t) / self.eps - 2.0 * omega / self.ws ** 2 * t) * e]
+
+    def fast(self, sig):
+        return [(None, [(fs.F_STRIBECK + fs.S_ONE, 1.0, self.eps, self.ws)])]
 
 
 def speed_scale(sig: Signals) -> float:
@@ -322,6 +329,10 @@ class CoggingTerm(Term):
         a = self.order * sig.rad_per_unit * theta
         return [np.sin(a), np.cos(a)]
 
+    def fast(self, sig):
+        a = self.order * sig.rad_per_unit
+        return [(None, [(fs.SIN, 1.0, 0.0, 0.0, a)]), (None, [(fs.COS, 1.0, 0.0, 0.0, a)])]
+
 
 @dataclass(frozen=True)
 class RippleTerm(Term):
@@ -334,6 +345,10 @@ class RippleTerm(Term):
         i = sig.current_a[idx]
         a = self.order * sig.rad_per_unit * theta
         return [i * np.sin(a), i * np.cos(a)]
+
+    def fast(self, sig):
+        a = self.order * sig.rad_per_unit
+        return [(None, [(fs.RSIN, 1.0, 0.0, 0.0, a)]), (None, [(fs.RCOS, 1.0, 0.0, 0.0, a)])]
 
 
 MAX_ORDER = 36
@@ -382,6 +397,9 @@ class ConstantTerm(Term):
 
     def simulate(self, sig, theta, omega, idx, state):
         return [-np.ones_like(omega)]
+
+    def fast(self, sig):
+        return [(-np.ones(len(sig)), [])]
 
 
 class CurrentOffset(Effect):
@@ -645,6 +663,12 @@ class RigidGapTerm(Term):
     def simulate(self, sig, theta, omega, idx, state):
         return [np.zeros_like(omega)]     # acts through ``couple``
 
+    def fast(self, sig):
+        return [(None, [(fs.GAP, 1.0, self.gap)])]
+
+    def fast_track(self, sig):
+        return 1, self._track(sig)
+
     def couple(self, state, r, theta, omega, new, dt):
         th2, w2 = state
         r = max(float(r), 0.0)
@@ -732,6 +756,11 @@ class DirectionTerm(FrictionTerm):
             return [-np.abs(omega)], [-s]
         return ([-np.abs(t), -np.abs(omega)], [-s * (1.0 - t * t) / self.eps, -s])
 
+    def fast(self, sig):
+        out = [(None, [(fs.F_ABSW + fs.S_ONE, 1.0, self.eps)])]
+        return ([(None, [(fs.F_ABSTANH + fs.S_ONE, 1.0, self.eps)]), *out] if self._coulomb
+                else out)
+
 
 class DirectionFriction(Effect):
     """Separate Coulomb and viscous friction per direction (ball screws, seals and
@@ -787,6 +816,14 @@ class PositionFrictionTerm(FrictionTerm):
             return [np.sin(a), np.cos(a)]
         x = 2.0 * (theta - self.lo) / self.span - 1.0
         return [x, 1.5 * x * x - 0.5]
+
+    def fast(self, sig):
+        if self.order:
+            a = self.order * sig.rad_per_unit
+            return [(None, [(fs.F_TANH + fs.S_SIN, 1.0, self.eps, 0.0, a)]),
+                    (None, [(fs.F_TANH + fs.S_COS, 1.0, self.eps, 0.0, a)])]
+        return [(None, [(fs.F_TANH + s, 1.0, self.eps, 0.0, self.lo, self.span)])
+                for s in (fs.S_LEG1, fs.S_LEG2)]
 
 
 #: Rotor-angle orders scanned for position-dependent friction (eccentric screws,
@@ -862,6 +899,12 @@ class DahlTerm(Term):
 
     def simulate(self, sig, theta, omega, idx, state):
         return [-state[0]]
+
+    def fast(self, sig):
+        return [(None, [(fs.DAHL, 1.0, self.xs)])]
+
+    def fast_track(self, sig):
+        return 0, [self._track(sig)]
 
     def step_state(self, state, theta, omega, dt):
         dx = omega * dt
