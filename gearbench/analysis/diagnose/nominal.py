@@ -438,11 +438,14 @@ def _fit_linear(X, y, terms, fixed):
 
 # ------------------------------------------------------------------ nominal model
 def nominal_terms(spring: bool = False, delay: int = 0, sat_a: float = 0.0,
-                  hold: float | None = None, sat_off: float = 0.0) -> list[Term]:
-    """Current (free taps, or a fixed hold fraction), viscous friction, the spring."""
+                  hold: float | None = None, sat_off: float = 0.0,
+                  drag: bool = True) -> list[Term]:
+    """Current (free taps, or a fixed hold fraction), viscous friction (``drag``: D is
+    fitted; False: D held at 0, its bound, when the free fit came out negative), the
+    spring."""
     cur = (CurrentTaps(delay=delay, sat_a=sat_a, sat_off=sat_off) if hold is None else
            HeldCurrent(hold=float(hold), delay=delay, sat_a=sat_a, sat_off=sat_off))
-    terms: list[Term] = [cur, Viscous()]
+    terms: list[Term] = [cur, Viscous()] if drag else [cur]
     if spring:
         terms.append(Spring())
     return terms
