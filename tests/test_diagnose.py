@@ -190,7 +190,7 @@ def test_bad_model_file(tmp_path, capsys):
 def test_batched_scan_matches_per_point_fits():
     """The one-pass grid scan scores every grid point exactly as fit_model would
     (including the hold-fraction pin), for an identified and a given nominal."""
-    from gearbench.analysis.diagnose import pipeline, simerror
+    from gearbench.analysis.diagnose import candidates, simerror
     from gearbench.analysis.diagnose.effects import Base, Cogging, ShaftCompliance
     from gearbench.analysis.diagnose.nominal import (fit_model, fit_windows, integrated_rows,
                                                      measured_features, prepare, scan_rss)
@@ -208,7 +208,7 @@ def test_batched_scan_matches_per_point_fits():
                 terms, fixed = eff.build(sig, base, hp)
                 ref.append(fit_model(sig, terms, win, fixed)[1])
             assert np.allclose(rss, ref, rtol=1e-9)
-            assert pipeline._scan(sig, base, eff, [win])[0] in eff.grid(sig, base)
+            assert candidates._scan(sig, base, eff, [win])[0] in eff.grid(sig, base)
 
 
 def _testable(excitation, seed=0, given=False):

@@ -12,7 +12,7 @@ from gearbench.trace import Trace
 
 pytest.importorskip("gearbench.sim")
 from gearbench.benchmarks import _diagnose_cases as harness  # noqa: E402
-from gearbench.analysis.diagnose.bench import diagnose_bench  # noqa: E402
+from gearbench.analysis.diagnose.reducer import diagnose_bench  # noqa: E402
 from gearbench.benchmarks._diagnose_cases import bench_case_trace  # noqa: E402
 
 
@@ -112,7 +112,7 @@ def test_a_candidate_must_beat_random_regressors():
 
 def test_null_regressors_are_deterministic_and_unit_scaled():
     from gearbench.analysis.diagnose.nominal import prepare
-    from gearbench.analysis.diagnose.pipeline import NullTerm
+    from gearbench.analysis.diagnose.candidates import NullTerm
 
     tr, _ = harness.blind_trace(harness.Case(None, "-", "reversing", 0, {}))
     a, b = prepare(tr), prepare(tr)

@@ -17,9 +17,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..analysis.diagnose.bench import BENCH_COLUMNS
+from ..analysis.diagnose.reducer import BENCH_COLUMNS
 from ..analysis.diagnose.nominal import GivenModel
-from ..analysis.diagnose.pipeline import Diagnosis, diagnose
+from ..analysis.diagnose.chain import Diagnosis, diagnose
 from ..sim import MotorParams, simulate_motor, waveforms
 from ..trace import Trace
 

@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
 def _composite(args, harness) -> list[dict]:
     """Two and three effects injected together: is each named in the chain, in the
     order of the gap each opens alone, and does the remainder reach the floor?"""
-    from ..analysis.diagnose.pipeline import nominal_gap
+    from ..analysis.diagnose.chain import nominal_gap
 
     seeds = tuple(range(args.seeds))
     rows = []
@@ -228,7 +228,7 @@ def _emps(args) -> list[dict]:
 
 def _bench(args) -> list[dict]:
     """Reducer effects injected into the simulated bench, diagnosed blind."""
-    from ..analysis.diagnose.bench import diagnose_bench
+    from ..analysis.diagnose.reducer import diagnose_bench
     from ._diagnose_cases import BENCH_INJECTIONS, bench_case_trace
 
     rows = []

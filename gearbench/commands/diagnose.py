@@ -74,7 +74,7 @@ def run(args) -> int:
 
 
 def _run_bench(args) -> int:
-    from ..analysis.diagnose.bench import diagnose_bench
+    from ..analysis.diagnose.reducer import diagnose_bench
 
     p = Path(args.bench)
     if p.is_dir():

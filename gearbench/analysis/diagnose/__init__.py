@@ -7,6 +7,6 @@ effect explains it, and how far adding it closes the gap on held-out data.
 """
 from .effects import LIBRARY, NAMES
 from .nominal import GivenModel, load_model
-from .pipeline import Diagnosis, diagnose
+from .chain import Diagnosis, diagnose
 
 __all__ = ["Diagnosis", "GivenModel", "LIBRARY", "NAMES", "diagnose", "load_model"]

@@ -24,6 +24,7 @@ from scipy.signal import savgol_filter
 
 from ...errors import ProfileError, TraceError
 from ...trace import Trace
+from .fastsim import SPRING, VISC
 
 #: Savitzky-Golay window for the velocity estimate, in samples (odd).
 VELOCITY_WINDOW = 9
@@ -116,6 +117,12 @@ class Term:
     def init_state(self, sig: Signals, idx: np.ndarray):
         return None
 
+    def fast(self, sig: Signals) -> list | None:
+        """Per coefficient: (state-free feature over the whole trace or None, parts
+        [(kind, multiplier, *params)]) for the compiled simulation (fastsim); None when
+        the term needs the numpy path (a state of its own)."""
+        return None
+
     def step_state(self, state, theta, omega, dt_s: float):
         return state
 
@@ -151,6 +158,10 @@ class CurrentTaps(Term):
         i0, i1 = self._i(sig)
         return [i0[idx], i1[idx]]
 
+    def fast(self, sig):
+        i0, i1 = self._i(sig)
+        return [(i0, []), (i1, [])]
+
 
 def held_current(sig: Signals, delay: int = 0, sat_a: float = 0.0, sat_off: float = 0.0):
     """(i[k], i[k+1]) of the mapped current, memoised on the trace."""
@@ -177,6 +188,10 @@ class HeldCurrent(Term):
         i0, i1 = held_current(sig, self.delay, self.sat_a, self.sat_off)
         return [(1.0 - self.hold) * i0[idx] + self.hold * i1[idx]]
 
+    def fast(self, sig):
+        i0, i1 = held_current(sig, self.delay, self.sat_a, self.sat_off)
+        return [((1.0 - self.hold) * i0 + self.hold * i1, [])]
+
 
 @dataclass(frozen=True)
 class Viscous(Term):
@@ -187,6 +202,9 @@ class Viscous(Term):
     def simulate(self, sig, theta, omega, idx, state):
         return [-omega]
 
+    def fast(self, sig):
+        return [(None, [(VISC, 1.0)])]
+
 
 @dataclass(frozen=True)
 class Spring(Term):
@@ -196,6 +214,9 @@ class Spring(Term):
 
     def simulate(self, sig, theta, omega, idx, state):
         return [-theta]
+
+    def fast(self, sig):
+        return [(None, [(SPRING, 1.0)])]
 
 
 @dataclass(frozen=True)
@@ -353,7 +374,15 @@ def solve(X: np.ndarray, y: np.ndarray, overlap: float = 4.0):
     """Least squares with a covariance inflated for overlapping windows."""
     scale = np.sqrt((X ** 2).sum(0))
     scale[scale == 0] = 1.0
-    coef, *_ = np.linalg.lstsq(X / scale, y, rcond=None)
+    Xs = X / scale
+    # normal equations of the column-scaled problem when well conditioned (a few k x k
+    # products: lstsq's SVD of the windows x k matrix took ~5 ms a call, thousands of
+    # calls a diagnosis); the SVD where conditioning would cost digits
+    G = Xs.T @ Xs
+    if np.linalg.cond(G) < 1e8:
+        coef = np.linalg.solve(G, Xs.T @ y)
+    else:
+        coef, *_ = np.linalg.lstsq(Xs, y, rcond=None)
     coef = coef / scale
     r = y - X @ coef
     dof = max(len(y) - X.shape[1], 1)
@@ -409,11 +438,14 @@ def _fit_linear(X, y, terms, fixed):
 
 # ------------------------------------------------------------------ nominal model
 def nominal_terms(spring: bool = False, delay: int = 0, sat_a: float = 0.0,
-                  hold: float | None = None, sat_off: float = 0.0) -> list[Term]:
-    """Current (free taps, or a fixed hold fraction), viscous friction, the spring."""
+                  hold: float | None = None, sat_off: float = 0.0,
+                  drag: bool = True) -> list[Term]:
+    """Current (free taps, or a fixed hold fraction), viscous friction (``drag``: D is
+    fitted; False: D held at 0, its bound, when the free fit came out negative), the
+    spring."""
     cur = (CurrentTaps(delay=delay, sat_a=sat_a, sat_off=sat_off) if hold is None else
            HeldCurrent(hold=float(hold), delay=delay, sat_a=sat_a, sat_off=sat_off))
-    terms: list[Term] = [cur, Viscous()]
+    terms: list[Term] = [cur, Viscous()] if drag else [cur]
     if spring:
         terms.append(Spring())
     return terms
@@ -502,6 +534,11 @@ class GivenNominal(Term):
         i0, i1 = held_current(sig, self.delay, self.sat_a, self.sat_off)
         base = self.kt_over_j * i0[idx] - self.d_over_j * omega - self.c_over_j * theta
         return [base, self.kt_over_j * (i1[idx] - i0[idx])]
+
+    def fast(self, sig):
+        i0, i1 = held_current(sig, self.delay, self.sat_a, self.sat_off)
+        return [(self.kt_over_j * i0, [(VISC, self.d_over_j), (SPRING, self.c_over_j)]),
+                (self.kt_over_j * (i1 - i0), [])]
 
 
 # ------------------------------------------------------------- batched grid scans

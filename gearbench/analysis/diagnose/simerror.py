@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import savgol_filter
 
+from . import fastsim
 from .nominal import VELOCITY_WINDOW, Model, Signals, sg_derivative_kernel
 
 #: Simulation horizon (re-initialised from the measured state), seconds.
@@ -100,6 +101,11 @@ def simulate(sig: Signals, model: Model, starts: np.ndarray, horizon: int) -> np
     n = len(sig)
     half = VELOCITY_WINDOW // 2
     h = sg_derivative_kernel(dt)
+    plan = fastsim.plan(sig, model) if COMPILED else None
+    if plan is not None:      # the same steps, compiled (fastsim)
+        return fastsim.run(sig.position_rad, sig.current_a, initial_velocity(sig), *plan[:1],
+                           np.asarray(starts, np.int64), int(horizon), half, dt, h,
+                           *plan[1:], FRICTION_SUBSTEPS)
     theta = sig.position_rad[starts].astype(float)
     omega = initial_velocity(sig)[starts]
     states = [t.init_state(sig, starts) for t in model.terms]
@@ -149,6 +155,9 @@ def simulate(sig: Signals, model: Model, starts: np.ndarray, horizon: int) -> np
         err += hj * eth[:, 1 + jj:1 + jj + horizon]
     return err
 
+
+#: Simulate through the compiled path (fastsim) whenever every term has a spec.
+COMPILED = True
 
 #: Sub-steps of the friction within one sample step.  A sign-like friction flips within
 #: the step where the velocity crosses zero; evaluated once per step (at its start or

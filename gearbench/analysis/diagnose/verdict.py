@@ -95,7 +95,7 @@ class Score:
     why: str = ""
     min_detectable: dict | None = None   # smallest amplitude this trace shows (testability)
     #: paired t of this candidate's held-out errors against the null's (random smooth
-    #: regressors fitted and scored alike; see pipeline.NullTerm) and the null's shrink
+    #: regressors fitted and scored alike; see chain.NullTerm) and the null's shrink
     t_vs_null: float | None = None
     null_shrink: float | None = None
 
