@@ -550,8 +550,8 @@ def _identify_form(sig: _Signals, form: str, *, spring, use_bias, lag, eiv, cogg
     fit = _fit(sig, cols, form, lag=lag, eiv=eiv)
     fit, orders = _select_cogging(sig, cols, form, fit, cogging, rad_per_unit, lag, eiv, block)
     e = fit.residual
-    cov, dof, n_eff = _block_covariance(fit.Xt, e, fit.A, block=block, Z=fit.Z)
-    names, values, cov = _to_accel_names(fit, cov)
+    cov_own, dof, n_eff = _block_covariance(fit.Xt, e, fit.A, block=block, Z=fit.Z)
+    names, values, cov = _to_accel_names(fit, cov_own)
     b2 = float(values[0])
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
     tq = t_quantile(dof)
@@ -560,6 +560,12 @@ def _identify_form(sig: _Signals, form: str, *, spring, use_bias, lag, eiv, cogg
     cog_amps = {int(k): float(np.hypot(values[names.index(f"cog{k}_sin")],
                                        values[names.index(f"cog{k}_cos")])) for k in orders}
     share = _regressor_noise_share(sig, fit, b2)
+    per_ampere = {}
+    if form != "accel":
+        # the torque side's own coefficients: friction per ampere is identified even when
+        # the inertia is not (its uncertainty does not pass through J)
+        for k, nm in enumerate(("J/Kt", "D/Kt", "Tc/Kt")):
+            per_ampere[nm] = [float(fit.beta[k]), float(np.sqrt(max(cov_own[k, k], 0.0)))]
     spring_v = values[names.index(C_J)] if spring else 0.0
     lag_v = float(values[names.index(LAG)]) if LAG in names else 0.0
     return IdentificationResult(
@@ -573,6 +579,7 @@ def _identify_form(sig: _Signals, form: str, *, spring, use_bias, lag, eiv, cogg
                 "speed_range_rad_s": speed_range(sig.w_smooth),
                 "current_delay_s": fit.shift_s + (lag_v / b2 if b2 else 0.0),
                 "identified": identified, "regressor_noise_share": share,
+                "per_ampere": per_ampere,
                 "residual_unit": "rad/s^2" if form == "accel" else "A"})
 
 
@@ -633,15 +640,26 @@ def _cross_check(main: IdentificationResult, other: IdentificationResult) -> dic
 
 
 def _check(sig: _Signals, fit: IdentificationResult) -> None:
-    """Refuse what the run cannot identify, with advice in the run's own numbers."""
+    """Refuse only what the run cannot identify, with advice in its own numbers: no
+    acceleration content, ill-conditioned regressors, a model that explains little, or
+    neither Kt/J nor any friction term. A run whose Kt/J misses ``MAX_B2_REL_STD`` but
+    whose friction is identified is returned with that advice in ``extras["warnings"]``
+    (``calibrate_motor`` refuses it: Kt needs b2)."""
     fs = sig.fs
     acc = fs["acceleration"]
     accel_noise = _encoder_accel_noise(sig.th, sig.dt, sig.taps)
     b2, b2_std = fit.b2, fit.b2_std
-    check_excitation(velocity=fs["velocity"], acceleration=acc, accel_noise_rms=accel_noise,
-                     condition=fit.condition, b2=b2, b2_std=b2_std, rate_hz=1.0 / sig.dt,
-                     source=sig.source, reversals=count_reversals(sig.w_smooth, sig.moving),
-                     cutoff_hz=sig.cutoff_hz)
+    advice = check_excitation(
+        velocity=fs["velocity"], acceleration=acc, accel_noise_rms=accel_noise,
+        condition=fit.condition, b2=b2, b2_std=b2_std, rate_hz=1.0 / sig.dt, source=sig.source,
+        reversals=count_reversals(sig.w_smooth, sig.moving), cutoff_hz=sig.cutoff_hz,
+        require_b2=False)
+    if advice:
+        friction = [n for n in (D_J, TC_J) if fit.extras["identified"].get(n)]
+        if not friction or not (b2 > 0):
+            raise ExcitationError(f"{sig.source}: {advice}")
+        fit.extras.setdefault("warnings", []).append(
+            f"{advice}; identified: {', '.join(friction)} (per ampere in extras['per_ampere'])")
     noise_i = sig.noise_var_raw * float(np.sum(np.convolve(dv.SECOND_DIFFERENCE_MATCH,
                                                            sig.taps) ** 2))
     if fit.extras["form"] == "accel":
@@ -803,7 +821,7 @@ def _is_speed_command(trace) -> bool:
 def check_excitation(*, velocity: np.ndarray, acceleration: np.ndarray, accel_noise_rms: float,
                      condition: float, b2: float, b2_std: float, rate_hz: float,
                      source: str = "<array>", reversals: int | None = None,
-                     cutoff_hz: float | None = None) -> None:
+                     cutoff_hz: float | None = None, require_b2: bool = True) -> str | None:
     """Raise ``ExcitationError`` unless the data can identify b2 = Kt/J.
 
     Three tests: the filtered acceleration must stand well above what encoder
@@ -821,6 +839,11 @@ def check_excitation(*, velocity: np.ndarray, acceleration: np.ndarray, accel_no
     b2, b2_std : the fit's Kt/J and its standard uncertainty.
     rate_hz, source : sample rate and the run's name for the message.
     reversals, cutoff_hz : the run's speed reversals and filter band, quoted in the advice.
+    require_b2 : raise when b2 misses ``MAX_B2_REL_STD``; False: return the advice.
+
+    Returns
+    -------
+    None, or (``require_b2`` False) the advice on Kt/J (``b2_shortfall``).
 
     Examples
     --------
@@ -847,19 +870,45 @@ def check_excitation(*, velocity: np.ndarray, acceleration: np.ndarray, accel_no
             f"{source}: regressors ill-conditioned (condition {condition:.3g} > "
             f"{MAX_CONDITION:.0g}): speed, acceleration and friction do not vary independently "
             f"in this run ({held}); vary the speed's amplitude and frequency independently")
-    if not (b2 > 0):
+    if not (b2 > 0) and require_b2:
         raise ExcitationError(
             f"{source}: Kt/J comes out {b2:.4g} ± {b2_std:.2g} (not positive): check the current's "
             f"sign and that current_a belongs to this axis ({held})")
+    advice = b2_shortfall(b2, b2_std, held) if b2 > 0 else (
+        f"Kt/J comes out {b2:.4g} ± {b2_std:.2g}, not positive ({held})")
+    if advice and require_b2:
+        raise ExcitationError(f"{source}: {advice}")
+    return advice
+
+
+def b2_shortfall(b2: float, b2_std: float, held: str) -> str | None:
+    """Why and by how much a run misses ``MAX_B2_REL_STD`` on Kt/J, in the run's own
+    numbers (``held``: what it holds); None when it does not.
+
+    Parameters
+    ----------
+    b2, b2_std : Kt/J and its standard uncertainty.
+    held : the run's speeds, acceleration, reversals and band, as text.
+
+    Returns
+    -------
+    str or None
+        b2's relative uncertainty scales as 1/(acceleration content) and 1/√(duration):
+        the shortfall factor f says the same moves √f x faster or an f² x longer run.
+
+    Examples
+    --------
+    >>> b2_shortfall(100.0, 10.0, "a slow run") is not None
+    True
+    """
     rel = b2_std / b2
-    if rel > MAX_B2_REL_STD:
-        f = rel / MAX_B2_REL_STD
-        raise ExcitationError(
-            f"{source}: Kt/J is not identifiable from this run (b2 = {b2:.4g} ± {b2_std:.2g}, "
+    if rel <= MAX_B2_REL_STD:
+        return None
+    f = rel / MAX_B2_REL_STD
+    return (f"Kt/J is not identifiable from this run (b2 = {b2:.4g} ± {b2_std:.2g}, "
             f"{100 * rel:.2g} %; {held}); ±{100 * MAX_B2_REL_STD:.0f} % needs {f:.2g}x its "
             f"acceleration content (the same moves {np.sqrt(f):.2g}x faster) or a {f * f:.2g}x "
-            f"longer run; friction D/J and Tc/J are reported per parameter with "
-            f"check=False (--no-check)")
+            f"longer run")
 
 
 def check_fit_quality(*, r2: float, floor_r2: float, source: str = "<array>") -> None:
