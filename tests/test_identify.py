@@ -140,7 +140,7 @@ def test_constant_speed_is_refused_with_the_fix():
     q = 2 * np.pi / 10000
     th = np.floor(150.0 * t / q) * q
     i = 0.2 + np.random.default_rng(0).normal(0, 0.004, t.size)
-    with pytest.raises(ExcitationError, match=r"multisine of at least \d+ rad/s amplitude"):
+    with pytest.raises(ExcitationError, match=r"multisine of at least [\d.e+-]+ rad/s amplitude"):
         identify_default(t, th, i)
 
 
@@ -296,3 +296,72 @@ def test_a_fit_far_below_what_the_noise_allows_is_refused():
         check_fit_quality(r2=0.088, floor_r2=0.999)
     with pytest.raises(ExcitationError, match="explains little"):
         check_fit_quality(r2=float("nan"), floor_r2=0.9)
+
+
+# ------------------------------------------------- issue 23: beyond our own plant
+from gearbench.bench._joint_sim import JOINTS, simulate_joint  # noqa: E402
+from gearbench.bench._real import physical  # noqa: E402
+from gearbench.analysis.identify import KT_J  # noqa: E402
+
+
+def _joint(name, seed=1):
+    joint = next(j for j in JOINTS if j.name == name)
+    return joint, simulate_joint(joint, seed=seed)
+
+
+def test_friction_dominated_100hz_joint_torque_side_recovers_its_inertia():
+    """Robot wrist, 100 Hz, Coulomb ~80 % of the rms current, gravity, ripple and a
+    coloured disturbance: the accel form attenuates Kt/J (J 4-5x too large, errors in
+    variables: current content the model lacks sits in its regressor); the torque side
+    (the default) holds J, Fv, Fc inside their 95 % intervals, and the cross-check
+    flags the accel form's disagreement."""
+    joint, d = _joint("wrist")
+    kw = dict(check=False, load_rad_per_unit=1.0, rad_per_unit=None)
+    fit = identify_default(d["time_s"], d["position_rad"], d["current_a"], **kw)
+    ph = physical(fit, joint.gain_nm_a)
+    for key, truth in (("J", joint.J), ("Fv", joint.Fv), ("Fc", joint.Fc)):
+        v, half = ph[key]
+        assert abs(v - truth) <= half, (key, v, half, truth)
+    acc = identify_default(d["time_s"], d["position_rad"], d["current_a"], form="accel", **kw)
+    assert physical(acc, joint.gain_nm_a)["J"][0] > 2 * joint.J
+    cc = acc.extras["cross_check"]
+    assert not cc["agree"] and KT_J in cc["differ"] and cc["supported"] == "torque-ls"
+
+
+def test_load_angle_option_fits_gravity_not_cogging():
+    """The shoulder carries gravity G cos(q): fitted as load_sin/load_cos of the load
+    angle (order 1), in accel units −(G/gain)/(J/gain) on the cosine."""
+    joint, d = _joint("shoulder")
+    fit = identify_default(d["time_s"], d["position_rad"], d["current_a"], check=False,
+                           load_rad_per_unit=1.0, rad_per_unit=None)
+    assert "load_cos" in fit.names and fit.extras["cogging"] == {}
+    want = -joint.gravity_nm / joint.J
+    assert abs(fit.value("load_cos") - want) <= 2.5 * fit.std("load_cos")
+    assert fit.extras["identified"]["load_cos"]
+
+
+def test_refusal_advice_is_in_the_runs_own_numbers():
+    """A run short of Kt/J's 5 % is not refused with a fixed recipe: the message quotes
+    its speeds, reversals and band and the factor it falls short by; friction that it
+    does identify is still returned (check on: warning, per ampere)."""
+    joint, d = _joint("wrist", seed=0)
+    fit = identify_default(d["time_s"][:2000], d["position_rad"][:2000], d["current_a"][:2000],
+                           load_rad_per_unit=1.0, rad_per_unit=None)
+    warn = " ".join(fit.extras.get("warnings", []))
+    assert "not identifiable" in warn and "reversals" in warn and "longer run" in warn
+    assert fit.extras["identified"][TC_J]
+    assert set(fit.extras["per_ampere"]) == {"J/Kt", "D/Kt", "Tc/Kt"}
+
+
+@pytest.mark.parametrize("step", [1, 4, 10])
+def test_real_emps_at_1khz_250hz_100hz_within_2_percent_of_published(step):
+    if not (EMPS / "emps_train_motor_rad.csv").exists():
+        pytest.skip("real EMPS data not present (../shared/datasets/real-emps)")
+    tr = Trace.read(EMPS / "emps_train_motor_rad.csv")
+    fit = identify_default(tr.time_s[::step], tr["position_rad"][::step],
+                           tr["current_a"][::step])
+    mass = K_EMPS / fit.b2
+    assert mass == pytest.approx(95.1089, rel=0.02)
+    assert fit.value(D_J) * mass == pytest.approx(203.5034, rel=0.02)
+    assert fit.value(TC_J) / fit.b2 == pytest.approx(20.3935, rel=0.02)
+    assert fit.extras["cross_check"]["agree"]

@@ -26,6 +26,7 @@ from ..analysis.efficiency import efficiency
 from ..analysis.identify import identify, identify_default, identify_paper
 from ..errors import GearbenchError
 from ..trace import Trace
+from . import _real
 from ._data import DEV_DIR          # ../shared/datasets/dev beside the checkout
 
 METHODS = ("paper-15ms", "paper", "default")
@@ -207,7 +208,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, default=5, help="simulation seeds (default 5)")
     ap.add_argument("--quick", action="store_true", help="2 seeds, shorter runs")
     ap.add_argument("--dev-dir", type=Path, default=DEV_DIR, help="dev datasets folder")
+    ap.add_argument("--real-only", action="store_true",
+                    help="only the real section (EMPS at 1 kHz/250 Hz/100 Hz, robot joints)")
     args = ap.parse_args(argv)
+    if args.real_only:
+        return _real_section()
     seeds = 2 if args.quick else max(args.seeds, 1)
     t0 = time.perf_counter()
     rows = simulated(seeds, args.quick)
@@ -220,5 +225,17 @@ def main(argv: list[str] | None = None) -> int:
     sp = speed()
     print(f"identification of 1,000,000 samples: default {sp['default']:.3f} s, "
           f"paper {sp['paper']:.3f} s (target <= 0.3 s)")
+    _real_section()
     print(f"benchmark time {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _real_section() -> int:
+    """EMPS against its published values and simulated robot joints against truth, per
+    identification form (``gearbench.bench._real``)."""
+    rows = _real.emps_rows() + _real.joint_rows()
+    score = _real.print_real(rows)
+    for form, s in score.items():
+        print(f"  {form:<7} robot joints: truth inside the 95 % interval {s['covered']}/{s['total']}; "
+              f"EMPS worst |error| {s['emps_max_pct']:.2f} % (target {_real.EMPS_TARGET_PCT:g} %)")
     return 0

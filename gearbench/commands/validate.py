@@ -17,6 +17,7 @@ def run(args) -> int:
     from ..profile import load_profile
 
     from ..drives.devicecheck import check_profile
+    from ..profile.coverage import uncovered
 
     profile = load_profile(args.profile)
     devices = check_profile(profile)   # every device description: all problems at once
@@ -26,6 +27,7 @@ def run(args) -> int:
                    f"with the drives (nothing moved)"
     lines += [f"drives     {n}" for n in devices.notes]
     lines += [f"warning    {w}" for w in devices.warnings]
+    lines += [f"warning    {w}" for w in uncovered(profile)]
     print("\n".join(lines))
     if devices.errors:
         print("\n".join(f"error      {e}" for e in devices.errors), file=sys.stderr)

@@ -1,0 +1,26 @@
+"""Issue 23, deliverable 6: calibrations cover the efficiency map's speeds."""
+from pathlib import Path
+
+import pytest
+
+from gearbench.profile import load_profile
+from gearbench.profile.coverage import calibration_speed_range, uncovered
+
+PROFILES = sorted((Path(__file__).resolve().parents[1] / "profiles").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("path", PROFILES, ids=lambda p: p.name)
+def test_shipped_profiles_extrapolate_no_motor_loss(path):
+    assert uncovered(load_profile(path)) == []
+
+
+def test_a_calibration_short_of_the_map_is_named(tmp_path):
+    src = (PROFILES[0].parent / "cvt.yaml").read_text()
+    src = src.replace("offset: 200", "offset: 150").replace("amplitude: 120", "amplitude: 80")
+    p = tmp_path / "short.yaml"
+    p.write_text(src.replace("drivers/", str(PROFILES[0].parents[1] / "drivers") + "/"))
+    prof = load_profile(p)
+    lo, hi = calibration_speed_range(prof, "in")
+    assert hi < 300
+    msgs = uncovered(prof)
+    assert len(msgs) == 1 and "input 300 rad/s" in msgs[0] and "motor in" in msgs[0]
