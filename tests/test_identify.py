@@ -299,8 +299,8 @@ def test_a_fit_far_below_what_the_noise_allows_is_refused():
 
 
 # ------------------------------------------------- issue 23: beyond our own plant
-from gearbench.bench._joint_sim import JOINTS, simulate_joint  # noqa: E402
-from gearbench.bench._real import physical  # noqa: E402
+from gearbench.benchmarks._joint_sim import JOINTS, simulate_joint  # noqa: E402
+from gearbench.benchmarks._real import physical  # noqa: E402
 from gearbench.analysis.identify import KT_J  # noqa: E402
 
 

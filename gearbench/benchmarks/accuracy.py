@@ -232,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _real_section() -> int:
     """EMPS against its published values and simulated robot joints against truth, per
-    identification form (``gearbench.bench._real``)."""
+    identification form (``gearbench.benchmarks._real``)."""
     rows = _real.emps_rows() + _real.joint_rows()
     score = _real.print_real(rows)
     for form, s in score.items():
