@@ -176,7 +176,8 @@ def open_network(bus, profile) -> DriveNetwork:
                                      rated_current_a=m.rated_current_a,
                                      current_limit_a=m.current_limit_a,
                                      speed_limit_rad_s=m.speed_limit_rad_s,
-                                     counts_per_rev=m.counts_per_rev))
+                                     counts_per_rev=m.counts_per_rev,
+                                     extra={"profile_dir": str(Path(profile.path).parent)}))
         net.start(profile.bench.period_s)
     except BaseException:
         net.close()

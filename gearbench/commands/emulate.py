@@ -144,7 +144,8 @@ def run(args) -> int:
         if can_spec:
             bs = parse_bus(can_spec)
             handles.append(start_canopen_server(bench, bs.interface, bs.channel, port=bs.port,
-                                                eds=profile_drives(args.profile, bench)))
+                                                eds=profile_drives(args.profile, bench),
+                                                profile_dir=Path(args.profile).parent if args.profile else None))
         if args.modbus:
             from ..emulate.modbus_server import start_modbus_server
             host, port = _host_port(args.modbus)

@@ -70,6 +70,7 @@ from .supervision import HostStallMonitor, Liveness
 from .sync_producer import start_sync_producer
 from .description import (DriveModel, ObjRef, axis_units, describe_velocity_code, modes_from_bits,
                           resolve_or_raise, unit_objects)
+from .objects import interpolation_setting, mapping_entry
 from .scaling import AxisUnits, unwrap_int32
 
 DEFAULT_EDS = str(shipped_driver("cia402-servo.eds"))
@@ -96,9 +97,9 @@ def load_eds(path: str, node_id: int) -> canopen.ObjectDictionary:
     return load_model(path, node_id).od
 
 
-def load_model(path: str, node_id: int) -> DriveModel:
+def load_model(path: str, node_id: int, profile_dir=None) -> DriveModel:
     """EDS (as the vendor ships it) + its drive description; DriveError listing every problem."""
-    return resolve_or_raise(path, node_id)
+    return resolve_or_raise(path, node_id, profile_dir=profile_dir)
 
 
 def _close(a: float, b: float, rel: float = 1e-3) -> bool:
@@ -153,7 +154,12 @@ class CiA402Drive(Drive):
             raise DriveError(f"{self.where}: no SDO answer writing 0x{index:04X}:{subindex} ({exc}); "
                              f"check power, cabling, bus and node id") from exc
         except SdoAbortedError as exc:
-            raise DriveError(f"{self.where}: SDO write 0x{index:04X}:{subindex} = {value} refused ({exc})") from exc
+            shown = mapping_entry(value >> 16, (value >> 8) & 0xFF, value & 0xFF) + \
+                f" ({self.model.label(ObjRef(value >> 16, (value >> 8) & 0xFF))}, {value & 0xFF} bits)" \
+                if (0x1600 <= index <= 0x17FF or 0x1A00 <= index <= 0x1BFF) and subindex else \
+                (f"0x{value:X}" if index < 0x2000 else str(value))
+            raise DriveError(f"{self.where}: SDO write {self.model.label(ObjRef(index, subindex))} = {shown} "
+                             f"refused ({exc})") from exc
 
     # ----------------------------------------------------------------- start-up
     def configure(self, heartbeat_ms: int) -> None:
@@ -254,14 +260,18 @@ class CiA402Drive(Drive):
                 for k in ("velocity", "torque")}
         self.modes = pick
         if any(code in (9, 10) for code in pick.values()) and 0x60C2 in od:
-            # interpolation period = SYNC period, in 10^(0x60C2:02) s
+            # interpolation period = SYNC period = 0x60C2:01 x 10^(0x60C2:02) s; the exponent is
+            # written too where the drive lets it (the same rule validate applies to the EDS)
             exponent = self.sdo_read(0x60C2, 2)
             exponent = exponent - 256 if exponent > 127 else exponent
-            value = round(self.net.period_s / 10.0 ** exponent)
-            if not 1 <= value <= 255 or abs(value * 10.0 ** exponent - self.net.period_s) > 1e-9:
+            setting = interpolation_setting(self.net.period_s, exponent, self.model.exponent_writable)
+            if setting is None:
                 raise DriveError(f"{self.where}: SYNC period {self.net.period_s:g} s cannot be written to 0x60C2 "
-                                 f"(unit 1e{exponent} s); choose a period the drive can interpolate")
-            self.sdo_write(0x60C2, 1, value)
+                                 f"(unit 1e{exponent} s, 0x60C2:02 read-only); choose a period the drive can "
+                                 f"interpolate")
+            if setting[1] != exponent:
+                self.sdo_write(0x60C2, 2, setting[1])
+            self.sdo_write(0x60C2, 1, setting[0])
 
     def _write_limits(self, units: AxisUnits, rated_a: float) -> None:
         """Profile limits written to the drive, then read back: a drive that clamps them is refused."""
@@ -325,6 +335,8 @@ class CiA402Drive(Drive):
                              0x280 + nid: "<" + "".join(m.fmt(r) for r in t2)}
         self._rpdo_format = struct.Struct("<" + "".join(m.fmt(r) for r in r2))
         self._control_format = struct.Struct("<" + "".join(m.fmt(r) for r in r1))
+        self._torque_slot = r2.index(m.torque_setpoint) if m.torque_setpoint in r2 else None
+        self._velocity_slot = r2.index(ObjRef(0x60FF)) if ObjRef(0x60FF) in r2 else None
 
     def _map(self, comm: int, mapping: int, n: int, cob_id: int, trans_type: int, entries) -> None:
         self.sdo_write(comm + n, 1, (1 << 31) | cob_id)        # invalid while remapping (CiA 301)
@@ -341,13 +353,19 @@ class CiA402Drive(Drive):
     # ----------------------------------------------------------------- RPDOs
     def _send_control(self, controlword: int) -> None:
         self._controlword = controlword
-        self.net.send(0x200 + self.node.id, self._control_format.pack(controlword, self._mode_code))
+        values = (controlword, self._mode_code)[:len(self._control_format.format) - 1]
+        self.net.send(0x200 + self.node.id, self._control_format.pack(*values))
 
     def _send_targets(self, velocity_raw: int, torque_raw: int) -> None:
         """RPDO2 (target velocity, target torque) in the drive's verified units."""
         if not self.verified:
             raise DriveError(f"{self.where}: no setpoint before the drive's units are verified (start())")
-        self.net.send(0x300 + self.node.id, self._rpdo_format.pack(velocity_raw, torque_raw))
+        values = [0] * (len(self._rpdo_format.format) - 1)
+        if self._velocity_slot is not None:
+            values[self._velocity_slot] = velocity_raw
+        if self._torque_slot is not None:
+            values[self._torque_slot] = torque_raw
+        self.net.send(0x300 + self.node.id, self._rpdo_format.pack(*values))
 
     def statusword(self) -> int:
         return self.sdo_read(0x6041)
@@ -375,6 +393,8 @@ class CiA402Drive(Drive):
             raise DriveError(f"{self.where}: target torque 0x6071 to motor current relation not stated for "
                              f"{self.model.name}; describe it (torque.relation) in drivers/")
         self._mode_code = code
+        if self.model.mode_by_sdo:    # 0x6060 not PDO-mappable: set once per segment, by SDO
+            self.sdo_write(0x6060, 0, code)
         self._send_targets(0, 0)
         state = state_of(self.statusword())
         if state in ("FAULT", "FAULT REACTION ACTIVE"):
@@ -516,7 +536,8 @@ class CiA402Network(DriveNetwork):
             raise DriveError("CiA402Network.add_drive before open()")
         if config.name in self.drives:
             raise DriveError(f"axis '{config.name}' added twice; axis names must be unique")
-        model = load_model(config.description or DEFAULT_EDS, config.address)
+        model = load_model(config.description or DEFAULT_EDS, config.address,
+                           profile_dir=(config.extra or {}).get("profile_dir"))
         node = canopen.RemoteNode(config.address, model.od)
         node.sdo.RESPONSE_TIMEOUT = self.sdo_timeout_s
         self.network.add_node(node)
