@@ -251,10 +251,12 @@ class CiA402Drive(Drive):
         if 0x6502 in od:
             reported = modes_from_bits(self.sdo_read(0x6502))
             if supported is not None and m.description is not None and \
-                    m.description.fact("supported_modes", "modes") is not None and set(reported) != set(supported):
+                    m.description.fact("supported_modes", "modes") is not None and \
+                    set(reported) != {x for x in supported if x >= 0}:
                 raise DriveError(f"{self.where}: 0x6502 reports modes {list(reported)} but {m.description.path} "
                                  f"says {list(supported)}; fix the description or check the firmware")
-            supported = reported
+            # manufacturer modes (negative numbers) have no standard 0x6502 bit: they come from the description
+            supported = reported + tuple(x for x in supported or () if x < 0)
         force_profile = self.net.options.get("cyclic") is False
         pick = {k: m.mode_for(k, tuple(x for x in supported or () if not (force_profile and x >= 9)))
                 for k in ("velocity", "torque")}
@@ -389,6 +391,10 @@ class CiA402Drive(Drive):
             raise DriveError(f"{self.where}: {self.model.name} has no {mode.value} mode gearbench can use "
                              f"(0x6502); " + ("a drive that cannot brake cannot be the output motor"
                                               if mode is Mode.TORQUE else "it cannot turn at a commanded speed"))
+        if mode is Mode.TORQUE and self.model.var(self.model.torque_setpoint) is None:
+            raise DriveError(f"{self.where}: {self.model.name} has no target torque {self.model.torque_setpoint} "
+                             f"(nor a described current setpoint): a drive that cannot brake cannot be the "
+                             f"output motor")
         if mode is Mode.TORQUE and self.units.torque_a_per_unit is None:
             raise DriveError(f"{self.where}: target torque 0x6071 to motor current relation not stated for "
                              f"{self.model.name}; describe it (torque.relation) in drivers/")

@@ -252,7 +252,10 @@ class DriveNode(canopen.LocalNode):
                 value = self.raw(map_base + n, sub)
                 index, subindex = value >> 16, (value >> 8) & 0xFF
                 if index:
-                    entries.append(self._find_object(index, subindex))
+                    try:
+                        entries.append(self._find_object(index, subindex))
+                    except SdoAbortedError:   # an EDS default naming an object it lacks: no data for it
+                        continue
             pdos.append(_Pdo(cob & 0x7FF, self.raw(comm_base + n, 2), entries))
         return pdos
 
