@@ -366,6 +366,8 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
 
             simbench = stack.enter_context(SimBench(profile, seed=seed))
             fixture, bus = fixture or simbench, simbench.bus_spec()
+            if simbench.substitution():    # never a silent substitution of the profile's bus
+                print(f"gearbench: {simbench.substitution()}", file=sys.stderr)
         try:
             net = open_network(bus, profile)
         except GearbenchError as exc:   # the bench never started: still a record of the attempt

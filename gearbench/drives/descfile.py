@@ -147,6 +147,9 @@ def load_description(path: str | Path) -> DriveDescription:
     for key in doc:
         if key not in TOP_KEYS:
             c.fail(str(key), f"unknown key{did_you_mean(key, TOP_KEYS)}; known: {', '.join(TOP_KEYS)}")
+    for key, value in _walk(doc):
+        if isinstance(value, str) and value.strip().upper().startswith("TODO"):
+            c.fail(key, f"still a TODO ({value.strip()[:70]}): fill in the fact and its source")
     sources = doc.get("sources")
     if not isinstance(sources, dict) or not sources:
         c.fail("sources", "list where the facts come from as name: text (manual, EDS, measurement)")
@@ -192,6 +195,17 @@ def load_description(path: str | Path) -> DriveDescription:
                             product_codes=codes, file_names=names, sources=dict(sources), facts=facts,
                             quirks=tuple(str(q) for q in doc.get("quirks") or ()),
                             why=None if why is None else str(why), lines=c.lines)
+
+
+def _walk(node, prefix=""):
+    """(dotted key, value) of every scalar in a mapping, two levels deep (sections and their keys)."""
+    if isinstance(node, dict):
+        for k, v in node.items():
+            key = f"{prefix}{k}"
+            if isinstance(v, dict) and prefix.count(".") < 1:
+                yield from _walk(v, key + ".")
+            else:
+                yield key, v
 
 
 def _check_source(c: _Checker, section: str, text, sources: dict) -> None:
