@@ -143,7 +143,10 @@ class SimBench:
         used = show(self.bus_options.get("interface", bus.interface or bus.family),
                     self.bus_options.get("channel", bus.channel), self.bus_options.get("host", bus.host),
                     self.bus_options.get("port", bus.port))
-        if used == given:
+        same_kind = (self.bus_options.get("interface", bus.interface), self.bus_options.get("channel", bus.channel)) \
+            == (bus.interface, bus.channel) or bus.family == "modbus" and \
+            self.bus_options.get("host", bus.host) in (bus.host, "127.0.0.1")
+        if used == given or same_kind:   # the profile's own emulated bus, on a private port
             return ""
         return (f"--sim: the emulated drives are on {used} (a private port on this host), not on the "
                 f"profile's bus {given}; the profile's bus is not used")
