@@ -375,11 +375,11 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
                       out_dir=str(out), sim_truth=sim_plant, method=method).record_failed_start(exc)
             raise
         stack.callback(net.close)
-        if sim and callable(getattr(net, "watch_process", None)):
+        if sim:
             net.watch_process(simbench.proc.pid)   # the emulated drives share this host's CPUs
         # against real drives a writer that falls behind is a fault; in lockstep nothing can be missed
-        stream.realtime = not getattr(net, "lockstep", False)
-        if fixture is None and callable(getattr(net, "mount", None)):
+        stream.realtime = not net.lockstep
+        if fixture is None and net.mounts_itself:
             fixture = net
         seq = Sequencer(profile, net, emit=stream.emit, operator=operator, fixture=fixture,
                         serial=serial, out_dir=str(out), sim_truth=sim_plant, method=method)

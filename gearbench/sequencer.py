@@ -498,7 +498,7 @@ class Sequencer:
         end_fault: BenchFault | None = None
         try:
             with acquisition_priority(net.acquisition_threads(),
-                                      realtime=not getattr(net, "lockstep", False)) as granted:
+                                      realtime=not net.lockstep) as granted:
                 self.priority_granted = granted
                 for k in range(n):
                     if self._abort_reason:

@@ -92,6 +92,11 @@ class DriveNetwork(ABC):
     """
 
     family: str = "abstract"
+    #: Optional features, declared here so callers never probe with getattr:
+    #: ``lockstep`` - the drives are an emulated plant that advances one period per sample
+    #: (nothing can be missed: writers may block instead of dropping); real drives are paced
+    #: by the wall clock. Families set it per instance.
+    lockstep: bool = False
 
     def __init__(self, **options):
         self.options = options
@@ -135,6 +140,21 @@ class DriveNetwork(ABC):
             self.lost_samples += idx - self._last_index - 1
         self._last_index = idx
         return samples
+
+    def watch_process(self, pid: int) -> None:
+        """The drives are emulated by process ``pid`` on this host (``--sim``): a family whose
+        supervision measures silence treats that process's CPU starvation as a host stall.
+        Default: nothing to watch."""
+
+    def mount(self, *, coupling: str, disk_kgm2: dict[str, float]) -> None:
+        """Mount the reducer / disks itself (an in-process simulated family does); real
+        drives cannot, a person or a fixture does. See ``mounts_itself``."""
+        raise NotImplementedError(f"drive family '{self.family}' cannot mount a reducer or disks itself")
+
+    @property
+    def mounts_itself(self) -> bool:
+        """True where the family overrides ``mount`` (then it is the run's fixture)."""
+        return type(self).mount is not DriveNetwork.mount
 
     def supervision(self) -> dict:
         """What supervision saw (host stalls tolerated, frames dropped...); families extend it."""
