@@ -185,7 +185,7 @@ def test_manufacturer_current_mode_drive_runs_on_sim_with_kt_within_0_1_pct(tmp_
     eds = variants(tmp_path)["manufacturer current mode -3, vendor objects, 0x6060 by SDO"][0]
     (tmp_path / "drive.yaml").write_text(filled(draft(resolve(eds, descriptions=[]))))
     path = profile_with(tmp_path, eds, eds, "")
-    path.write_text(path.read_text().replace(
+    path.write_text(path.read_text().replace("period_s: 0.002", "period_s: 0.001").replace(   # the shipped 1 kHz
         "    channel: 239.74.163.2\n", "    channel: 239.74.163.2\n    options: {heartbeat_ms: 500, timeout_s: 3.0}\n", 1))
     profile = load_profile(path)
     result = run_profile(str(path), sim=True, out_dir=tmp_path / "run", serial="M3", yes=True,
