@@ -236,7 +236,7 @@ def resolve(eds: str, node_id: int = 1, descriptions=None, od=None, profile_dir=
     m = DriveModel(eds=eds, od=od, description=lookup.description, lookup=lookup)
     c = _Ctx(m)
     for text in lookup.broken:
-        m.problems.append(Problem("drive description", "", text, "fix the description file", True))
+        m.problems.append(Problem(text, "", "", "", True))   # already "file:line: key: what; fix"
     for step in (_resolve_identity, _resolve_modes, _resolve_position, _resolve_velocity, _resolve_current,
                  _resolve_torque, _resolve_extras, _check_pdos):
         step(c)

@@ -109,4 +109,5 @@ class Problem:
     fatal: bool = True
 
     def __str__(self) -> str:
-        return f"{self.file}: {self.obj}: {self.problem}; {self.fix}"
+        head = ": ".join(x for x in (self.file, self.obj, self.problem) if x)
+        return f"{head}; {self.fix}" if self.fix else head
