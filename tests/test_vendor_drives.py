@@ -305,6 +305,13 @@ def test_run_sim_end_to_end_on_the_vendor_dictionary(tmp_path, name):
                          db=tmp_path / "station.sqlite")
     assert result["status"] == "passed", result.get("reason")
     assert result["lost_samples"] == 0
+    from gearbench.sim.truth import simulation_truth
+    truth = simulation_truth(profile.simulation, result["efficiency"])
+    for m in ("in", "out"):
+        err = 100 * (result["motors"][m]["Kt"] / truth["motors"][m]["Kt"] - 1)
+        print(f"{name}, motor {m}: Kt {result['motors'][m]['Kt']:.6f} N m/A, truth {truth['motors'][m]['Kt']:.6f}, "
+              f"error {err:+.4f} %")
+        assert abs(err) <= 0.1
     assert_claimed_accuracy(result, profile.simulation)
 
 
