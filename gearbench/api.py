@@ -145,7 +145,8 @@ def open_network(bus, profile) -> DriveNetwork:
                                      rated_current_a=m.rated_current_a,
                                      current_limit_a=m.current_limit_a,
                                      speed_limit_rad_s=m.speed_limit_rad_s,
-                                     counts_per_rev=m.counts_per_rev))
+                                     counts_per_rev=m.counts_per_rev,
+                                     extra={"profile_dir": str(Path(profile.path).parent)}))
         net.start(profile.bench.period_s)
     except BaseException:
         net.close()
@@ -316,6 +317,8 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
 
             simbench = stack.enter_context(SimBench(profile, seed=seed))
             fixture, bus = fixture or simbench, simbench.bus_spec()
+            if simbench.substitution():    # never a silent substitution of the profile's bus
+                print(f"gearbench: {simbench.substitution()}", file=sys.stderr)
         try:
             net = open_network(bus, profile)
         except GearbenchError as exc:   # the bench never started: still a record of the attempt
@@ -327,7 +330,8 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
             net.watch_process(simbench.proc.pid)   # the emulated drives share this host's CPUs
         # against real drives a writer that falls behind is a fault; in lockstep nothing can be missed
         stream.realtime = not net.lockstep
-        fixture = fixture or net.fixture()
+        if fixture is None and net.mounts_itself:
+            fixture = net
         seq = Sequencer(profile, net, emit=stream.emit, operator=operator, fixture=fixture,
                         serial=serial, out_dir=str(out), sim_truth=truth_of(sim_plant), method=method)
         bench = Bench(profile, net, seq, stream)

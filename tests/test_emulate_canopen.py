@@ -161,3 +161,20 @@ def test_emulate_stops_cleanly_on_sigterm_and_rejects_bad_profile(tmp_path):
     assert proc.stdout.readline().strip() == "ready"
     proc.send_signal(signal.SIGINT)
     assert proc.wait(10) == 0
+
+
+def test_emulated_world_runs_at_the_profiles_period(tmp_path):
+    """The emulated world advances one bench period per SYNC: a 2 ms profile without a
+    simulation.period_s gets a 2 ms plant (it once ran at the 1 ms default: time stretched,
+    accelerations read 4x low, Kt 4x low); a contradicting simulation.period_s is refused."""
+    from gearbench.commands.emulate import load_plant
+    from gearbench.errors import ProfileError
+
+    text = (Path(__file__).resolve().parents[1] / "profiles" / "cvt.yaml").read_text()
+    p = tmp_path / "p.yaml"
+    p.write_text(text.replace("period_s: 0.001                    # 1 kHz SYNC", "period_s: 0.002"))
+    assert load_plant(str(p)).period_s == 0.002
+    p.write_text(text.replace("period_s: 0.001                    # 1 kHz SYNC", "period_s: 0.002")
+                 .replace("simulation:\n", "simulation:\n  period_s: 0.001\n", 1))
+    with pytest.raises(ProfileError, match="simulation.period_s 0.001 differs from bench.period_s 0.002"):
+        load_plant(str(p))

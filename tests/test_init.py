@@ -1,5 +1,5 @@
 """gearbench init and where files are found: profile by name, drive description in the
-profile's folder, then the station, then the shipped ones (gearbench.shipped)."""
+profile's folder, then the station, then the shipped ones (gearbench.drives.shipped)."""
 from __future__ import annotations
 
 import shutil

@@ -65,8 +65,19 @@ def load_plant(profile: str | None):
         doc = {}
     if not isinstance(doc, dict):
         raise ProfileError(f"{profile}: expected a mapping at the top level")
+    sim = dict(doc.get("simulation") or {})
+    bench_period = (doc.get("bench") or {}).get("period_s") if isinstance(doc.get("bench"), dict) else None
+    # the emulated world advances one bench period per SYNC: a plant at another period would
+    # stretch time (a 2 ms profile on the 1 ms default read accelerations 4x low, Kt 4x low)
+    if isinstance(bench_period, (int, float)) and not isinstance(bench_period, bool):
+        if "period_s" not in sim:
+            sim["period_s"] = bench_period
+        elif abs(float(sim["period_s"]) - bench_period) > 1e-12:
+            raise ProfileError(f"{profile}: simulation.period_s {sim['period_s']} differs from bench.period_s "
+                               f"{bench_period}; the emulated drives sample at the bench's period: remove "
+                               f"simulation.period_s or make them equal")
     try:
-        return PlantParams.from_dict(doc.get("simulation") or {}, where="simulation")
+        return PlantParams.from_dict(sim, where="simulation")
     except ProfileError as exc:
         raise ProfileError(f"{profile}: {exc}") from exc
 
@@ -144,7 +155,8 @@ def run(args) -> int:
         if can_spec:
             bs = parse_bus(can_spec)
             handles.append(start_canopen_server(bench, bs.interface, bs.channel, port=bs.port,
-                                                eds=profile_drives(args.profile, bench)))
+                                                eds=profile_drives(args.profile, bench),
+                                                profile_dir=Path(args.profile).parent if args.profile else None))
         if args.modbus:
             from ..emulate.modbus_server import start_modbus_server
             host, port = _host_port(args.modbus)

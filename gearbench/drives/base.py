@@ -92,9 +92,10 @@ class DriveNetwork(ABC):
     """
 
     family: str = "abstract"
-    # True when the drives move only on this master's SYNC and answer every one (a
-    # simulated bench): nothing can be missed, so no real-time priority and no
-    # fault for a writer that falls behind
+    #: Optional features, declared here so callers never probe with getattr:
+    #: ``lockstep`` - the drives are an emulated plant that advances one period per sample
+    #: (nothing can be missed: writers may block instead of dropping); real drives are paced
+    #: by the wall clock. Families set it per instance.
     lockstep: bool = False
 
     def __init__(self, **options):
@@ -140,22 +141,24 @@ class DriveNetwork(ABC):
         self._last_index = idx
         return samples
 
+    def watch_process(self, pid: int) -> None:
+        """The drives are emulated by process ``pid`` on this host (``--sim``): a family whose
+        supervision measures silence treats that process's CPU starvation as a host stall.
+        Default: nothing to watch."""
+
+    def mount(self, *, coupling: str, disk_kgm2: dict[str, float]) -> None:
+        """Mount the reducer / disks itself (an in-process simulated family does); real
+        drives cannot, a person or a fixture does. See ``mounts_itself``."""
+        raise NotImplementedError(f"drive family '{self.family}' cannot mount a reducer or disks itself")
+
+    @property
+    def mounts_itself(self) -> bool:
+        """True where the family overrides ``mount`` (then it is the run's fixture)."""
+        return type(self).mount is not DriveNetwork.mount
+
     def supervision(self) -> dict:
         """What supervision saw (host stalls tolerated, frames dropped...); families extend it."""
         return {}
-
-    def watch_process(self, pid: int) -> None:
-        """The drives are played by process ``pid`` on this host (the emulator): a family
-        whose supervision can tell a CPU-starved drive from a silent one uses it."""
-
-    def mount(self, *, coupling: str, disk_kgm2: dict[str, float]) -> None:
-        """Physically change the bench (disks, reducer). Only a network that simulates the
-        bench in this process overrides it; on a real bench the operator mounts at the prompt."""
-        raise NotImplementedError(f"{type(self).__name__} cannot mount anything")
-
-    def fixture(self):
-        """The network itself when it overrides ``mount`` (it is then the bench's fixture), else None."""
-        return self if type(self).mount is not DriveNetwork.mount else None
 
     def acquisition_threads(self) -> list[int]:
         """Native ids of the family's threads on the acquisition path (e.g. the bus

@@ -16,6 +16,7 @@ from pathlib import Path
 
 from ..errors import DriveError, ProfileError
 from .description import Problem, resolve, role_problems
+from .objects import interpolation_setting, mode_name
 
 DEFAULT_BITRATE = 1_000_000
 BUS_WARN, BUS_REFUSE = 0.60, 0.90
@@ -63,36 +64,87 @@ def check_profile(profile) -> DeviceReport:
 
 def _check_canopen(profile, report: DeviceReport) -> None:
     models, seen = {}, set()
+    profile_dir = Path(profile.path).parent if getattr(profile, "path", None) else None
+    cyclic = (profile.bench.bus.options or {}).get("cyclic")
     for name, motor in profile.motors.items():
         try:
-            model = resolve(str(motor.drive), motor.address)
+            model = resolve(str(motor.drive), motor.address, profile_dir=profile_dir)
         except DriveError as exc:
-            report.errors.append(str(exc))
+            if str(exc) not in seen:
+                seen.add(str(exc))
+                report.errors.append(str(exc))
             continue
         models[name] = model
         kinds = profile.drive_modes(name)
         problems = [p for p in model.problems if "torque" not in p.problem or "torque" in kinds] + \
-            role_problems(model, kinds, name)
+            role_problems(model, kinds, name) + start_problems(model, kinds, profile.bench.period_s, cyclic)
         for p in problems:
             text = str(p)
             if text in seen:
                 continue
             seen.add(text)
             (report.errors if p.fatal else report.warnings).append(text)
-        report.notes.append(_describe(name, model, kinds))
+        report.notes += [n for n in _describe(name, model, kinds, cyclic) if n not in report.notes]
     if models and len(models) == len(profile.motors):
         _bus_budget(profile, models, report)
 
 
-def _describe(name: str, m, kinds) -> str:
-    desc = Path(m.description.path).name if m.description else "no description (CiA 402 objects only)"
-    modes = "modes from 0x6502 at start-up" if m.supported_modes is None else \
-        "modes " + "/".join(f"{k} {m.mode_for(k, m.supported_modes)}" for k in sorted(kinds)
-                            if m.mode_for(k, m.supported_modes) is not None)
-    echo = f"SYNC echo {m.sync_echo}" if m.sync_echo else "no SYNC echo"
-    unit = m.velocity_unit if not isinstance(m.velocity_unit, int) else f"0x{m.velocity_unit:08X}"
-    return (f"{name}: {m.name} ({desc}); current {m.current} [{m.current_unit}], velocity unit {unit}, "
-            f"{modes}, {echo}")
+def chosen_modes(m, kinds, cyclic) -> dict:
+    """{kind: 0x6060 code} the start-up will pick from the EDS's modes (``CiA402Drive._select_modes``)."""
+    if m.supported_modes is None:
+        return {}
+    usable = tuple(x for x in m.supported_modes if not (cyclic is False and x in (9, 10)))
+    return {k: m.mode_for(k, usable) for k in kinds}
+
+
+def start_problems(m, kinds, period_s: float, cyclic) -> list[Problem]:
+    """What the start-up checks beyond the model itself, decided from the EDS: the SYNC period
+    expressed in 0x60C2 (exponent written only where 0x60C2:02 is writable)."""
+    out, where = [], Path(m.eds).name
+    modes = chosen_modes(m, kinds | {"velocity", "torque"}, cyclic)
+    if any(code in (9, 10) for code in modes.values()) and 0x60C2 in m.od:
+        exponent = m.exponent_default()
+        if interpolation_setting(period_s, exponent, m.exponent_writable) is None:
+            out.append(Problem(where, m.label("0x60C2:02"), f"SYNC period {period_s:g} s (bench.period_s) cannot be "
+                               f"written to 0x60C2 interpolation time (unit 1e{exponent} s, value 1..255"
+                               + ("" if m.exponent_writable else ", exponent read-only") + ")",
+                               "choose a period the drive can interpolate"
+                               + ("" if m.exponent_writable else f", e.g. {max(1, round(period_s / 10.0 ** exponent))}"
+                                  f"e{exponent} s")))
+    return out
+
+
+def _describe(name: str, m, kinds, cyclic=None) -> list[str]:
+    """What validate says of one motor's drive: where the description was looked for,
+    which one matched and how, and the objects and modes gearbench will use."""
+    lines = []
+    look = m.lookup
+    if look.looked:
+        lines.append(f"descriptions of {Path(m.eds).name} looked for in: " + ", ".join(look.looked))
+    if m.description is not None:
+        lines.append(f"{name}: {m.name} - {m.description.path} (matched by {look.matched_by})")
+    else:
+        lines.append(f"{name}: {m.name} - no description matched (CiA 402 objects only; EDS "
+                     + (f"vendor id 0x{m.vendor_id:08X}" if m.vendor_id is not None else "without vendor id")
+                     + (f" + product code 0x{m.product_code:08X}" if m.product_code is not None else "") + ")")
+    modes = chosen_modes(m, kinds, cyclic)
+    shown = "modes from 0x6502 at start-up" if m.supported_modes is None else "modes " + ", ".join(
+        f"{k} {code} ({mode_name(code)})" for k, code in sorted(modes.items()) if code is not None)
+    def unit_text(ref, unit, scale):
+        return "none" if ref is None else f"{m.label(ref)} in {unit}" + (f" x {scale:g}" if scale != 1 else "")
+    vel = m.velocity_unit
+    vel = "unknown" if vel is None else m.label(vel) if not isinstance(vel, (int, str)) else \
+        (f"0x{vel:08X}" if isinstance(vel, int) else vel)
+    torque = "" if "torque" not in kinds else (
+        f"; torque setpoint {unit_text(m.torque_setpoint, m.torque_unit, m.torque_scale)}"
+        if m.torque_relation == "current" else f"; torque setpoint {m.label(m.torque_setpoint)} "
+                                               f"({m.torque_relation or 'relation unknown'})")
+    lines.append(f"{name}: {shown}; current actual {unit_text(m.current, m.current_unit, m.current_scale)}; "
+                 f"rated current {unit_text(m.rated_current, m.rated_current_unit, m.rated_current_scale)}; "
+                 f"velocity unit {vel}{torque}; "
+                 + ("0x6060 written by SDO per segment (not PDO-mappable); " if m.mode_by_sdo else "")
+                 + (f"SYNC echo {m.label(m.sync_echo)}" if m.sync_echo else "no SYNC echo"))
+    return lines
 
 
 def _bus_budget(profile, models: dict, report: DeviceReport) -> None:
@@ -102,7 +154,7 @@ def _bus_budget(profile, models: dict, report: DeviceReport) -> None:
     frames = [1 if counter else 0]                       # SYNC
     for m in models.values():
         t1, t2 = m.tpdo_entries(counter)
-        r2 = m.rpdo_entries()[1]
+        r2 = m.rpdo_entries()[1]   # only the objects the drive has (never a zero-length entry)
         frames += [sum(m.bits(r) for r in entries) // 8 for entries in (t1, t2, r2)]
     load, bits = bus_load(frames, period, bitrate)
     fit = _period_that_fits(bits, bitrate)

@@ -279,6 +279,8 @@ def register_map_problems(data, where: str = "register map") -> tuple[RegisterMa
 
     def bad(m, key, msg, fix):
         out.append(f"{where}{_line(m, key)}: {msg}; {fix}")
+        bad.count += 1
+    bad.count = 0
 
     if not isinstance(data, dict):
         return None, [f"{where}: top level is not a mapping; write `registers:`, `word_order:`, ... as keys"]
@@ -286,7 +288,26 @@ def register_map_problems(data, where: str = "register map") -> tuple[RegisterMa
     if word_order not in WORD_ORDERS:
         bad(data, "word_order", f"word_order: '{word_order}' is not a word order",
             "use 'big' (high word at the lower address) or 'little'")
+    regs_in, registers = _check_registers(data, bad)
+    _check_required(regs_in, registers, bad)
+    _check_layout(regs_in, registers, bad)
+    modes, cv, sw, fault_bit = _check_control(data, bad)
+    seq = _check_enable_sequence(data, registers, bad)
+    timeout = data.get("enable_timeout_s", 1.0)
+    if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or timeout <= 0:
+        bad(data, "enable_timeout_s", f"enable_timeout_s: '{timeout}' is not a positive number", "use e.g. 1.0")
+    if out:
+        return None, out
+    return RegisterMap(
+        path=where, model=str(data.get("model", Path(where).stem)), word_order=word_order,
+        registers=MappingProxyType(registers), modes=MappingProxyType({m: modes[m] for m in modes}),
+        control_values=MappingProxyType({k: cv[k] for k in cv}), enable_sequence=tuple(seq),
+        fault_bit=fault_bit, enabled_mask=int(sw.get("enabled_mask", 0x6F)),
+        enabled_value=int(sw.get("enabled_value", 0x27)), enable_timeout_s=float(timeout)), []
 
+
+def _check_registers(data, bad) -> tuple[dict, dict[str, Register]]:
+    """Each register's fields (address, type, scale, access): the raw entries and the valid ones."""
     regs_in = data.get("registers")
     if not isinstance(regs_in, dict) or not regs_in:
         bad(data, "registers", "registers: missing or not a mapping",
@@ -298,7 +319,7 @@ def register_map_problems(data, where: str = "register map") -> tuple[RegisterMa
         if not isinstance(spec, dict):
             bad(regs_in, name, f"{key}: not a mapping", "write {address: N, type: int16, scale: 1, unit: '', access: r}")
             continue
-        n_before = len(out)
+        n_before = bad.count
         for field in ("address", "type"):
             if field not in spec:
                 bad(spec, None, f"{key}.{field}: missing", f"add `{field}:` to register '{name}'")
@@ -318,9 +339,14 @@ def register_map_problems(data, where: str = "register map") -> tuple[RegisterMa
         access = spec.get("access", "r")
         if access not in ACCESS:
             bad(spec, "access", f"{key}.access: '{access}' is not an access mode", "use r, w or rw")
-        if len(out) == n_before:
+        if bad.count == n_before:
             registers[name] = Register(str(name), addr, rtype, scale, str(spec.get("unit", "")), access)
 
+    return regs_in, registers
+
+
+def _check_required(regs_in: dict, registers: dict[str, Register], bad) -> None:
+    """The registers gearbench needs, with the access it needs, and the time/watchdog units."""
     for name, need in REQUIRED.items():
         if name not in regs_in:
             bad(regs_in, None, f"registers.{name}: missing (required register)",
@@ -339,6 +365,10 @@ def register_map_problems(data, where: str = "register map") -> tuple[RegisterMa
         bad(regs_in["sample_counter"], "scale", "registers.sample_counter: scale must be the counter "
             "period in seconds (the drive's time base)", "set scale: <period, e.g. 0.001> and unit: s")
 
+
+
+def _check_layout(regs_in: dict, registers: dict[str, Register], bad) -> None:
+    """No overlaps; the sampled registers one contiguous block (one read, one instant)."""
     # overlapping addresses
     ordered = sorted(registers.values(), key=lambda r: r.address)
     for a, b in zip(ordered, ordered[1:]):
@@ -357,6 +387,10 @@ def register_map_problems(data, where: str = "register map") -> tuple[RegisterMa
         bad(regs_in, None, "the sample block is longer than one Modbus read",
             f"keep it within {MAX_READ_WORDS} words")
 
+
+
+def _check_control(data, bad):
+    """Modes, control values and the status word: (modes, control_values, status_word, fault_bit)."""
     modes = data.get("modes")
     if not isinstance(modes, dict) or any(not isinstance(modes.get(m), int) for m in MODES):
         bad(data, "modes", "modes: needs integer values for velocity and torque",
@@ -375,6 +409,11 @@ def register_map_problems(data, where: str = "register map") -> tuple[RegisterMa
     if isinstance(fault_bit, bool) or not isinstance(fault_bit, int) or not 0 <= fault_bit <= 15:
         bad(sw, "fault_bit", f"status_word.fault_bit: '{fault_bit}' is not a bit number", "use 0..15 (CiA 402: 3)")
 
+    return modes, cv, sw, fault_bit
+
+
+def _check_enable_sequence(data, registers: dict[str, Register], bad) -> list[Write]:
+    """Writable registers, raw values, the mode written, a control write last."""
     seq_in = data.get("enable_sequence")
     if not isinstance(seq_in, list) or not seq_in:
         bad(data, "enable_sequence", "enable_sequence: missing or empty",
@@ -400,14 +439,4 @@ def register_map_problems(data, where: str = "register map") -> tuple[RegisterMa
         bad(data, "enable_sequence", "enable_sequence does not end with a control write",
             "end with the enable-operation controlword, e.g. - {register: control, value: 15}")
 
-    timeout = data.get("enable_timeout_s", 1.0)
-    if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or timeout <= 0:
-        bad(data, "enable_timeout_s", f"enable_timeout_s: '{timeout}' is not a positive number", "use e.g. 1.0")
-    if out:
-        return None, out
-    return RegisterMap(
-        path=where, model=str(data.get("model", Path(where).stem)), word_order=word_order,
-        registers=MappingProxyType(registers), modes=MappingProxyType({m: modes[m] for m in modes}),
-        control_values=MappingProxyType({k: cv[k] for k in cv}), enable_sequence=tuple(seq),
-        fault_bit=fault_bit, enabled_mask=int(sw.get("enabled_mask", 0x6F)),
-        enabled_value=int(sw.get("enabled_value", 0x27)), enable_timeout_s=float(timeout)), []
+    return seq

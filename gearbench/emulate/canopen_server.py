@@ -82,14 +82,14 @@ class DriveNode(canopen.LocalNode):
     """A LocalNode wired to one ``Cia402Axis``, playing ``model`` (EDS + description)."""
 
     def __init__(self, node_id: int, eds: str, bench: EmulatedBench, axis: Cia402Axis,
-                 model: DriveModel | None = None):
+                 model: DriveModel | None = None, profile_dir=None):
         super().__init__(node_id, eds)
         self.bench, self.axis = bench, axis
-        self.model = m = model if model is not None else resolve(eds, node_id)
+        self.model = m = model if model is not None else resolve(eds, node_id, profile_dir=profile_dir)
         self.units = None
         self.tpdos: list[_Pdo] = []
         self.rpdos: dict[int, _Pdo] = {}
-        self.pending: list[tuple[int, int]] = []       # (index, value) of sync RPDOs
+        self.pending: list[tuple[int, int, int]] = []  # (index, subindex, value) of sync RPDOs
         self.target_writes = 0                          # setpoints received (tests: none before verification)
         self.sync_length_errors = 0
         self._loading = True
@@ -108,6 +108,8 @@ class DriveNode(canopen.LocalNode):
                     self.set_raw(0x1018, sub, value)
         modes = m.supported_modes if m.supported_modes is not None else (3, 4, 9, 10)
         axis.supported_modes = tuple(modes)
+        if m.torque_mode is not None:      # a described (manufacturer) current mode plays as torque control
+            axis.mode_kinds = {**axis.mode_kinds, m.torque_mode: "torque"}
         if 0x6502 in od:
             self.set_raw(0x6502, 0, modes_to_bits(modes))
         if m.counts_per_rev is not None:
@@ -123,11 +125,13 @@ class DriveNode(canopen.LocalNode):
             self.set_raw(m.velocity_unit.index, m.velocity_unit.subindex, 0x00B44700)   # rpm if the EDS says nothing
         if m.rated_current is not None:
             self.set_raw(m.rated_current.index, m.rated_current.subindex,
-                         round(axis.rated_current_a / self._per_current_unit(m.rated_current_unit)))
+                         round(axis.rated_current_a / (self._per_current_unit(m.rated_current_unit)
+                                                       * m.rated_current_scale)))
         if m.current_limit is not None:
             self.set_raw(m.current_limit.index, m.current_limit.subindex,
                          min(0xFFFF if m.bits(m.current_limit) == 16 else 0xFFFFFFFF,
-                             round(axis.max_current_a / self._per_current_unit(m.current_limit_unit))))
+                             round(axis.max_current_a / (self._per_current_unit(m.current_limit_unit)
+                                                         * m.current_limit_scale))))
         if 0x6072 in od and 0x6073 in od:
             self.set_raw(0x6072, 0, self.raw(0x6073))
         if 0x605A in od:
@@ -172,7 +176,8 @@ class DriveNode(canopen.LocalNode):
         elif ref in unit_objects(m) or index == 0x608F:
             self._rescale()
         elif ref == m.current_limit:
-            self.axis.max_current_a = self.raw(index, subindex) * self._per_current_unit(m.current_limit_unit)
+            self.axis.max_current_a = self.raw(index, subindex) * self._per_current_unit(m.current_limit_unit) \
+                * m.current_limit_scale
         elif index == 0x605A:
             self.axis.quick_stop_option = self.raw(0x605A)
         if ref in m.ramps.values():
@@ -228,9 +233,10 @@ class DriveNode(canopen.LocalNode):
         return None
 
     def _on_write(self, index, subindex, od, data):
-        if index in (0x6040, 0x6060, 0x60FF, 0x6071) and not self._loading:
+        ref = ObjRef(index, subindex)
+        if (index in (0x6040, 0x6060, 0x60FF) or ref == self.model.torque_setpoint) and not self._loading:
             with self.bench.lock:
-                self.apply(index, od.decode_raw(data))
+                self.apply(index, od.decode_raw(data), subindex)
 
     # -------------------------------------------------------------- PDOs
     def _read_pdos(self, comm_base: int, map_base: int) -> list[_Pdo]:
@@ -246,7 +252,10 @@ class DriveNode(canopen.LocalNode):
                 value = self.raw(map_base + n, sub)
                 index, subindex = value >> 16, (value >> 8) & 0xFF
                 if index:
-                    entries.append(self._find_object(index, subindex))
+                    try:
+                        entries.append(self._find_object(index, subindex))
+                    except SdoAbortedError:   # an EDS default naming an object it lacks: no data for it
+                        continue
             pdos.append(_Pdo(cob & 0x7FF, self.raw(comm_base + n, 2), entries))
         return pdos
 
@@ -275,17 +284,23 @@ class DriveNode(canopen.LocalNode):
             chunk = bytes(data[offset:offset + size])
             offset += size
             if len(chunk) == size:
-                values.append((obj.index, obj.decode_raw(chunk)))
+                values.append((obj.index, obj.subindex, obj.decode_raw(chunk)))
         with self.bench.lock:
             if pdo.trans_type <= 240:
                 self.pending.extend(values)
             else:
-                for index, value in values:
-                    self.apply(index, value)
+                for index, subindex, value in values:
+                    self.apply(index, value, subindex)
 
-    def apply(self, index: int, value: int) -> None:
+    def apply(self, index: int, value: int, subindex: int = 0) -> None:
         """A write to a drive object (by PDO or SDO) -> the axis, in SI."""
         a, u = self.axis, self.units
+        if ObjRef(index, subindex) == self.model.torque_setpoint and index != 0x6071:
+            # a described current setpoint (a vendor object) in its own unit and scale
+            self.target_writes += 1
+            a.target_current_a = u.torque_current_a(value) if u is not None and u.torque_a_per_unit else 0.0
+            self._refresh_status()
+            return
         if index == 0x6040:
             a.write_controlword(value)
         elif index == 0x6060:
@@ -302,8 +317,8 @@ class DriveNode(canopen.LocalNode):
 
     def apply_pending(self) -> None:
         pending, self.pending = self.pending, []
-        for index, value in pending:
-            self.apply(index, value)
+        for index, subindex, value in pending:
+            self.apply(index, value, subindex)
 
     def _refresh_status(self) -> None:
         a, live = self.axis, self.live
@@ -358,13 +373,13 @@ class DriveNode(canopen.LocalNode):
 class CanopenServer:
     """Handle returned by ``start_canopen_server``: ``.stop()``, ``.nodes``, ``.sync_count``."""
 
-    def __init__(self, bench: EmulatedBench, bus, eds: str | dict[int, str]):
+    def __init__(self, bench: EmulatedBench, bus, eds: str | dict[int, str], profile_dir=None):
         self.bench, self.bus = bench, bus
         self.network = canopen.Network(bus)
         self.nodes: list[DriveNode] = []
         for address in sorted(bench.axes):
             node_eds = eds.get(address, DEFAULT_EDS) if isinstance(eds, dict) else eds
-            node = DriveNode(address, node_eds, bench, bench.drive(address))
+            node = DriveNode(address, node_eds, bench, bench.drive(address), profile_dir=profile_dir)
             self.network.add_node(node)
             self.network.unsubscribe(node.sdo.rx_cobid, node.sdo.on_request)
             self.network.subscribe(node.sdo.rx_cobid, self._sdo_filter(node))
@@ -489,14 +504,14 @@ class CanopenServer:
 
 def start_canopen_server(bench: EmulatedBench, interface: str, channel: str, *,
                          eds: str | dict[int, str] = DEFAULT_EDS, port: int | None = None,
-                         **bus_kwargs) -> CanopenServer:
+                         profile_dir=None, **bus_kwargs) -> CanopenServer:
     """Put ``bench``'s drives on a CAN bus as CANopen nodes (ids = ``bench.axes``).
 
     ``eds``: one EDS for every node, or {node id: EDS} (a profile's drives).
     """
     bus = open_bus(BusSpec(interface, channel, port), **bus_kwargs)
     try:
-        return CanopenServer(bench, bus, eds)
+        return CanopenServer(bench, bus, eds, profile_dir=profile_dir)
     except Exception:
         bus.shutdown()
         raise

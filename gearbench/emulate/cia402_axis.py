@@ -81,6 +81,9 @@ class Cia402Axis:
         self.target_current_a = 0.0
         self.quick_stop_option = 6          # 0x605A: 1/2 -> then switch on disabled; 5/6 -> stay
         self.supported_modes: tuple[int, ...] = SUPPORTED_MODES
+        # 0x6060 code -> what the world does in it; a drive model may add a manufacturer current mode
+        self.mode_kinds: dict[int, str] = {**{m: "velocity" for m in VELOCITY_MODES},
+                                           **{m: "torque" for m in TORQUE_MODES}}
         self.period_s = 1e-3                # one physics step (set by the bench)
         self.profile_accel_rad_s2: float | None = None
         self.profile_decel_rad_s2: float | None = None
@@ -157,7 +160,7 @@ class Cia402Axis:
     def set_mode(self, mode: int) -> None:
         """0x6060; an unsupported mode is ignored (the display keeps the old one)."""
         self.mode = mode
-        if mode in self.supported_modes and mode in SUPPORTED_MODES or mode == 0:
+        if mode in self.supported_modes and mode in self.mode_kinds or mode == 0:
             self.mode_display = mode
 
     def fault_now(self, code: int) -> None:
@@ -173,14 +176,14 @@ class Cia402Axis:
     def command(self) -> tuple[str, float]:
         """World mode and setpoint for this axis now (rad/s or A)."""
         if self.state == "OPERATION ENABLED":
-            if self.mode_display in VELOCITY_MODES:
+            if self.mode_kinds.get(self.mode_display) == "velocity":
                 v = max(-self.speed_limit_rad_s, min(self.speed_limit_rad_s, self.target_velocity_rad_s))
                 if self.mode_display == PROFILE_VELOCITY:
                     speeding_up = abs(v) > abs(self._ramp_velocity)
                     rate = self.profile_accel_rad_s2 if speeding_up else self.profile_decel_rad_s2
                     v = self._ramp_velocity = _toward(self._ramp_velocity, v, rate, self.period_s)
                 return "velocity", v
-            if self.mode_display in TORQUE_MODES:
+            if self.mode_kinds.get(self.mode_display) == "torque":
                 i = self.target_current_a
                 if self.mode_display == PROFILE_TORQUE:
                     i = self._ramp_current = _toward(self._ramp_current, i, self.torque_slope_a_s, self.period_s)
@@ -211,7 +214,7 @@ class Cia402Axis:
             self.target_reached = abs(velocity_rad_s) < STANDSTILL_RAD_S
             if self.target_reached and self.quick_stop_option in (1, 2, 3, 4):
                 self.state = "SWITCH ON DISABLED"
-        elif self.mode_display in VELOCITY_MODES:
+        elif self.mode_kinds.get(self.mode_display) == "velocity":
             self.target_reached = abs(velocity_rad_s - self.target_velocity_rad_s) < max(
                 STANDSTILL_RAD_S, 0.02 * abs(self.target_velocity_rad_s))
         else:

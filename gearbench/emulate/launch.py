@@ -134,6 +134,23 @@ class SimBench:
     def mount(self, *, coupling: str, disk_kgm2: dict[str, float]) -> None:
         self.command({"cmd": "mount", "coupling": coupling, "disk_kgm2": disk_kgm2})
 
+    def substitution(self) -> str:
+        """What --sim uses instead of the profile's bus ('' when it is the profile's own bus)."""
+        bus = self.profile.bench.bus
+        def show(interface, channel, host, port):
+            return ":".join(str(x) for x in (interface, channel or host, port) if x not in (None, ""))
+        given = show(bus.interface or bus.family, bus.channel, bus.host, bus.port)
+        used = show(self.bus_options.get("interface", bus.interface or bus.family),
+                    self.bus_options.get("channel", bus.channel), self.bus_options.get("host", bus.host),
+                    self.bus_options.get("port", bus.port))
+        same_kind = (self.bus_options.get("interface", bus.interface), self.bus_options.get("channel", bus.channel)) \
+            == (bus.interface, bus.channel) or bus.family == "modbus" and \
+            self.bus_options.get("host", bus.host) in (bus.host, "127.0.0.1")
+        if used == given or same_kind:   # the profile's own emulated bus, on a private port
+            return ""
+        return (f"--sim: the emulated drives are on {used} (a private port on this host), not on the "
+                f"profile's bus {given}; the profile's bus is not used")
+
     def bus_spec(self):
         bus = self.profile.bench.bus
         opts = dict(bus.options or {})

@@ -29,7 +29,7 @@ def load_profile(path: str | Path) -> Profile:
 
     A bare name (``cvt``) is ``./profiles/cvt.yaml`` or the shipped example. Relative
     drive paths resolve against the profile's folder, the station, then the shipped
-    drive descriptions (``gearbench.shipped``).
+    drive descriptions (``gearbench.drives.shipped``).
     """
     p = find_profile(path)
     shown = str(path) if p == Path(path) else str(p)

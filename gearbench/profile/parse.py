@@ -298,7 +298,7 @@ def _bench(c: _Checker, top) -> BenchSpec:
 
 
 def _resolve_drive(c: _Checker, value: str, path, base_dir: Path) -> str:
-    # Order (documented in gearbench.shipped): profile's folder, station, shipped.
+    # Order (documented in gearbench.drives.shipped): profile's folder, station, shipped.
     from ..drives.shipped import find_drive
 
     found, looked = find_drive(value, base_dir)
