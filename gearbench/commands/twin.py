@@ -277,25 +277,3 @@ def _dump(args, report) -> None:
         Path(args.json).write_text(json.dumps(_plain(report), indent=1, default=str))
 
 
-def load_twin_block(path: str) -> dict:
-    """The ``simulation:`` block of a twin file (for ``run --sim --twin``), checked."""
-    from ..sim import PlantParams
-
-    p = Path(path)
-    try:
-        doc = yaml.safe_load(p.read_text())
-    except OSError as exc:
-        raise GearbenchError(f"{p}: cannot read ({exc.strerror})") from None
-    except yaml.YAMLError as exc:
-        raise ProfileError(f"{p}: not valid YAML ({exc})") from None
-    if not isinstance(doc, dict) or not isinstance(doc.get("simulation"), dict):
-        raise ProfileError(f"{p}: expected a 'simulation:' mapping (written by gearbench twin --write)")
-    try:
-        PlantParams.from_dict(doc["simulation"], "simulation")
-    except ProfileError as exc:
-        raise ProfileError(f"{p}: {exc}") from None
-    return doc["simulation"]
-
-
-if __name__ == "__main__":   # pragma: no cover
-    sys.exit(0)
