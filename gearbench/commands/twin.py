@@ -34,7 +34,7 @@ def add_arguments(p) -> None:
                                      "(default: the run's own profile.yaml)")
     p.add_argument("--write", metavar="YAML", help="write the fitted simulation: block to this file")
     p.add_argument("--no-fit", action="store_true", help="replay and gap only")
-    p.add_argument("--iterations", type=int, default=6, help="Levenberg-Marquardt iterations (default 6)")
+    p.add_argument("--iterations", type=int, default=12, help="Levenberg-Marquardt iterations (default 12)")
     p.add_argument("--max-effects", type=int, default=3, help="effects added at most (default 3)")
     p.add_argument("--no-proof", action="store_true", help="skip re-analysing the twin's traces")
     p.add_argument("--json", metavar="FILE", help="also write the whole report as JSON")
@@ -121,7 +121,7 @@ def run(args) -> int:
 
     prob = F.Problem(segments, block0, quanta, floors)
     params = F.base_params(block0)
-    start_values = {p.path: p.written() for p in params}
+    start_values = F.written_values(params)
     print(f"\nfitting {len(params)} parameters (Levenberg-Marquardt on velocity and current)")
     res = F.fit(prob, params, iterations=args.iterations, verbose=print)
     print(f"S/n {res['S0'] / res['n']:.3f} -> {res['S'] / res['n']:.3f} (1 = at the noise floor)")
@@ -130,7 +130,8 @@ def run(args) -> int:
     report["chain"] = chain
     _print_chain(chain)
     fitted = F.with_params(prob.block, params)
-    report["parameters"] = [{"path": p.path, "start": start_values.get(p.path, 0.0), "fitted": p.written(),
+    fitted_values = F.written_values(params)
+    report["parameters"] = [{"path": p.path, "start": start_values.get(p.path, 0.0), "fitted": fitted_values[p.path],
                              "interval95": p.interval, "effect": p.effect} for p in params]
     _print_params(report["parameters"])
     plant1 = PlantParams.from_dict(fitted, "simulation")

@@ -5,9 +5,10 @@ Output-error fit: the parameters p of the ``simulation:`` block minimise
 S(p) = Σ ((y_measured − y_replay(p))/floor)² over every recorded sample of position,
 velocity and current of both motors (``gap.residuals``), the replay being the noise-free
 ``replay`` of the run's own setpoints. Levenberg–Marquardt (Marquardt 1963) on a
-forward-difference Jacobian; steps of 2 % of each parameter's scale, because the replay
-is quantised like the bench (encoder counts, drive units) and is piecewise constant at
-finer steps.
+forward-difference Jacobian (steps of 0.5 % of each parameter's scale). The fit runs on
+the replay with a 1000x finer encoder and unrounded setpoints (``Problem.smooth``): the
+bench's quantisation makes the exact replay piecewise constant in the parameters, and
+stalled Gauss-Newton; the gap and the proof use the exact replay.
 
 Intervals: 95 % = 1.96·√diag(H⁻¹ B H⁻¹), H = JᵀJ, B = Σ_b g_b g_bᵀ over time blocks of
 ``BLOCK_S`` (g_b = J_bᵀ r_b): the block sandwich (heteroscedasticity- and
@@ -39,10 +40,11 @@ from .gap import noise_floors, residuals
 from .replay import AXES, Quanta, Segment, replay
 
 BLOCK_S = 0.1          # time block of the interval's sandwich and of the held-out folds
-FD_REL = 0.02          # forward-difference step, fraction of the parameter's scale
+FD_REL = 0.005         # forward-difference step, fraction of the parameter's scale
 MIN_DROP = 25.0        # held-out S must fall by this many floors² ...
 MIN_SHRINK = 0.02      # ... and by this fraction of its excess over the floor
 Z95 = 1.96
+DEBUG = False
 # position is left out of S: a model error accumulates in it over a whole step (a ratio
 # 0.03 % off moves the output angle by hundreds of encoder counts), which makes S
 # strongly non-quadratic; velocity carries the same information without accumulating
@@ -64,11 +66,15 @@ class Param:
     effect: str = ""
     interval: float = float("nan")
 
-    def written(self, v: float | None = None) -> float:
+    def written(self, v: float | None = None, kt: dict | None = None) -> float:
         v = self.value if v is None else v
         if self.transform == "invsq":
             return 1.0 / math.sqrt(v) if v > 0 else 0.0
+        if self.transform.startswith("per_kt:"):
+            return v * (kt or {}).get(self.transform[7:], self.kt0)
         return v
+
+    kt0: float = 1.0      # the motor's Kt when ``written`` is called without the fit's
 
 
 def plain_defaults() -> dict:
@@ -108,8 +114,10 @@ def set_value(block: dict, path: str, value) -> None:
 
 def with_params(block: dict, params: list[Param], values=None) -> dict:
     b = copy.deepcopy(block)
+    kt = {p.path.split(".")[1]: (p.value if values is None else values[i])
+          for i, p in enumerate(params) if p.path.endswith(".Kt")}
     for i, p in enumerate(params):
-        v = p.written(None if values is None else values[i])
+        v = p.written(None if values is None else values[i], kt)
         if isinstance(get_value(block, p.path), int) and not isinstance(get_value(block, p.path), bool) \
                 and p.path.endswith(("order", "samples")):
             v = int(round(v))
@@ -123,10 +131,18 @@ def base_params(block: dict) -> list[Param]:
     efficiency (the CVT's η(ω) line and pulsation)."""
     ps = []
     for a in AXES:
+        kt = float(get_value(block, f"motors.{a}.Kt"))
         for name, lo in (("Kt", 1e-6), ("J", 1e-9), ("D", 0.0), ("Tc", 0.0), ("vel_kp", 1e-6),
                          ("vel_ki", 0.0), ("current_lag_s", 0.0)):
             path = f"motors.{a}.{name}"
             v = float(get_value(block, path))
+            if name in ("J", "D", "Tc"):
+                # fitted as J/Kt, D/Kt, Tc/Kt (the paper's b coefficients): the current of a
+                # speed-controlled motor is linear in them, and Kt alone is then pinned by
+                # the disk and the load; in SI the valley Kt·(J, D, Tc) bent every
+                # Gauss-Newton step (3 % gain per iteration on a hidden cvt run)
+                ps.append(Param(path, v / kt, max(abs(v / kt), 1e-6), lo, f"per_kt:{a}", kt0=kt))
+                continue
             ps.append(Param(path, v, max(abs(v), 1e-6 if name != "current_lag_s" else 1e-4), lo))
         cog = float(get_value(block, f"motors.{a}.cog_amp"))
         if cog > 0:
@@ -182,6 +198,7 @@ class Problem:
     floors: dict = field(default_factory=dict)
     period_s: float = 1e-3
     evaluations: int = 0
+    smooth: bool = True     # fit on the unquantised replay (``residual_vector``)
 
     def __post_init__(self):
         if not self.floors:
@@ -198,14 +215,26 @@ class Problem:
     def plant(self, block: dict) -> PlantParams:
         return PlantParams.from_dict(block, "simulation")
 
-    def residual_vector(self, block: dict) -> np.ndarray | None:
-        """Stacked residuals in floors (None when the block is not a valid plant)."""
+    def residual_vector(self, block: dict, smooth: bool | None = None) -> np.ndarray | None:
+        """Stacked residuals in floors (None when the block is not a valid plant).
+
+        ``smooth``: the encoder 1000x finer, the current unrounded and setpoints unrounded:
+        the quantised replay is piecewise constant in the parameters (a 0.5 % step of Kt
+        moves the noise-free current by less than its 1 mA resolution), which gave the
+        forward differences zeros and jumps and stalled Gauss-Newton far from the optimum."""
+        smooth = self.smooth if smooth is None else smooth
         try:
+            if smooth:
+                block = copy.deepcopy(block)
+                for a in AXES:
+                    cpr = get_value(block, f"motors.{a}.counts_per_rev")
+                    set_value(block, f"motors.{a}.counts_per_rev", int(cpr) * 1000)
+                    set_value(block, f"motors.{a}.current_resolution_a", 0.0)
             plant = self.plant(block)
         except ProfileError:
             return None
         self.evaluations += 1
-        rows = replay(plant, self.segments, quanta=self.quanta)
+        rows = replay(plant, self.segments, quanta=Quanta() if smooth else self.quanta)
         res = residuals(rows, self.segments, self.weighted_floors())
         r = np.concatenate([res[k] for k in sorted(res) if k[2] in FIT_SIGNALS])
         return r if np.all(np.isfinite(r)) else None
@@ -246,14 +275,17 @@ class Problem:
 def _jacobian(prob: Problem, params: list[Param], u: np.ndarray, r0: np.ndarray, cols=None) -> np.ndarray:
     cols = range(len(params)) if cols is None else cols
     jac = np.zeros((len(r0), len(params)))
+    r0 = prob.residual_vector(with_params(prob.block, params, u), smooth=True)
+    if r0 is None:
+        return jac
     for i in cols:
         h = FD_REL * params[i].scale
         uu = u.copy()
         uu[i] += h
-        r = prob.residual_vector(with_params(prob.block, params, uu))
+        r = prob.residual_vector(with_params(prob.block, params, uu), smooth=True)
         if r is None:
             uu[i] -= 2 * h
-            r = prob.residual_vector(with_params(prob.block, params, uu))
+            r = prob.residual_vector(with_params(prob.block, params, uu), smooth=True)
             h = -h
         jac[:, i] = 0.0 if r is None else (r - r0) / h
     return jac
@@ -279,7 +311,9 @@ def fit(prob: Problem, params: list[Param], *, iterations: int = 8, mask: np.nda
     jac = None
     for it in range(iterations):
         jac = _jacobian(prob, params, u, r)
-        J, rr = jac[sel], r[sel]
+        # in units of each parameter's scale: H spans 1e-10..1e20 in SI and loses the step
+        sc = np.array([p.scale for p in params])
+        J, rr = jac[sel] * sc, r[sel]
         H = J.T @ J
         g = J.T @ rr
         d = np.diag(H).copy()
@@ -287,7 +321,7 @@ def fit(prob: Problem, params: list[Param], *, iterations: int = 8, mask: np.nda
         improved = False
         for _ in range(6):
             try:
-                step = np.linalg.solve(H + lam * np.diag(d), -g)
+                step = np.linalg.lstsq(H + lam * np.diag(d), -g, rcond=1e-12)[0] * sc
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
@@ -295,6 +329,9 @@ def fit(prob: Problem, params: list[Param], *, iterations: int = 8, mask: np.nda
             rn = prob.residual_vector(with_params(prob.block, params, un))
             if rn is not None:
                 Sn = float(rn[sel] @ rn[sel])
+                if verbose and DEBUG:
+                    pred = float((rr + J @ (step / sc)) @ (rr + J @ (step / sc)))
+                    verbose(f"    lam {lam:.1e} predicted S/n {pred / sel.sum():.4f} actual {Sn / sel.sum():.4f}")
                 if Sn < S:
                     u, r, improved = un, rn, True
                     lam = max(lam / 5, 1e-7)
@@ -314,20 +351,35 @@ def fit(prob: Problem, params: list[Param], *, iterations: int = 8, mask: np.nda
     return {"S": S, "S0": S0, "n": int(sel.sum()), "jac": jac, "r": r, "u": u}
 
 
+def written_values(params: list[Param]) -> dict:
+    """{path: value as the simulation block holds it (SI)} at the params' values."""
+    kt = {p.path.split(".")[1]: p.value for p in params if p.path.endswith(".Kt")}
+    return {p.path: p.written(None, kt) for p in params}
+
+
 def _intervals(prob, params, J, r, blocks) -> None:
-    """Block-sandwich 95 % intervals (module docstring)."""
-    H = J.T @ J
-    try:
-        Hi = np.linalg.pinv(H)
-    except np.linalg.LinAlgError:
-        return
+    """Block-sandwich 95 % intervals (module docstring), carried to the block's SI values
+    by the delta method (J = (J/Kt)·Kt with its covariance, kt_sat_a = p^(-1/2))."""
+    sc = np.array([p.scale for p in params])
+    Js = J * sc
+    H = Js.T @ Js
+    Hi = np.linalg.pinv(H, rcond=1e-12)
     ub, inv = np.unique(blocks, return_inverse=True)
     G = np.zeros((len(ub), J.shape[1]))
-    np.add.at(G, inv, J * r[:, None])
+    np.add.at(G, inv, Js * r[:, None])
     B = G.T @ G
-    cov = Hi @ B @ Hi
+    cov = (Hi @ B @ Hi) * np.outer(sc, sc)
+    kt_index = {p.path.split(".")[1]: i for i, p in enumerate(params) if p.path.endswith(".Kt")}
     for i, p in enumerate(params):
-        p.interval = float(Z95 * math.sqrt(max(cov[i, i], 0.0)))
+        grad = np.zeros(len(params))
+        if p.transform.startswith("per_kt:") and p.transform[7:] in kt_index:
+            k = kt_index[p.transform[7:]]
+            grad[i], grad[k] = params[k].value, p.value
+        elif p.transform == "invsq":
+            grad[i] = 0.5 * p.value ** -1.5 if p.value > 0 else 0.0
+        else:
+            grad[i] = 1.0
+        p.interval = float(Z95 * math.sqrt(max(grad @ cov @ grad, 0.0)))
 
 
 def folds(prob: Problem) -> tuple[np.ndarray, np.ndarray]:
@@ -408,7 +460,8 @@ def add_effects(prob: Problem, params: list[Param], *, max_effects: int = 4, ver
             ja[:, :len(params)] = jac
             if extra:
                 ja[:, len(params):] = _jacobian(sub, allp, ua, ra, cols=range(len(params), len(allp)))[:, len(params):]
-            Sh = _gn_heldout(sub, allp, ua, ja, ra, fit_fold, held, block)
+            Sh = _gn_heldout(sub, allp, ua, ja, ra, fit_fold, held, block,
+                             own=list(range(len(params), len(allp))))
             Sh = min(Sh, float(ra[held] @ ra[held]))
             prob.evaluations += sub.evaluations
             shrink = (Sh_base - Sh) / max(Sh_base - nh, 1e-9)
@@ -433,24 +486,35 @@ def add_effects(prob: Problem, params: list[Param], *, max_effects: int = 4, ver
         params.extend(extra)
         res = fit(prob, params, iterations=6, verbose=verbose)
         chain.append({"effect": name, "parameters": [p.path for p in extra] + list(fixed),
-                      "values": {p.path: p.written() for p in extra} | dict(fixed),
+                      "values": {k: v for k, v in written_values(params).items()
+                                 if k in {p.path for p in extra}} | dict(fixed),
                       "held_out_shrink": shrink, "significant": True,
                       "remaining": res["S"] / res["n"]})
     return chain
 
 
-def _gn_heldout(prob, params, u, jac, r, fit_fold, held, block) -> float:
-    """S on the held-out fold after one damped Gauss–Newton step fitted on the fit fold."""
-    J, rr = jac[fit_fold], r[fit_fold]
-    H = J.T @ J
-    d = np.diag(H).copy()
-    d[d <= 0] = 1.0
+def _gn_heldout(prob, params, u, jac, r, fit_fold, held, block, own: list[int] | None = None) -> float:
+    """S on the held-out fold after one damped Gauss–Newton step fitted on the fit fold:
+    the best of a step in every parameter (two dampings) and, for a candidate, a step in
+    its own parameters only (a full step from a fit still far from the data can overshoot
+    in the others and hide what the candidate alone explains)."""
+    sc = np.array([p.scale for p in params])
+    J, rr = jac[fit_fold] * sc, r[fit_fold]
     best = float("inf")
-    for lam in (1e-3, 1e-1):
+    trials = [(None, 1e-3), (None, 1e-1)] + ([(own, 1e-6)] if own else [])
+    for cols, lam in trials:
+        idx = np.arange(len(params)) if cols is None else np.asarray(cols)
+        Jc = J[:, idx]
+        H = Jc.T @ Jc
+        d = np.diag(H).copy()
+        d[d <= 0] = 1.0
         try:
-            step = np.linalg.solve(H + lam * np.diag(d), -(J.T @ rr))
+            sub = np.linalg.lstsq(H + lam * np.diag(d), -(Jc.T @ rr), rcond=1e-12)[0]
         except np.linalg.LinAlgError:
             continue
+        step = np.zeros(len(params))
+        step[idx] = sub
+        step *= sc
         un = _clip(params, u + step)
         rn = prob.residual_vector(with_params(block, params, un))
         if rn is not None:
