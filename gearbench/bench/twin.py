@@ -65,11 +65,15 @@ def main(argv=None) -> int:
     ap.add_argument("--cache", default="/tmp/gearbench-twin-bench")
     ap.add_argument("--iterations", type=int, default=12)
     ap.add_argument("--max-effects", type=int, default=3)
+    ap.add_argument("--dev", default=str(ROOT.parent / "shared" / "datasets" / "dev"),
+                    help="the independent simulator's data (skipped when absent)")
     a = ap.parse_args(argv)
+    if Path(a.dev).is_dir():
+        dev_single_axis(Path(a.dev), iterations=a.iterations)
     cache = Path(a.cache)
     cache.mkdir(parents=True, exist_ok=True)
     ok = True
-    for case in a.cases.split(","):
+    for case in [c for c in a.cases.split(",") if c]:
         nominal = ROOT / "profiles" / f"{case}.yaml"
         hidden, truth = make_hidden(case, 7, cache)
         hidden2, _ = make_hidden(case, 21, cache)
@@ -157,3 +161,51 @@ def _f(v) -> str:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+# ----------------------------------------------------------------- the independent simulator
+def dev_single_axis(dev_dir: Path, motor: str = "motor_a", iterations: int = 12) -> None:
+    """The twin on the independent simulator's calibration pair (``shared/datasets/dev``):
+    one motor under a PI speed loop, without and with a disk. The two files become the
+    sequencer's ``calibrate-in-unloaded`` and ``calibrate-in-disk`` steps (1 s at rest
+    between them); the twin starts from gearbench's default motor and fits Kt, J, D, Tc
+    and the drive's loop on current only (the files have no velocity column)."""
+    import numpy as np
+
+    from ..trace import Trace
+    from ..twin import fit as F
+    from ..twin.gap import gap_table, noise_floors
+    from ..twin.replay import Quanta, Segment, replay
+
+    truth = json.loads((dev_dir / "truth.json").read_text())["calibration"][motor]
+    segs, k = [], 1
+    for run, disks in (("unloaded", {}), ("loaded", {"in": truth["disk_inertia"]})):
+        tr = Trace.read(dev_dir / f"calib_{motor}_{run}.csv")
+        n = len(tr)
+        cols = {"sample": np.arange(k, k + n), "in.position_rad": tr["position_rad"],
+                "in.current_a": tr["current_a"], "in.command": tr["command"]}
+        name = "calibrate-in-unloaded" if run == "unloaded" else "calibrate-in-disk"
+        segs.append(Segment(name, "none", disks, {"in": "velocity", "out": "off"},
+                            Trace(tr.time_s, cols, {}, name), k, k + n - 1))
+        k += n + 1000
+    block = {"motors": {"in": {"counts_per_rev": 10000, "current_resolution_a": 0.001}}, "seed": 0}
+    q = Quanta()
+    floors = noise_floors(segs)
+    prob = F.Problem(segs, block, q, floors)
+    params = [p for p in F.base_params(block) if p.path.startswith("motors.in.")]
+    before = gap_table(replay(PlantParams.from_dict(block), segs, quanta=q), segs, floors)
+    res = F.fit(prob, params, iterations=iterations)
+    after = gap_table(replay(PlantParams.from_dict(F.with_params(prob.block, params)), segs, quanta=q),
+                      segs, floors)
+    got = F.written_values(params)
+    print(f"\n=== independent simulator ({dev_dir.name}/calib_{motor}_*.csv), single axis ===")
+    print(f"S/n {res['S0'] / res['n']:.2f} -> {res['S'] / res['n']:.2f}")
+    print(f"{'parameter':<30} {'truth':>11} {'fitted':>11} {'±95 %':>10} {'within':>7}")
+    for p in params:
+        t = truth.get(p.path.rsplit(".", 1)[1])
+        w = "" if t is None else ("yes" if abs(got[p.path] - t) <= p.interval else "NO")
+        print(f"{p.path:<30} {_f(t):>11} {got[p.path]:11.5g} {p.interval:10.3g} {w:>7}")
+    a = {(r["step"], r["signal"]): r["gap"] for r in after}
+    for r in before:
+        if r["axis"] == "in" and r["signal"] == "current_a" or r["signal"] == "position_rad" and r["axis"] == "in":
+            print(f"  gap {r['step']:<24} {r['signal']:<14} {r['gap']:10.2f} -> {a[(r['step'], r['signal'])]:8.2f} floors")

@@ -9,7 +9,8 @@ Noise floor of a signal (per axis, over the whole run):
   robust to the steps and transients the signal itself has). The quantum over √12 is the
   lower bound where the estimate gives less.
 
-The gap of a signal on a step is rms(measured − replay)/floor: 1 means the replay is at the
+The gap of a signal on a step is rms(measured − replay)/floor (angles from the step's
+first sample): 1 means the replay is at the
 noise floor, i.e. the twin explains everything but the noise. *Where* it lies: the same
 ratio over time (tenths of the step), input speed bands, load (output current command)
 levels, near reversals (|ω| below 5 % of the step's top speed) and the residual's
@@ -63,8 +64,12 @@ def residuals(rows: dict[str, np.ndarray], segments: list[Segment], floors: dict
         for a in AXES:
             for s in SIGNALS:
                 if f"{a}.{s}" in seg.trace:
-                    res[(seg.name, a, s)] = (measured(seg, a, s) - simulated(rows[seg.name], seg, a, s)) \
-                        / floors[(a, s)]
+                    d = measured(seg, a, s) - simulated(rows[seg.name], seg, a, s)
+                    if s == "position_rad":
+                        # angles within the step: separately recorded steps (another
+                        # session, a rig that zeroes its encoder) have their own origin
+                        d = d - d[0]
+                    res[(seg.name, a, s)] = d / floors[(a, s)]
     return res
 
 
@@ -93,7 +98,11 @@ def where(r: np.ndarray, seg: Segment, axis: str, rows: np.ndarray) -> dict:
     """Where a step's residual (in floors) lies: time tenths, speed bands, load levels,
     reversals and the strongest angle order."""
     n = len(r)
-    w = measured(seg, "in", "velocity_rad_s") if seg.coupling == "reducer" else measured(seg, axis, "velocity_rad_s")
+    ax = "in" if seg.coupling == "reducer" else axis
+    if f"{ax}.velocity_rad_s" in seg.trace:
+        w = measured(seg, ax, "velocity_rad_s")
+    else:   # a rig that records no velocity: the encoder's difference
+        w = np.gradient(measured(seg, ax, "position_rad"), seg.trace.time_s)
     theta = measured(seg, axis, "position_rad")
     parts = {}
     tenths = np.array_split(np.arange(n), 10)
