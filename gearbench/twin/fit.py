@@ -45,10 +45,14 @@ MIN_DROP = 25.0        # held-out S must fall by this many floors² ...
 MIN_SHRINK = 0.02      # ... and by this fraction of its excess over the floor
 Z95 = 1.96
 DEBUG = False
-# position is left out of S: a model error accumulates in it over a whole step (a ratio
-# 0.03 % off moves the output angle by hundreds of encoder counts), which makes S
-# strongly non-quadratic; velocity carries the same information without accumulating
-FIT_SIGNALS = ("velocity_rad_s", "current_a")
+FIT_SIGNALS = ("position_rad", "velocity_rad_s", "current_a")
+# position counts in S with its floor times POSITION_SCALE: a model error accumulates in
+# the angle over a whole step (a ratio 0.03 % off moves the output angle by hundreds of
+# encoder counts), so at its bare floor (a third of a count) it drowns the currents that
+# carry Kt, friction and η; without it, the ratio and η were confounded through the input
+# current (T_out/(n·η)) and a hidden cvt run's ratio came out 8.155 for 8.100, which the
+# angles alone rule out (S of the output angle ×10⁵ at 8.13)
+POSITION_SCALE = 30.0
 
 
 @dataclass
@@ -208,7 +212,7 @@ class Problem:
         # a Gaussian likelihood with one unknown variance per signal), so that position —
         # whose floor is a fraction of an encoder count while a model error accumulates
         # over a whole step — does not drown the currents that carry Kt, friction and η
-        self.scales = {k: 1.0 for k in self.floors}
+        self.scales = {k: (POSITION_SCALE if k[1] == "position_rad" else 1.0) for k in self.floors}
         # time blocks of BLOCK_S for the sandwich and the folds, in residual order
         self._blocks = None
 
