@@ -267,7 +267,7 @@ class Bench:
 def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str = "",
                operator=None, subscribers: Iterable[Callable] = (), db=None, seed=None,
                method: str = "default", quiet: bool = True, live: bool = False, rrd=None,
-               connect=None, fixture=None, central: str | None = None):
+               connect=None, fixture=None, central: str | None = None, twin: str | None = None):
     """Open the bench for ``profile`` (a path or a loaded Profile); yields a ``Bench``.
 
     ``sim=True`` starts the emulated bench (the profile's ``simulation:`` plant) in a
@@ -303,6 +303,10 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
     if operator is None:
         operator = AutoOperator() if sim else TerminalOperator()
     sim_plant = dict(profile.simulation) if sim else None
+    if sim and twin:   # a fitted digital twin (gearbench twin --write) replaces the profile's plant
+        from .twin.block import load_twin_block
+
+        sim_plant = dict(load_twin_block(twin))
     if sim_plant is not None and seed is not None:
         sim_plant["seed"] = seed
     with contextlib.ExitStack() as stack:
@@ -315,7 +319,7 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
         bus = profile.bench.bus
         if sim:
 
-            simbench = stack.enter_context(SimBench(profile, seed=seed))
+            simbench = stack.enter_context(SimBench(profile, seed=seed, simulation=twin))
             fixture, bus = fixture or simbench, simbench.bus_spec()
             if simbench.substitution():    # never a silent substitution of the profile's bus
                 print(f"gearbench: {simbench.substitution()}", file=sys.stderr)
@@ -383,7 +387,7 @@ def _check_writable(out: Path) -> None:
 def run_profile(profile_path, *, sim: bool = False, out_dir="results/run", serial: str = "",
                 db=None, yes: bool = False, rrd=None, live: bool = False, connect=None,
                 method: str = "default", seed=None, quiet: bool = True, subscribers=(),
-                operator=None, central: str | None = None) -> dict:
+                operator=None, central: str | None = None, twin: str | None = None) -> dict:
     """Run a whole profile; returns the result dict (what result.json holds).
 
     Writes the run folder (Parquet traces, result.json, junit.xml) and a row in the
@@ -393,6 +397,6 @@ def run_profile(profile_path, *, sim: bool = False, out_dir="results/run", seria
         operator = AutoOperator() if yes else TerminalOperator()
     with open_bench(profile_path, sim=sim, out_dir=out_dir, serial=serial, operator=operator,
                     subscribers=subscribers, db=db, seed=seed, method=method, quiet=quiet,
-                    live=live, rrd=rrd, connect=connect, central=central) as bench:
+                    live=live, rrd=rrd, connect=connect, central=central, twin=twin) as bench:
         result = bench.run()
     return result.raw

@@ -38,6 +38,9 @@ def add_arguments(parser) -> None:
                         help="Modbus: advance the world on each write of the 'sync' register (CANopen always "
                              "advances one period per SYNC)")
     parser.add_argument("--seed", type=int, default=None, help="noise seed (default: the plant's)")
+    parser.add_argument("--simulation", metavar="YAML", default=None,
+                        help="take the plant from this file's simulation: block instead of the profile's "
+                             "(a digital twin written by gearbench twin --write)")
     parser.add_argument("--exit-on-eof", action="store_true",
                         help="stop when stdin closes (a parent that started the emulator has gone, even by SIGKILL)")
     parser.add_argument("--journal", metavar="FILE",
@@ -140,7 +143,7 @@ def run(args) -> int:
     from ..emulate.bench import EmulatedBench
     from ..emulate.canopen_server import start_canopen_server
 
-    plant = load_plant(args.profile)
+    plant = load_plant(getattr(args, "simulation", None) or args.profile)
     _warm_up(plant)
     # the imports and the compiled kernel are hundreds of thousands of long-lived objects: a full
     # collection over them stalls the emulated drives for ~0.5 s; freeze them out of the collector

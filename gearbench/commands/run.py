@@ -25,6 +25,9 @@ def add_arguments(p) -> None:
     p.add_argument("--method", choices=["default", "paper"], default="default",
                    help="identification method (default: bias-corrected; paper: as published)")
     p.add_argument("--seed", type=int, default=None, help="--sim: plant noise seed (default: profile's)")
+    p.add_argument("--twin", metavar="YAML",
+                   help="--sim: run against this fitted digital twin (a simulation: block written by "
+                        "gearbench twin --write) instead of the profile's simulation: section")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.add_argument("--report", action="store_true",
                    help="also write the per-unit report.html into the output folder (also for a failed unit)")
@@ -39,6 +42,9 @@ def add_arguments(p) -> None:
 
 def run(args) -> int:
     from ..api import run_profile
+
+    if args.twin and not args.sim:
+        raise GearbenchError("--twin is the simulated bench's plant; add --sim")
 
     serial = args.serial or ("SIM-0001" if args.sim else None)
     if serial is None:
@@ -58,7 +64,7 @@ def run(args) -> int:
     result = run_profile(args.profile, sim=args.sim, out_dir=out, serial=serial,
                          db=db, yes=args.yes or args.sim, rrd=args.rrd, live=args.live,
                          connect=args.connect, method=args.method, seed=args.seed,
-                         quiet=args.quiet, central=args.central)
+                         quiet=args.quiet, central=args.central, twin=args.twin)
     if args.report:
         _report(out)
     if args.golden:

@@ -11,6 +11,9 @@ HELP = "Check a test profile (YAML) and print a summary; nothing moves."
 
 def add_arguments(p) -> None:
     p.add_argument("profile", help="test profile YAML, e.g. profiles/cvt.yaml")
+    p.add_argument("--twin", metavar="YAML",
+                   help="also run the profile on this digital twin of the bench (gearbench twin --write) "
+                        "and say what it predicts: bench time, intervals, verdicts")
 
 
 def run(args) -> int:
@@ -32,7 +35,31 @@ def run(args) -> int:
     if devices.errors:
         print("\n".join(f"error      {e}" for e in devices.errors), file=sys.stderr)
         return 2
+    if getattr(args, "twin", None):
+        print("\n".join(twin_prediction(args.profile, args.twin)))
     return 0
+
+
+def twin_prediction(profile: str, twin: str) -> list[str]:
+    """Run the profile on the twin (``run --sim --twin``) in a scratch folder and say what
+    the bench would give: bench time, each Kt and η with its 95 % interval, verdicts."""
+    import tempfile
+
+    from ..api import run_profile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        r = run_profile(profile, sim=True, twin=twin, out_dir=f"{tmp}/run", serial="TWIN-PREDICTION",
+                        db=f"{tmp}/station.sqlite", yes=True, quiet=True)
+    lines = [f"twin       on {twin}: bench time {r.get('bench_time_s', float('nan')):.1f} s, "
+             f"predicted verdict {r['status'].upper()}{' (' + r['reason'] + ')' if r.get('reason') else ''}"]
+    for m, v in (r.get("motors") or {}).items():
+        ci = v.get("Kt_ci95") or [float("nan")] * 2
+        lines.append(f"twin       Kt {m} {v['Kt']:.5g} N m/A, 95 % interval ±{(ci[1] - ci[0]) / 2:.2g}")
+    for e in r.get("efficiency") or []:
+        ci = e.get("eta_incremental_ci95") or [float("nan")] * 2
+        lines.append(f"twin       eta {e['speed_in_rad_s']:.0f} rad/s {e['torque_out_nm']:.3f} N m: "
+                     f"{e['eta_incremental']:.4f} ±{(ci[1] - ci[0]) / 2:.4f}")
+    return lines
 
 
 def _rel(path: str) -> str:

@@ -40,9 +40,10 @@ def _child_setup() -> None:
 class SimBench:
     """Context manager: starts the emulator, gives the bus options to use, mounts on request."""
 
-    def __init__(self, profile, *, seed: int | None = None):
+    def __init__(self, profile, *, seed: int | None = None, simulation: str | None = None):
         self.profile = profile
         self.seed = seed
+        self.simulation = simulation   # a YAML file whose simulation: block replaces the profile's
         self.proc: subprocess.Popen | None = None
         self.bus_options: dict = {}
         self._lines: list[str] = []
@@ -70,6 +71,8 @@ class SimBench:
             self.bus_options = dict(interface="udp_multicast", channel=group, port=port, lockstep=True)
         if self.seed is not None:
             cmd += ["--seed", str(self.seed)]
+        if self.simulation:
+            cmd += ["--simulation", str(self.simulation)]
         # test facility (gearbench.emulate.faults): a journal of the emulated drives' states, and
         # faults the emulator applies at given world times
         if os.environ.get("GEARBENCH_SIM_JOURNAL"):

@@ -1,0 +1,283 @@
+"""gearbench twin RUN_DIR: the bench's digital twin.
+
+1. Replay the run's recorded setpoints (per step, with its mounting and drive modes)
+   through the profile's simulated bench (``gearbench.sim``, the plant ``--sim`` runs
+   against) and print the gap per step and signal in noise floors, and where it lies.
+2. Fit the simulation's parameters to the run (with 95 % intervals), then add the
+   effects it lacks one at a time by held-out gain (``gearbench.twin.fit``).
+3. The proof: re-simulate the recorded steps on the fitted twin, analyse them with the
+   run's own analysis and print the real run's results beside the twin's, and the
+   traces' remaining gap before/after. ``--write twin.yaml`` writes the fitted
+   ``simulation:`` block (``gearbench run PROFILE --sim --twin twin.yaml`` runs on it).
+"""
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from ..errors import GearbenchError, ProfileError
+from ..trace import Trace
+
+NAME = "twin"
+HELP = "fit the simulated bench to a recorded run: replay, gap, fitted parameters, missing effects, proof"
+
+
+def add_arguments(p) -> None:
+    p.add_argument("run_dir", help="a run folder of gearbench run (result.json, trace-*.parquet)")
+    p.add_argument("--profile", help="profile whose simulation: block is the starting twin "
+                                     "(default: the run's own profile.yaml)")
+    p.add_argument("--write", metavar="YAML", help="write the fitted simulation: block to this file")
+    p.add_argument("--no-fit", action="store_true", help="replay and gap only")
+    p.add_argument("--iterations", type=int, default=12, help="Levenberg-Marquardt iterations (default 12)")
+    p.add_argument("--max-effects", type=int, default=3, help="effects added at most (default 3)")
+    p.add_argument("--no-proof", action="store_true", help="skip re-analysing the twin's traces")
+    p.add_argument("--json", metavar="FILE", help="also write the whole report as JSON")
+
+
+def load_run(run_dir: str, profile_path: str | None):
+    """(result dict, {step: Trace}, Profile of the run, starting Profile) with one-line errors."""
+    from ..profile import load_profile
+
+    root = Path(run_dir)
+    if not (root / "result.json").is_file():
+        raise GearbenchError(f"{root}: no result.json; is this a gearbench run folder?")
+    try:
+        result = json.loads((root / "result.json").read_text())
+    except json.JSONDecodeError as exc:
+        raise GearbenchError(f"{root}/result.json: not valid JSON (line {exc.lineno})") from None
+    traces = {}
+    for f in sorted(root.glob("trace-*.parquet")):
+        traces[f.name[len("trace-"):-len(".parquet")]] = Trace.read(f)
+    if not traces:
+        raise GearbenchError(f"{root}: no trace-*.parquet; the twin replays recorded steps")
+    run_profile_path = root / "profile.yaml"
+    if not run_profile_path.is_file() and not profile_path:
+        raise GearbenchError(f"{root}: no profile.yaml in the run folder; pass --profile PROFILE")
+    run_prof = load_profile(run_profile_path if run_profile_path.is_file() else profile_path)
+    start = load_profile(profile_path) if profile_path else run_prof
+    if not start.simulation:
+        raise ProfileError(f"{start.path}: no 'simulation:' section; the twin starts from the "
+                           f"profile's simulated bench (see profiles/cvt.yaml)")
+    return result, traces, run_prof, start
+
+
+def drive_quanta(profile):
+    """The drives' units of setpoints and reported current (``Quanta``), read from each
+    motor's drive description as the bus master does (CiA 402: 0x60FF in the drive's
+    velocity unit, 0x6071/0x6078 per mille of rated current); none for other buses."""
+    from ..twin.replay import AXES, Quanta
+
+    if profile.bench.bus.family != "cia402":
+        return Quanta()
+    vel, tq, cur = {}, {}, {}
+    for a, m in profile.motors.items():
+        if a not in AXES:
+            continue
+        per = 2 * math.pi / m.counts_per_rev
+        try:
+            from ..drives.description import resolve, velocity_unit_rad_s
+
+            d = resolve(str(m.drive), m.address)
+            if isinstance(d.velocity_unit, int):
+                per = velocity_unit_rad_s(d.velocity_unit) or per
+        except Exception:   # an unreadable description: assume inc/s, the CiA 402 default
+            pass
+        vel[a], tq[a], cur[a] = per, m.rated_current_a / 1000.0, m.rated_current_a / 1000.0
+    return Quanta(velocity_rad_s=vel, torque_a=tq, current_a=cur)
+
+
+def run(args) -> int:
+    from ..sim import PlantParams
+    from ..twin import fit as F
+    from ..twin.gap import gap_table, noise_floors, total_gap
+    from ..twin.replay import check_axes, plan_segments, replay
+
+    t0 = time.monotonic()
+    result, traces, run_prof, start = load_run(args.run_dir, args.profile)
+    check_axes(run_prof)
+    segments = plan_segments(traces, run_prof)
+    quanta = drive_quanta(run_prof)
+    floors = noise_floors(segments)
+    block0 = json.loads(json.dumps(start.simulation))
+    plant0 = PlantParams.from_dict(block0, "simulation")
+    rows0 = replay(plant0, segments, quanta=quanta)
+    report = {"run_dir": str(args.run_dir), "profile": str(start.path),
+              "floors": {f"{a}.{s}": v for (a, s), v in floors.items()}}
+    print(f"gearbench twin: {args.run_dir}: {len(segments)} steps, "
+          f"{sum(len(s.trace) for s in segments)} samples, replayed on {start.path}'s simulated bench")
+    print("noise floors: " + ", ".join(f"{a}.{s} {v:.3g}" for (a, s), v in floors.items()))
+    before = gap_table(rows0, segments, floors)
+    report["gap_before"] = before
+    _print_gap(before, "gap of the profile's simulation (rms in noise floors; bias = mean)")
+    if args.no_fit:
+        _dump(args, report)
+        return 0
+
+    prob = F.Problem(segments, block0, quanta, floors)
+    params = F.base_params(block0)
+    start_values = F.written_values(params)
+    print(f"\nfitting {len(params)} parameters (Levenberg-Marquardt on position, velocity and current)")
+    res = F.fit(prob, params, iterations=args.iterations, verbose=print)
+    print(f"S/n {res['S0'] / res['n']:.3f} -> {res['S'] / res['n']:.3f} (1 = at the noise floor)")
+    print("\nadding the effects the simulation lacks, by held-out gain:")
+    chain = F.add_effects(prob, params, max_effects=args.max_effects, verbose=print)
+    report["chain"] = chain
+    _print_chain(chain)
+    fitted = F.with_params(prob.block, params)
+    fitted_values = F.written_values(params)
+    report["parameters"] = [{"path": p.path, "start": start_values.get(p.path, 0.0), "fitted": fitted_values[p.path],
+                             "interval95": p.interval, "effect": p.effect} for p in params]
+    _print_params(report["parameters"])
+    plant1 = PlantParams.from_dict(fitted, "simulation")
+    rows1 = replay(plant1, segments, quanta=quanta)
+    after = gap_table(rows1, segments, floors)
+    report["gap_after"] = after
+    report["gap_total"] = {"before": total_gap(rows0, segments, floors), "after": total_gap(rows1, segments, floors)}
+    _print_before_after(before, after)
+    if args.write:
+        _write_block(Path(args.write), fitted, args.run_dir, report)
+        print(f"\nwrote {args.write} (a simulation: block; gearbench run PROFILE --sim --twin {args.write})")
+    if not args.no_proof:
+        report["proof"] = proof(result, segments, plant1, run_prof, quanta)
+        _print_proof(report["proof"])
+    report["wall_s"] = time.monotonic() - t0
+    _dump(args, report)
+    return 0
+
+
+def proof(result: dict, segments, plant, profile, quanta) -> dict:
+    """Re-simulate the recorded steps on the twin (noise on, the plant's seed), analyse
+    them as the run was analysed, and set the run's results (re-analysed with the same
+    code, so only the data differ) beside the twin's."""
+    from ..reanalysis import reanalyse_result
+    from ..twin.replay import replay, simulated_trace
+
+    rows = replay(plant, segments, noise=True, quanta=quanta)
+    twin_traces = {s.name: simulated_trace(rows[s.name], s, quanta=quanta) for s in segments}
+    real_traces = {s.name: s.trace for s in segments}
+    real = reanalyse_result(result, lambda n: real_traces[n], profile, result.get("method", "default"))
+    twin = reanalyse_result(result, lambda n: twin_traces[n], profile, result.get("method", "default"))
+    return {"real": _summary(real), "twin": _summary(twin)}
+
+
+def _summary(r: dict) -> dict:
+    motors = {m: {"Kt": v.get("Kt"), "Kt_ci95": v.get("Kt_ci95")} for m, v in (r.get("motors") or {}).items()}
+    eff = [{"speed_in_rad_s": e.get("speed_in_rad_s"), "torque_out_nm": e.get("torque_out_nm"),
+            "eta_incremental": e.get("eta_incremental"), "eta_incremental_ci95": e.get("eta_incremental_ci95"),
+            "eta_absolute": e.get("eta_absolute"), "eta_absolute_ci95": e.get("eta_absolute_ci95")}
+           for e in r.get("efficiency") or []]
+    limits = [{"name": lim["name"], "value": lim.get("value"), "passed": lim.get("passed")}
+              for lim in r.get("limits") or []]
+    return {"status": r.get("status"), "reason": r.get("reason"), "motors": motors,
+            "ratio": r.get("ratio"), "efficiency": eff, "limits": limits}
+
+
+def _within(a, b, ci) -> str:
+    if a is None or b is None or not ci:
+        return ""
+    return "yes" if abs(a - b) <= (ci[1] - ci[0]) / 2 else "NO"
+
+
+def _print_proof(pr: dict) -> None:
+    real, twin = pr["real"], pr["twin"]
+    print("\nthe proof: the run's results (re-analysed) beside the twin's (its traces analysed the same way)")
+    print(f"  {'quantity':<34} {'real':>10} {'twin':>10}  within the real interval")
+    for m in real["motors"]:
+        a, b = real["motors"][m]["Kt"], (twin["motors"].get(m) or {}).get("Kt")
+        print(f"  {'Kt ' + m + ' N m/A':<34} {_f(a):>10} {_f(b):>10}  {_within(a, b, real['motors'][m]['Kt_ci95'])}")
+    print(f"  {'ratio':<34} {_f(real['ratio']):>10} {_f(twin['ratio']):>10}")
+    for e, f in zip(real["efficiency"], twin["efficiency"]):
+        for q in ("eta_incremental", "eta_absolute"):
+            label = f"{q} {e['speed_in_rad_s']:.0f} rad/s {e['torque_out_nm']:.3f} N m"
+            print(f"  {label:<34} {_f(e[q]):>10} {_f(f[q]):>10}  {_within(e[q], f[q], e.get(q + '_ci95'))}")
+    # limits in the same order (the efficiency limits are labelled with the torque each
+    # run measured, so their names differ in the last digit between run and twin)
+    same_order = len(twin["limits"]) == len(real["limits"])
+    tl = {lim["name"]: lim for lim in twin["limits"]}
+    for i, lim in enumerate(real["limits"]):
+        t = twin["limits"][i] if same_order else tl.get(lim["name"], {})
+        same = "same verdict" if t.get("passed") == lim["passed"] else "VERDICT DIFFERS"
+        print(f"  {'limit ' + lim['name']:<34} {'PASS' if lim['passed'] else 'FAIL':>10} "
+              f"{'PASS' if t.get('passed') else 'FAIL':>10}  {same}")
+    print(f"  {'run':<34} {real['status']:>10} {twin['status']:>10}")
+
+
+def _f(v) -> str:
+    return "-" if v is None else f"{v:.5g}"
+
+
+def _print_gap(rows: list[dict], title: str) -> None:
+    print(f"\n{title}:")
+    print(f"  {'step':<28} {'signal':<20} {'gap':>8} {'bias':>8}  where (largest)")
+    for r in rows:
+        w = r["where"]
+        worst = []
+        if w.get("time"):
+            k = int(np.nanargmax(w["time"]))
+            worst.append(f"tenth {k + 1} ({w['time'][k]})")
+        if w.get("speed"):
+            b = max(w["speed"], key=lambda x: x["gap"] if x["gap"] == x["gap"] else -1)
+            worst.append(f"{b['from_rad_s']}-{b['to_rad_s']} rad/s ({b['gap']})")
+        if w.get("load"):
+            b = max(w["load"], key=lambda x: x["gap"] if x["gap"] == x["gap"] else -1)
+            worst.append(f"load {b['out_command']:g} A ({b['gap']})")
+        if w.get("reversals") is not None:
+            worst.append(f"reversals {w['reversals']}")
+        ao = w.get("angle_order")
+        if ao and ao["amplitude"] > 3 * ao["white_level"]:
+            worst.append(f"order {ao['order']} ({ao['amplitude']})")
+        print(f"  {r['step']:<28} {r['axis'] + '.' + r['signal']:<20} {r['gap']:8.2f} {r['bias']:8.2f}  "
+              + ", ".join(worst))
+
+
+def _print_chain(chain: list[dict]) -> None:
+    print(f"\n  {'effect':<20} {'parameters':<44} {'held-out shrink':>15} {'significant':>11} {'remaining S/n':>13}")
+    for c in chain:
+        print(f"  {c['effect']:<20} {', '.join(c['parameters']):<44} {c['held_out_shrink']:15.3f} "
+              f"{'yes' if c['significant'] else 'no':>11} {c['remaining']:13.3f}")
+    if not chain:
+        print("  (no candidate effect left to try)")
+
+
+def _print_params(rows: list[dict]) -> None:
+    print(f"\n  {'parameter':<30} {'profile':>12} {'fitted':>12} {'95 % interval':>14}")
+    for r in rows:
+        print(f"  {r['path']:<30} {r['start']:12.5g} {r['fitted']:12.5g} {'±' + format(r['interval95'], '.3g'):>14}")
+
+
+def _print_before_after(before, after) -> None:
+    print("\nremaining gap in noise floors (rms), profile's simulation -> fitted twin:")
+    a = {(r["step"], r["axis"], r["signal"]): r["gap"] for r in after}
+    for r in before:
+        k = (r["step"], r["axis"], r["signal"])
+        print(f"  {r['step']:<28} {r['axis'] + '.' + r['signal']:<20} {r['gap']:10.2f} -> {a.get(k, float('nan')):8.2f}")
+
+
+def _write_block(path: Path, block: dict, run_dir: str, report: dict) -> None:
+    head = (f"# Digital twin fitted by `gearbench twin {run_dir}`.\n"
+            f"# Use: gearbench run PROFILE --sim --twin {path.name}\n"
+            f"# Effects added: {', '.join(c['effect'] for c in report.get('chain', []) if c['significant']) or 'none'}\n")
+    path.write_text(head + yaml.safe_dump({"simulation": _plain(block)}, sort_keys=False))
+
+
+def _plain(x):
+    if isinstance(x, dict):
+        return {k: _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if isinstance(x, (np.floating, np.integer)):
+        return x.item()
+    return x
+
+
+def _dump(args, report) -> None:
+    if args.json:
+        Path(args.json).write_text(json.dumps(_plain(report), indent=1, default=str))
+
+

@@ -1,0 +1,61 @@
+"""Hidden changes for the twin's benchmark and tests: a profile's ``simulation:`` block with
+parameters moved and effects switched on that the block does not have. The twin is fitted
+from the nominal profile and never sees these; the benchmark compares against them."""
+from __future__ import annotations
+
+import copy
+
+# (dotted simulation path, factor or absolute value); "=" marks an absolute value
+HIDDEN = {
+    "cvt": {
+        "params": {"motors.in.Kt": ("*", 0.95), "motors.out.Kt": ("*", 1.07),
+                   "motors.in.Tc": ("*", 1.30), "motors.out.J": ("*", 1.10),
+                   "drag_torque_nm": ("*", 1.20), "cvt.eta_max": ("=", 0.77),
+                   "cvt.eta_slope_per_rad_s": ("*", 1.25), "ratio": ("=", 8.1),
+                   "cvt.pulsation_amp": ("=", 0.06)},
+        "effects": {"current_offset": {"motors.in.current_offset_a": 0.015},
+                    "kt_saturation": {"motors.out.kt_sat_a": 5.0}},
+    },
+    "cyclo": {
+        "params": {"motors.in.Kt": ("*", 1.04), "motors.out.Kt": ("*", 0.94),
+                   "motors.in.J": ("*", 1.15), "motors.out.Tc": ("*", 1.25),
+                   "eta_mesh": ("=", 0.86), "drag_torque_nm": ("*", 1.30),
+                   "drag_viscous": ("*", 1.5)},
+        "effects": {"backlash": {"backlash_rad": 0.02},
+                    "torque_ripple": {"motors.out.ripple_amp": 0.03, "motors.out.ripple_order": 4}},
+    },
+}
+
+
+def get_path(block: dict, path: str):
+    d = block
+    *head, last = path.split(".")
+    for k in head:
+        d = d.get(k) or {}
+    return d.get(last)
+
+
+def set_path(block: dict, path: str, value) -> None:
+    d = block
+    *head, last = path.split(".")
+    for k in head:
+        d = d.setdefault(k, {})
+    d[last] = value
+
+
+def hidden_block(nominal: dict, spec: dict, defaults) -> tuple[dict, dict]:
+    """(hidden simulation block, truth {path: value}) from the nominal block and a spec of
+    ``HIDDEN``; ``defaults(path)`` gives a parameter's default when the block omits it."""
+    block = copy.deepcopy(nominal)
+    truth = {}
+    for path, (op, v) in spec["params"].items():
+        now = get_path(block, path)
+        now = defaults(path) if now is None else now
+        new = now * v if op == "*" else v
+        set_path(block, path, float(new))
+        truth[path] = float(new)
+    for eff in spec["effects"].values():
+        for path, v in eff.items():
+            set_path(block, path, v)
+            truth[path] = float(v)
+    return block, truth

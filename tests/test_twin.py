@@ -1,0 +1,168 @@
+"""The digital twin (gearbench.twin): replay, gap, fit, effect chain, twin file.
+
+Fast tests build a short recorded run in-process (the sequencer's step names, a
+multisine calibration with and without a disk, an efficiency staircase) on a hidden
+plant; the slow test replays a real ``gearbench run --sim`` recording."""
+from __future__ import annotations
+
+import copy
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import yaml
+
+from gearbench.errors import GearbenchError, ProfileError
+from gearbench.sim import PlantParams
+from gearbench.trace import Trace
+from gearbench.twin import fit as F
+from gearbench.twin.block import load_twin_block
+from gearbench.twin.gap import gap_table, noise_floors, total_gap
+from gearbench.twin.replay import Quanta, Segment, replay, simulated_trace
+
+DISK = 2.0e-5
+BLOCK = {"seed": 3,
+         "motors": {"in": {"Kt": 0.0527, "J": 1.5e-5, "D": 2.0e-6, "Tc": 0.008, "cog_amp": 0.0},
+                    "out": {"Kt": 0.0512, "J": 1.45e-5, "D": 2.2e-6, "Tc": 0.009, "cog_amp": 0.0}},
+         "ratio": 10.0, "eta_mesh": 0.9, "drag_torque_nm": 0.015, "drag_viscous": 2.0e-5}
+Q = Quanta(velocity_rad_s={"in": 2 * math.pi / 1e4, "out": 2 * math.pi / 1e4},
+           torque_a={"in": 1.5e-3, "out": 1.5e-3}, current_a={"in": 1.5e-3, "out": 1.5e-3})
+
+
+def _multisine(n, period_s=1e-3):
+    t = np.arange(n) * period_s
+    fade = np.clip(t / 0.1, 0, 1)
+    return fade * (120 + sum(25 * np.sin(2 * np.pi * f * t + f) for f in (2, 3, 5, 7)))
+
+
+def _segments(n_cal=1200, n_eff=2000):
+    """Commands-only segments in the sequencer's order and names."""
+    segs, k = [], 1
+    ms = _multisine(n_cal)
+    for name, coupling, disks, modes, cin, cout in (
+            ("calibrate-in.out-unloaded", "none", {}, {"in": "velocity", "out": "velocity"}, ms, ms),
+            ("calibrate-in-disk_a", "none", {"in": DISK}, {"in": "velocity", "out": "off"}, ms, 0 * ms),
+            ("calibrate-out-disk_a", "none", {"out": DISK}, {"in": "off", "out": "velocity"}, 0 * ms, ms),
+            ("efficiency-0", "reducer", {}, {"in": "velocity", "out": "torque"},
+             np.minimum(np.arange(n_eff) * 2.0, 200.0),
+             np.repeat([0.0, -0.5, -1.0, -1.5], n_eff // 4))):
+        n = len(cin)
+        tr = Trace(np.arange(k, k + n) * 1e-3, {"sample": np.arange(k, k + n), "in.command": cin,
+                                               "out.command": cout}, {}, name)
+        segs.append(Segment(name, coupling, disks, modes, tr, k, k + n - 1))
+        k += n
+    return segs
+
+
+def _record(block, segs):
+    """The run a bench with ``block`` records for these commands (noise on)."""
+    rows = replay(PlantParams.from_dict(block), segs, noise=True, quanta=Q)
+    out = []
+    for s in segs:
+        tr = simulated_trace(rows[s.name], s, quanta=Q)
+        out.append(Segment(s.name, s.coupling, s.disks_kgm2, s.modes, tr, s.first_sample, s.last_sample))
+    return out
+
+
+def test_replay_of_the_same_plant_is_at_the_noise_floor():
+    rec = _record(BLOCK, _segments())
+    floors = noise_floors(rec)
+    rows = replay(PlantParams.from_dict(BLOCK), rec, quanta=Q)
+    table = gap_table(rows, rec, floors)
+    for r in table:
+        if r["signal"] in ("position_rad", "velocity_rad_s"):
+            assert r["gap"] < 1e-6, r          # deterministic: the same counts
+        else:
+            assert 0.5 < r["gap"] < 1.3, r     # only the sensor's noise is left
+    # the noise floor of the current is the sensor's 4 mA (estimated from the data)
+    assert floors[("in", "current_a")] == pytest.approx(0.004, rel=0.3)
+
+
+def test_gap_names_where_a_wrong_ratio_shows():
+    rec = _record(BLOCK, _segments())
+    floors = noise_floors(rec)
+    wrong = copy.deepcopy(BLOCK)
+    wrong["ratio"] = 10.5
+    table = gap_table(replay(PlantParams.from_dict(wrong), rec, quanta=Q), rec, floors)
+    by = {(r["step"], r["axis"], r["signal"]): r for r in table}
+    assert by[("efficiency-0", "out", "velocity_rad_s")]["gap"] > 3
+    assert by[("efficiency-0", "out", "position_rad")]["gap"] > 100   # the angle accumulates it
+    assert by[("calibrate-in-disk_a", "in", "current_a")]["gap"] < 1.3   # calibration unaffected
+    assert by[("efficiency-0", "out", "velocity_rad_s")]["where"]["speed"]
+
+
+def test_fit_recovers_moved_parameters_within_intervals():
+    hidden = copy.deepcopy(BLOCK)
+    hidden["motors"]["in"]["Kt"] *= 0.95
+    hidden["motors"]["out"]["Tc"] *= 1.3
+    hidden["eta_mesh"] = 0.86
+    rec = _record(hidden, _segments())
+    prob = F.Problem(rec, copy.deepcopy(BLOCK), Q)
+    params = [p for p in F.base_params(BLOCK)
+              if p.path in ("motors.in.Kt", "motors.in.J", "motors.in.Tc", "motors.out.Kt",
+                            "motors.out.J", "motors.out.Tc", "eta_mesh", "drag_torque_nm")]
+    res = F.fit(prob, params, iterations=8)
+    assert res["S"] < 0.2 * res["S0"]
+    got = F.written_values(params)
+    for path in ("motors.in.Kt", "motors.out.Tc", "eta_mesh"):
+        truth = F.get_value(hidden, path)
+        p = next(p for p in params if p.path == path)
+        assert abs(got[path] - truth) <= max(p.interval, 0.01 * abs(truth)), (path, got[path], truth, p.interval)
+
+
+def test_effect_chain_names_a_current_offset():
+    hidden = copy.deepcopy(BLOCK)
+    hidden["motors"]["in"]["current_offset_a"] = 0.03
+    rec = _record(hidden, _segments(n_cal=800, n_eff=1200))
+    prob = F.Problem(rec, copy.deepcopy(BLOCK), Q)
+    params = [p for p in F.base_params(BLOCK)
+              if p.path in ("motors.in.Kt", "motors.in.Tc", "motors.out.Kt", "eta_mesh")]
+    F.fit(prob, params, iterations=3)
+    chain = F.add_effects(prob, params, max_effects=1)
+    assert chain and chain[0]["effect"] == "current_offset" and chain[0]["significant"]
+    assert chain[0]["values"]["motors.in.current_offset_a"] == pytest.approx(0.03, abs=0.005)
+
+
+def test_twin_file_errors_name_the_file(tmp_path):
+    bad = tmp_path / "twin.yaml"
+    bad.write_text("simulation: {ratio: -2}\n")
+    with pytest.raises(ProfileError, match="twin.yaml: simulation.ratio"):
+        load_twin_block(str(bad))
+    bad.write_text("motors: {}\n")
+    with pytest.raises(ProfileError, match="expected a 'simulation:'"):
+        load_twin_block(str(bad))
+    with pytest.raises(GearbenchError, match="cannot read"):
+        load_twin_block(str(tmp_path / "missing.yaml"))
+    good = tmp_path / "ok.yaml"
+    good.write_text(yaml.safe_dump({"simulation": BLOCK}))
+    assert load_twin_block(str(good))["ratio"] == 10.0
+
+
+def test_cli_twin_on_a_folder_without_a_run_exits_2(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "gearbench", "twin", str(tmp_path)], capture_output=True, text=True)
+    assert r.returncode == 2 and "no result.json" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.slow
+def test_replay_of_an_emulated_run_is_exact(tmp_path):
+    """The replay is the emulator's model: a --sim run replayed on its own plant, seed and
+    noise gives the recorded counts and currents to the drive's units."""
+    from gearbench.commands.twin import drive_quanta, load_run
+    from gearbench.twin.replay import measured, plan_segments, simulated
+
+    out = tmp_path / "run"
+    subprocess.run([sys.executable, "-m", "gearbench", "run", "profiles/cvt.yaml", "--sim", "--yes",
+                    "--quiet", "--out", str(out)], check=True)
+    result, traces, prof, _ = load_run(str(out), None)
+    segs = plan_segments(traces, prof)
+    q = drive_quanta(prof)
+    rows = replay(PlantParams.from_dict(prof.simulation), segs, noise=True, quanta=q)
+    for s in segs:
+        for a in ("in", "out"):
+            assert np.max(np.abs(measured(s, a, "position_rad") - simulated(rows[s.name], s, a, "position_rad"))) < 1e-9
+            i = np.round(simulated(rows[s.name], s, a, "current_a") / q.current_a[a]) * q.current_a[a]
+            assert np.sqrt(np.mean((measured(s, a, "current_a") - i) ** 2)) < q.current_a[a]
+    assert total_gap(replay(PlantParams.from_dict(prof.simulation), segs, quanta=q), segs,
+                     noise_floors(segs), ("position_rad", "velocity_rad_s")) < 1e-6
