@@ -57,5 +57,5 @@ def run(args) -> int:
     print(f"D            {cal.D:.6g} N m s/rad")
     print(f"Tc           {cal.Tc:.6g} N m")
     print(f"b2 unloaded  {f['b2_unloaded']:.6g} 1/(A s^2)   loaded {f['b2_loaded']:.6g}")
-    print(f"fit          r2 {f['r2']:.6f}  condition {f['condition']:.3g}  samples {f['n_samples']}")
+    print(f"fit          r2 of the acceleration {f['r2']:.6f}  condition {f['condition']:.3g}  samples {f['n_samples']}")
     return 0

@@ -58,7 +58,7 @@ def run(args) -> int:
     result = run_profile(args.profile, sim=args.sim, out_dir=out, serial=serial,
                          db=db, yes=args.yes or args.sim, rrd=args.rrd, live=args.live,
                          connect=args.connect, method=args.method, seed=args.seed,
-                         quiet=args.quiet, central=args.central)
+                         quiet=args.quiet, central=args.central, summary=sys.stdout)
     if args.report:
         _report(out)
     if args.golden:

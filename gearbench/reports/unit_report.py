@@ -15,6 +15,7 @@ from pathlib import Path
 from .. import __version__
 from ..errors import GearbenchError
 from ..station.results import finite_or_none
+from ..analysis.calibration import motor_value
 
 _CSS = """
 body{font-family:system-ui,-apple-system,'Segoe UI',Roboto,sans-serif;margin:24px auto;max-width:1050px;color:#222}
@@ -98,8 +99,8 @@ def _motor_section(result: dict, traces: dict) -> str:
         return "<h2>Motors</h2><p class='note'>No motor was calibrated in this run.</p>"
     rows = []
     for m, p in motors.items():
-        rows.append([_e(m), _f(p.get("Kt")), _ci(p.get("Kt_ci95")), _f(p.get("J")), _f(p.get("D")),
-                     _f(p.get("Tc")), _e(p.get("method", ""))])
+        rows.append([_e(m), _f(p.get("Kt")), _ci(p.get("Kt_ci95")), _f(motor_value(p, "J")), _f(motor_value(p, "D")),
+                     _f(motor_value(p, "Tc")), _e(p.get("method", ""))])
     parts = ["<h2>Motors: torque constant Kt (paper eq. 17, from two inertias)</h2>",
              _table(["motor", "Kt [N·m/A]", "Kt 95 % interval", "J [kg·m²]", "D [N·m·s/rad]",
                      "Tc [N·m]", "method"], rows, (1, 2, 3, 4, 5))]
@@ -126,7 +127,7 @@ def _motor_section(result: dict, traces: dict) -> str:
             loaded = not step.endswith("-unloaded")
             try:
                 b = torque_balance(tr.time_s, tr[f"{m}.position_rad"], tr[f"{m}.current_a"],
-                                   Kt=p["Kt"], J=p["J"], D=p["D"], Tc=p["Tc"],
+                                   Kt=p["Kt"], J=motor_value(p, "J"), D=motor_value(p, "D"), Tc=motor_value(p, "Tc"),
                                    disk_kgm2=disk if loaded else 0.0)
             except Exception:
                 continue

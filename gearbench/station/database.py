@@ -9,6 +9,9 @@ import json
 import sqlite3
 from pathlib import Path
 
+from ..analysis.calibration import motor_value
+from ..errors import GearbenchError
+from .limits import point_name
 from .records import RunStop, Subscriber
 
 SCHEMA = """
@@ -40,6 +43,28 @@ def connect(path: str | Path) -> sqlite3.Connection:
     return con
 
 
+def check_writable(path: str | Path) -> None:
+    """Refuse, before anything moves, a station database that cannot be written (a
+    read-only folder, a read-only file): a probe row is written and rolled back, which
+    needs the journal file beside it. Raises GearbenchError (exit 2) naming the path."""
+    p = Path(path)
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        con = sqlite3.connect(p)
+        try:
+            con.executescript(SCHEMA)
+            con.execute("BEGIN IMMEDIATE")
+            con.execute("INSERT OR REPLACE INTO meta VALUES ('write_probe', '1')")
+            con.rollback()
+        finally:
+            con.close()
+    except (OSError, sqlite3.Error) as exc:
+        raise GearbenchError(
+            f"{p}: cannot write the station database ({exc}); the folder it is in must be "
+            f"writable (SQLite keeps its journal beside it): choose another --out or --db, "
+            f"or fix the permissions") from None
+
+
 def station_id(con: sqlite3.Connection, db_path: str | Path | None = None) -> str:
     """The station this database belongs to, fixed when first asked: $GEARBENCH_STATION,
     else the station config's ``station:``, else the host name."""
@@ -60,12 +85,12 @@ def measurements_of(result: dict) -> list[tuple]:
     limits = {lim["name"]: lim for lim in result.get("limits", [])}
     for motor, p in (result.get("motors") or {}).items():
         for key, unit in (("Kt", "N m/A"), ("J", "kg m^2"), ("D", "N m s/rad"), ("Tc", "N m")):
-            if p.get(key) is not None:
-                rows.append((f"motors.{motor}.{key}", p[key], None, None, None, unit))
+            if motor_value(p, key) is not None:
+                rows.append((f"motors.{motor}.{key}", motor_value(p, key), None, None, None, unit))
     if result.get("ratio") is not None:
         rows.append(("ratio", result["ratio"], None, None, None, ""))
     for i, pt in enumerate(result.get("efficiency") or []):
-        tag = f"efficiency[{i}]@{pt.get('speed_in_rad_s', 0):.0f}rad_s,{pt.get('torque_out_nm', 0):.3g}Nm"
+        tag = f"efficiency[{i}]@{point_name('', pt)[1:-1]}"   # the commanded point
         for key in ("eta_incremental", "eta_absolute"):
             rows.append((f"{tag}.{key}", pt.get(key), None, None, None, ""))
     for name, lim in limits.items():

@@ -30,6 +30,7 @@ from ...station.records import (Calibration, EfficiencyPoint, LimitResult, Messa
                        RunStart, RunStop, SampleBatch, StepStart, StepStop, Subscriber)
 from . import paths as P
 from .blueprint import default_blueprint, panel_names
+from ...analysis.calibration import motor_value
 
 DEFAULT_VIEWER_URL = "rerun+http://127.0.0.1:9876/proxy"
 
@@ -288,7 +289,7 @@ class RerunView(Subscriber):
                 kt = _num(p.get("Kt"))
                 lo, hi = _interval(kt, p.get("Kt_ci95"))
                 lines.append(f"| {motor} | {_fmt(kt)} | [{_fmt(lo)}, {_fmt(hi)}] | "
-                             f"{_fmt(p.get('J'))} | {_fmt(p.get('D'))} | {_fmt(p.get('Tc'))} |")
+                             f"{_fmt(motor_value(p, 'J'))} | {_fmt(motor_value(p, 'D'))} | {_fmt(motor_value(p, 'Tc'))} |")
             lines.append("")
         speeds, torques, cells = self.efficiency_grid()
         if speeds:
@@ -435,8 +436,8 @@ def _fmt(v) -> str:
 def _param_line(p: dict) -> str:
     kt = _num(p.get("Kt"))
     lo, hi = _interval(kt, p.get("Kt_ci95"))
-    return (f"Kt = {_fmt(kt)} N·m/A [{_fmt(lo)}, {_fmt(hi)}], J = {_fmt(p.get('J'))} kg·m², "
-            f"D = {_fmt(p.get('D'))} N·m·s/rad, Tc = {_fmt(p.get('Tc'))} N·m")
+    return (f"Kt = {_fmt(kt)} N·m/A [{_fmt(lo)}, {_fmt(hi)}], J = {_fmt(motor_value(p, 'J'))} kg·m², "
+            f"D = {_fmt(motor_value(p, 'D'))} N·m·s/rad, Tc = {_fmt(motor_value(p, 'Tc'))} N·m")
 
 
 def _point_line(p: dict) -> str:
