@@ -228,3 +228,24 @@ def test_fixed_length_braking_levels_subtract_the_output_motors_friction():
     assert len(levels_a) == len(levels_b) == len(step.torques_out_nm)
     for la, lb in zip(sorted(levels_a), sorted(levels_b)):
         assert (abs(la) - abs(lb)) * kt_out == pytest.approx(loss, rel=1e-6)
+
+
+# ------------------------------------------------------------------ history
+
+
+def test_history_finds_the_station_by_its_bench_name_and_columns_stay_apart(tmp_path, capsys, monkeypatch):
+    from gearbench.cli import main
+    from gearbench.station.database import StationDatabase
+
+    monkeypatch.delenv("GEARBENCH_STATION", raising=False)
+    db = tmp_path / "station.sqlite"
+    res = dict(_result([], sim=False), profile="cvt-link-mechanism", started_utc="2026-12-01T21:00:00Z",
+               station={"name": "eol-station-1", "host": "vm"}, status="passed")
+    StationDatabase(db)(RunStop("passed", 0, "", res))
+    assert main(["history", "--db", str(db), "--station", "eol-station-1"]) == 0
+    out = capsys.readouterr().out
+    head, row = out.splitlines()[:2]
+    assert "SN7" in row and "cvt-link-mechanism  passed" in row       # never 'cvt-link-mechanismpassed'
+    assert head.index("status") == row.index("passed")
+    assert main(["history", "--db", str(db), "--station", "eol-station-2"]) == 0
+    assert "no runs" in capsys.readouterr().out

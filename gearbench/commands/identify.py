@@ -10,16 +10,22 @@ HELP = "Fit one single-motor trace: b2 = Kt/J, D/J, Tc/J (and C/J for the paper'
 
 
 def add_arguments(p) -> None:
-    p.add_argument("trace", metavar="TRACE", help="single-motor CSV or Parquet trace")
+    p.add_argument("trace", metavar="TRACE",
+                   help="single-motor trace: CSV or Parquet with columns time_s, position_rad, current_a "
+                        "(optional command, velocity_rad_s), or a run folder's trace-<step>.parquet "
+                        "with --motor")
+    p.add_argument("--motor", choices=["in", "out"],
+                   help="in a gearbench run trace (in.position_rad, out.position_rad ...): the motor to fit")
     p.add_argument("--method", choices=METHODS, default="default",
-                   help="identification method (default: bias-reduced; paper: as published)")
+                   help="identification method: default (bias-reduced), paper (as published, at the data rate), "
+                        "paper-15ms (as published, resampled to the paper's 15 ms)")
     p.add_argument("--spring", action="store_true",
                    help="default method: also fit C/J (spring to ground, the paper's C)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
 
 def run(args) -> int:
-    trace = read_trace(args.trace, SINGLE_MOTOR_COLUMNS)
+    trace = read_trace(args.trace, SINGLE_MOTOR_COLUMNS, motor=args.motor)
     opts = {"spring": True} if args.spring and args.method == "default" else {}
     fit = identify_trace(trace, method=args.method, **opts)
     if args.json:

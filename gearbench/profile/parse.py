@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import ProfileError
 from . import waveforms as wf
-from .model import (BenchSpec, BusSpec, CalibrateStep, DiskSpec, EfficiencyStep, LimitSpec, LoadStep,
+from .model import (Outputs, BenchSpec, BusSpec, CalibrateStep, DiskSpec, EfficiencyStep, LimitSpec, LoadStep,
                     MotorSpec, Profile, ReducerSpec, Targets, WaveformSpec)
 from .yamlmarks import MarkedDoc, did_you_mean, one_line
 
@@ -26,7 +26,8 @@ _NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_.-]{0,63}$")
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 TOP_KEYS = ("name", "description", "bench", "motors", "reducer", "disks", "waveforms", "steps", "limits",
-            "simulation", "targets")
+            "simulation", "targets", "outputs")
+OUTPUT_KEYS = ("mdf",)
 MOTOR_NAMES = ("in", "out")
 CAN_EXAMPLE_CHANNELS = {"socketcan": "can0", "pcan": "PCAN_USBBUS1", "kvaser": 0, "ixxat": 0, "vector": 0}
 STEP_KINDS = ("calibrate", "load", "efficiency")
@@ -217,9 +218,17 @@ def build_profile(doc: MarkedDoc, path: Path, sha256: str, base_dir: Path) -> Pr
     targets = _targets(c, top, steps)
     limits = _limits(c, top, motors, reducer, steps)
     simulation = _simulation(c, top, bench, motors)
+    outputs = _outputs(c, top)
     return Profile(path=path, sha256=sha256, name=name, description=description, bench=bench, motors=motors,
                    reducer=reducer, disks=disks, waveforms=waveforms, steps=steps, limits=limits,
-                   simulation=simulation, raw=top, targets=targets)
+                   simulation=simulation, raw=top, targets=targets, outputs=outputs)
+
+
+def _outputs(c: _Checker, top) -> Outputs:
+    """``outputs: {mdf: true}``: files written with every run besides the required ones."""
+    m = c.mapping(top.get("outputs") or {}, ("outputs",), "outputs: {mdf: true}")
+    c.keys(m, ("outputs",), OUTPUT_KEYS)
+    return Outputs(mdf=c.boolean(m, ("outputs",), "mdf", False))
 
 
 def _targets(c: _Checker, top, steps) -> Targets:

@@ -6,6 +6,7 @@ in one transaction, so a crash never leaves half a run.
 from __future__ import annotations
 
 import json
+import os
 import sqlite3
 from pathlib import Path
 
@@ -65,15 +66,18 @@ def check_writable(path: str | Path) -> None:
             f"or fix the permissions") from None
 
 
-def station_id(con: sqlite3.Connection, db_path: str | Path | None = None) -> str:
+def station_id(con: sqlite3.Connection, db_path: str | Path | None = None,
+               bench_name: str | None = None) -> str:
     """The station this database belongs to, fixed when first asked: $GEARBENCH_STATION,
-    else the station config's ``station:``, else the host name."""
+    else the station config's ``station:``, else the name of the bench of its first run
+    (the profile's ``bench.name``, what the people at the line call it), else the host name."""
     row = con.execute("SELECT value FROM meta WHERE key = 'station'").fetchone()
     if row:
         return row[0]
-    from .config import default_station
+    from .config import default_station, station_config
 
-    sid = default_station(db_path)
+    explicit = os.environ.get("GEARBENCH_STATION") or str(station_config(db_path).get("station") or "")
+    sid = explicit or bench_name or default_station(db_path)
     with con:
         con.execute("INSERT OR IGNORE INTO meta VALUES ('station', ?)", (sid,))
     return con.execute("SELECT value FROM meta WHERE key = 'station'").fetchone()[0]
@@ -102,7 +106,8 @@ def measurements_of(result: dict) -> list[tuple]:
 def store_run(path: str | Path, result: dict) -> None:
     con = connect(path)
     try:
-        station_id(con, path)   # a station database knows its station before its first run
+        # a station database knows its station before its first run
+        station_id(con, path, (result.get("station") or {}).get("name"))
         with con:
             con.execute(
                 "INSERT OR REPLACE INTO runs VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?)",

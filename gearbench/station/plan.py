@@ -302,3 +302,15 @@ def efficiency_segment(profile, step, k: int, speed: float, known: Known) -> Seg
                    {"in": (Mode.VELOCITY, speed_cmd), "out": (Mode.TORQUE, cur_cmd)},
                    f"input {speed:g} rad/s, {len(step.torques_out_nm)} braking torques",
                    meta=dict(speed=speed, settle_s=step.settle_s, n_ramp=n_ramp, points=points))
+
+
+def command_units(profile) -> dict[str, dict[str, str]]:
+    """Per segment name per motor the unit of its ``<motor>.command`` column: ``"rad_s"``
+    (velocity mode) or ``"a"`` (current/torque mode), from the plan (datasheet values
+    standing in; the modes do not depend on them)."""
+    out: dict[str, dict[str, str]] = {}
+    for action in plan(profile):
+        if isinstance(action, Segment):
+            out[action.name] = {m: "rad_s" if mode is Mode.VELOCITY else "a"
+                                for m, (mode, _) in action.commands.items()}
+    return out
