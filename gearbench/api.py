@@ -30,26 +30,23 @@ from typing import Callable, Iterable
 from .analysis.calibration import MotorCalibration
 from .analysis.efficiency import EfficiencyPoint
 from .drives.base import AxisConfig, DriveNetwork
+from .drives.devicecheck import require_devices
 from .drives.registry import network_class
+from .emulate.launch import SimBench
 from .errors import Aborted, GearbenchError
-from .profile import load_profile
-from .station.records import RecordStream
-from .station.sequencer import AutoOperator
-from .sim.truth import truth_of
-from .profile import CalibrateStep
-from .profile import LoadStep
-from .profile import EfficiencyStep
-from .station.config import central_url
 from .fleet.push import CentralPush
-from .station.console import ProgressDisplay
 from .fleet.reanalysis import ProfileSnapshot
+from .profile import CalibrateStep, EfficiencyStep, LoadStep, load_profile
+from .reports.live import open_live_view
+from .sim.truth import truth_of
+from .station.config import central_url
+from .station.console import ProgressDisplay
+from .station.database import StationDatabase
+from .station.database import check_writable as check_db_writable
+from .station.records import RecordStream
 from .station.recorder import ParquetRecorder
 from .station.results import ResultWriter
-from .station.sequencer import Sequencer
-from .station.database import StationDatabase
-from .drives.devicecheck import require_devices
-from .reports.live import open_live_view
-from .emulate.launch import SimBench
+from .station.sequencer import AutoOperator, Sequencer
 
 __all__ = ["load_profile", "open_network", "open_bench", "run_profile", "Bench", "RunResult",
            "MotorCalibration", "EfficiencyPoint", "MotorResult", "EfficiencyPointResult", "LimitCheck", "AutoOperator", "TerminalOperator"]
@@ -267,7 +264,8 @@ class Bench:
 def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str = "",
                operator=None, subscribers: Iterable[Callable] = (), db=None, seed=None,
                method: str = "default", quiet: bool = True, live: bool = False, rrd=None,
-               connect=None, fixture=None, central: str | None = None, twin: str | None = None):
+               connect=None, fixture=None, central: str | None = None, twin: str | None = None,
+               summary=None):
     """Open the bench for ``profile`` (a path or a loaded Profile); yields a ``Bench``.
 
     ``sim=True`` starts the emulated bench (the profile's ``simulation:`` plant) in a
@@ -281,7 +279,8 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
     disabled and the outputs closed. Every run copies its profile into the run folder
     and, when a central database is configured (``central`` URL, else
     ``$GEARBENCH_CENTRAL`` or the station config), is pushed to it after it ends —
-    whoever opens the bench (CLI, script, OpenHTF).
+    whoever opens the bench (CLI, script, OpenHTF). ``summary``: a stream for the
+    end-of-run table and verdict line (the command line's stdout); progress goes to stderr.
     """
     if not hasattr(profile, "steps"):
         profile = load_profile(profile)
@@ -292,13 +291,16 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
     out = Path(out_dir)
     _check_writable(out)
     db_path = Path(db) if db else out.resolve().parent / "station.sqlite"
+    check_db_writable(db_path)        # refused before anything moves, not after the test
+    if rrd:
+        _check_writable_file(Path(rrd), "--rrd")
     # required outputs: a unit cannot pass without them (the result writer last, so it sees
     # a failure of the others); best-effort: the progress display, the live view, callers' extras
     extras: list = [ProfileSnapshot()]   # profile.yaml in the run folder, for re-analysis
     url = central_url(central, db_path)
     if url:
         extras.append(CentralPush(db_path, url, quiet=quiet))
-    stream = RecordStream([ProgressDisplay(sys.stderr, quiet=quiet), *extras, *subscribers],
+    stream = RecordStream([ProgressDisplay(sys.stderr, quiet=quiet, summary=summary), *extras, *subscribers],
                           required=[ParquetRecorder(out), StationDatabase(db_path), ResultWriter(out)])
     if operator is None:
         operator = AutoOperator() if sim else TerminalOperator()
@@ -372,6 +374,22 @@ class _NoDrives(DriveNetwork):
     def _close(self) -> None: ...
 
 
+def _check_writable_file(path: Path, what: str) -> None:
+    """Refuse a file the run will write that cannot be created (exit 2, before anything moves)."""
+    existed = path.exists()
+    try:
+        if path.is_dir():
+            raise IsADirectoryError(21, "is a folder")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "ab"):
+            pass
+        if not existed:
+            path.unlink()
+    except OSError as exc:
+        raise GearbenchError(f"{what} {path}: cannot write it ({exc.strerror or exc}); choose "
+                             f"a writable path") from None
+
+
 def _check_writable(out: Path) -> None:
     """Refuse an output folder that cannot be written before anything moves (exit 2)."""
     try:
@@ -387,7 +405,8 @@ def _check_writable(out: Path) -> None:
 def run_profile(profile_path, *, sim: bool = False, out_dir="results/run", serial: str = "",
                 db=None, yes: bool = False, rrd=None, live: bool = False, connect=None,
                 method: str = "default", seed=None, quiet: bool = True, subscribers=(),
-                operator=None, central: str | None = None, twin: str | None = None) -> dict:
+                operator=None, central: str | None = None, twin: str | None = None,
+                summary=None) -> dict:
     """Run a whole profile; returns the result dict (what result.json holds).
 
     Writes the run folder (Parquet traces, result.json, junit.xml) and a row in the
@@ -397,6 +416,7 @@ def run_profile(profile_path, *, sim: bool = False, out_dir="results/run", seria
         operator = AutoOperator() if yes else TerminalOperator()
     with open_bench(profile_path, sim=sim, out_dir=out_dir, serial=serial, operator=operator,
                     subscribers=subscribers, db=db, seed=seed, method=method, quiet=quiet,
-                    live=live, rrd=rrd, connect=connect, central=central, twin=twin) as bench:
+                    live=live, rrd=rrd, connect=connect, central=central, twin=twin,
+                    summary=summary) as bench:
         result = bench.run()
     return result.raw

@@ -26,10 +26,25 @@ def _command_modules():
         yield importlib.import_module(f"{commands.__name__}.{info.name}")
 
 
+EXIT_CODES = """exit codes:
+  0  done (run: the unit passed)
+  1  run: a limit failed (the unit is bad); golden/reanalyze: a deviation
+  2  bad input, or refused before anything moved (profile, trace, paths)
+  3  bench fault or operator abort (drives stopped)"""
+
+
+def sentence(text: str) -> str:
+    """A command's one-line help as every other: capital first letter, one final period."""
+    text = text.strip()
+    text = text[:1].upper() + text[1:]
+    return text if text.endswith((".", "?", "!")) else text + "."
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="gearbench",
-        description="Gear-reducer efficiency without a torque transducer.")
+        description="Gear-reducer efficiency without a torque transducer.",
+        epilog=EXIT_CODES, formatter_class=argparse.RawDescriptionHelpFormatter)
     from .analysis import METHOD_VERSIONS
 
     methods = ", ".join(f"{m} {v}" for m, v in METHOD_VERSIONS.items())
@@ -37,7 +52,9 @@ def build_parser() -> argparse.ArgumentParser:
                         version=f"gearbench {__version__} (analysis methods: {methods})")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for mod in _command_modules():
-        p = sub.add_parser(mod.NAME, help=mod.HELP, description=mod.HELP)
+        text = sentence(mod.HELP)
+        p = sub.add_parser(mod.NAME, help=text, description=text, epilog=EXIT_CODES,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
         mod.add_arguments(p)
         p.set_defaults(_run=mod.run)
     return parser

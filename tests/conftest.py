@@ -91,7 +91,7 @@ def cvt_sim_run(tmp_path_factory):
         out = tmp_path_factory.mktemp("station") / "cvt-run"
         p = subprocess.run([sys.executable, "-m", "gearbench", "run", "cvt", "--sim", "--yes", "--quiet",
                             "--serial", "SIM-REPORT-1", "--out", str(out), "--rrd", str(out / "run.rrd"),
-                            "--report"], capture_output=True, text=True, timeout=1800,
+                            "--report", "--mdf"], capture_output=True, text=True, timeout=1800,
                            cwd=tmp_path_factory.getbasetemp())
         if p.returncode != 3:
             break

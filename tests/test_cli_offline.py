@@ -36,7 +36,7 @@ def test_calibrate_json_and_text(capsys, tmp_path):
     code, out, _ = run(capsys, "calibrate", "--unloaded", UA, "--loaded", LA, "--inertia", DISK, "--json")
     assert code == 0
     d = json.loads(out)
-    assert {"Kt", "Kt_ci95", "J", "D", "Tc", "method", "fit"} <= set(d)
+    assert {"Kt", "Kt_ci95", "J_kgm2", "D_nm_s_per_rad", "Tc_nm", "method", "fit"} <= set(d)
     assert d["Kt_ci95"][0] < d["Kt"] < d["Kt_ci95"][1]
     assert abs(d["Kt"] / 0.0612 - 1) < 0.002
     assert {"r2", "rmse", "n_samples", "condition", "b2_unloaded", "b2_loaded"} <= set(d["fit"])
@@ -188,3 +188,47 @@ def test_motor_json_missing_keys_or_invalid(capsys, tmp_path):
     p.write_text("{not json")
     bad(capsys, "efficiency", BENCH, "--motor-in", p, "--kt-out", "0.0455", must=("IN.json", "JSON"))
     bad(capsys, "efficiency", BENCH, "--kt-in", "0.06", must=("--motor-out", "--kt-out"))
+
+
+# ------------------------------------------------ gearbench's own run traces (issue 27)
+
+
+def _run_trace(tmp_path, n=3000, motors=("in", "out")):
+    """A run trace as the recorder writes it: columns ``<motor>.<quantity>``."""
+    tr = Trace.read(UA)
+    t = tr.time_s[:n]
+    cols = {"sample": np.arange(len(t))}
+    for m in motors:
+        cols[f"{m}.position_rad"] = tr["position_rad"][:n]
+        cols[f"{m}.current_a"] = tr["current_a"][:n]
+    path = tmp_path / "trace-calibrate-in.out-unloaded.parquet"
+    Trace(t, cols, source=str(path)).write(path)
+    return path
+
+
+def test_identify_reads_a_run_trace_with_motor(capsys, tmp_path):
+    path = _run_trace(tmp_path)
+    code, out, _ = run(capsys, "identify", path, "--motor", "out", "--json")
+    assert code == 0
+    ref_code, ref, _ = run(capsys, "identify", UA, "--json")
+    a, b = json.loads(out), json.loads(ref)
+    assert a["b2"] == b["b2"]                    # the same samples, the same fit
+
+
+def test_identify_on_a_two_motor_run_trace_asks_for_motor(capsys, tmp_path):
+    bad(capsys, "identify", _run_trace(tmp_path), must=("--motor in or --motor out",))
+
+
+def test_motor_on_a_plain_trace_is_refused(capsys):
+    bad(capsys, "identify", UA, "--motor", "in", must=("leave --motor out",))
+
+
+def test_efficiency_reads_a_run_trace_as_it_is(capsys, tmp_path):
+    tr = Trace.read(BENCH)
+    cols = {c.replace("_", ".", 1): tr[c] for c in tr.columns if c.startswith(("in_", "out_"))}
+    path = tmp_path / "trace-efficiency-0.parquet"
+    Trace(tr.time_s, cols, source=str(path)).write(path)
+    code, out, _ = run(capsys, "efficiency", path, "--kt-in", "0.05", "--kt-out", "0.05", "--json")
+    ref_code, ref, _ = run(capsys, "efficiency", BENCH, "--kt-in", "0.05", "--kt-out", "0.05", "--json")
+    assert code == ref_code == 0
+    assert json.loads(out)["points"][0]["eta_incremental"] == json.loads(ref)["points"][0]["eta_incremental"]

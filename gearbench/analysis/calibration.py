@@ -17,6 +17,18 @@ from .torque_constant import torque_constant
 from .uncertainty import DOF_MAX
 
 REQUIRED_KEYS = ("Kt", "J", "D", "Tc")
+# As written out (result.json, calibrate --json): SI unit suffixes on the model's names
+# (Kt keeps its symbol: N m/A is in every datasheet). Older files without them are read too.
+SUFFIXED = {"J": "J_kgm2", "D": "D_nm_s_per_rad", "Tc": "Tc_nm"}
+# fit.r2 is the identification regression's (of the acceleration, eq. 16); the report's
+# torque-balance R² is another quantity, so it is written under this name
+FIT_R2 = "r2_acceleration"
+
+
+def motor_value(d: dict, key: str):
+    """``key`` ("J", "D", "Tc", ...) of a written-out motor entry, new or old spelling."""
+    new = SUFFIXED.get(key)
+    return d[new] if new is not None and new in d else d.get(key)
 # Model error of the losses: the two runs' (D, Tc) differ by far more than their
 # covariances allow (robustness seed 0: the loss at the bench speed was off by > 2 sigma
 # on 31 % of motors), so LOSS_RUN_SPREAD x (difference)(difference)^T is added to the
@@ -77,9 +89,10 @@ class MotorCalibration:
 
     def to_dict(self) -> dict:
         return {"Kt": self.Kt, "Kt_std": self.Kt_std, "Kt_dof": self.Kt_dof,
-                "Kt_ci95": list(self.Kt_ci95), "J": self.J, "D": self.D,
-                "Tc": self.Tc, "method": self.method,
-                "fit": {**self.fit, "loss_covariance": [list(r) for r in self.loss_covariance]},
+                "Kt_ci95": list(self.Kt_ci95), SUFFIXED["J"]: self.J, SUFFIXED["D"]: self.D,
+                SUFFIXED["Tc"]: self.Tc, "method": self.method,
+                "fit": {**{(FIT_R2 if k == "r2" else k): v for k, v in self.fit.items()},
+                        "loss_covariance": [list(r) for r in self.loss_covariance]},
                 **({"interpolated_samples": self.interpolated_samples} if self.motor else {})}
 
     @classmethod
@@ -89,6 +102,7 @@ class MotorCalibration:
         if not isinstance(d, dict):
             raise GearbenchError(f"{where}: expected a JSON object from 'gearbench calibrate "
                                  f"--json', got {type(d).__name__}")
+        d = {**d, **{k: d[new] for k, new in SUFFIXED.items() if new in d}}
         missing = [k for k in REQUIRED_KEYS if k not in d]
         if missing:
             raise GearbenchError(f"{where}: missing key(s) {', '.join(missing)}; use the output of "
@@ -117,6 +131,8 @@ class MotorCalibration:
                 raise GearbenchError(f"{where}: key '{k}' must be a number >= 0, got {v!r}")
             unc[k] = float(v)
         fit = dict(d.get("fit") or {})
+        if FIT_R2 in fit:
+            fit["r2"] = fit.pop(FIT_R2)
         cov = fit.pop("loss_covariance", None)
         try:
             loss_cov = tuple(tuple(float(x) for x in row) for row in cov) if cov else ((0.0, 0.0), (0.0, 0.0))

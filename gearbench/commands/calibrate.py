@@ -15,8 +15,12 @@ HELP = "Identify a motor's torque constant from an unloaded run and a run with a
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--unloaded", required=True, metavar="U.csv", help="run of the motor alone")
-    p.add_argument("--loaded", required=True, metavar="L.csv", help="run with the inertia disk")
+    p.add_argument("--unloaded", required=True, metavar="U.csv",
+                   help="run of the motor alone: CSV/Parquet with time_s, position_rad, current_a, or a run "
+                        "folder's trace-<step>.parquet with --motor")
+    p.add_argument("--loaded", required=True, metavar="L.csv", help="run with the inertia disk (same columns)")
+    p.add_argument("--motor", choices=["in", "out"],
+                   help="in gearbench run traces (in.position_rad, out.position_rad ...): the motor to calibrate")
     p.add_argument("--inertia", required=True, type=float, metavar="J",
                    help="the disk's inertia, kg m^2")
     p.add_argument("--inertia-tolerance", type=float, default=0.0, metavar="REL",
@@ -26,7 +30,8 @@ def add_arguments(p) -> None:
                    help="datasheet: the tolerance is ± limits (u = tol/√3); measured: it is a 95 %% "
                         "expanded uncertainty (u = tol/2). Default datasheet")
     p.add_argument("--method", choices=METHODS, default="default",
-                   help="identification method (default: bias-reduced; paper: as published)")
+                   help="identification method: default (bias-reduced), paper (as published, at the data rate), "
+                        "paper-15ms (as published, resampled to the paper's 15 ms)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
 
@@ -38,8 +43,8 @@ def run(args) -> int:
     if not (math.isfinite(tol) and 0 <= tol <= 0.5):
         raise GearbenchError(f"--inertia-tolerance must be a relative tolerance between 0 and 0.5 "
                              f"(got {tol}); e.g. --inertia-tolerance 0.005 for ±0.5 %")
-    unloaded = read_trace(args.unloaded, SINGLE_MOTOR_COLUMNS)
-    loaded = read_trace(args.loaded, SINGLE_MOTOR_COLUMNS)
+    unloaded = read_trace(args.unloaded, SINGLE_MOTOR_COLUMNS, motor=args.motor)
+    loaded = read_trace(args.loaded, SINGLE_MOTOR_COLUMNS, motor=args.motor)
     disk_std = tolerance_std(tol * args.inertia, args.inertia_source)
     cal = calibrate_motor(unloaded, loaded, args.inertia, method=args.method, disk_std_kgm2=disk_std)
     if args.json:
@@ -57,5 +62,5 @@ def run(args) -> int:
     print(f"D            {cal.D:.6g} N m s/rad")
     print(f"Tc           {cal.Tc:.6g} N m")
     print(f"b2 unloaded  {f['b2_unloaded']:.6g} 1/(A s^2)   loaded {f['b2_loaded']:.6g}")
-    print(f"fit          r2 {f['r2']:.6f}  condition {f['condition']:.3g}  samples {f['n_samples']}")
+    print(f"fit          r2 of the acceleration {f['r2']:.6f}  condition {f['condition']:.3g}  samples {f['n_samples']}")
     return 0

@@ -12,7 +12,10 @@ HELP = "Incremental (eq. 18) and absolute (P_out/P_in) efficiency from a bench t
 
 
 def add_arguments(p) -> None:
-    p.add_argument("bench", metavar="BENCH.csv", help="two-motor bench trace")
+    p.add_argument("bench", metavar="BENCH.csv",
+                   help="two-motor bench trace: CSV/Parquet with time_s, in_position_rad, in_current_a, "
+                        "in_command, out_position_rad, out_current_a, out_command, or a run folder's "
+                        "trace-efficiency-<k>.parquet as it is")
     p.add_argument("--motor-in", metavar="IN.json", help="'calibrate --json' output of the input motor")
     p.add_argument("--motor-out", metavar="OUT.json", help="'calibrate --json' output of the output motor")
     p.add_argument("--kt-in", type=float, metavar="X", help="input motor Kt, N m/A (no loss model)")

@@ -13,7 +13,8 @@ def add_arguments(p) -> None:
     src.add_argument("--db", default="results/station.sqlite",
                      help="station database (default: results/station.sqlite)")
     src.add_argument("--central", metavar="URL", help="the central database postgresql://...")
-    p.add_argument("--station", help="only runs of this station")
+    p.add_argument("--station", help="only runs of this station: its id ($GEARBENCH_STATION or the station "
+                                     "config) or its bench name (the profile's bench.name, e.g. eol-station-1)")
     p.add_argument("--profile", help="only runs of this profile (its name)")
     p.add_argument("--since", help="runs started at or after this UTC date/time, e.g. 2026-11-01")
     p.add_argument("--until", help="runs started before this UTC date/time")
@@ -40,14 +41,24 @@ def run(args) -> int:
     if not runs:
         print(f"no runs for {args.serial or 'these filters'} in {getattr(db, 'name', source)}")
         return 0
-    print(f"{'started (UTC)':<31}{'station':<16}{'serial':<12}{'profile':<14}{'status':<9}{'ratio':>9}"
-          f"  run / folder")
-    for r in runs:
-        ratio = f"{r['ratio']:.4f}" if r["ratio"] is not None else "-"
-        print(f"{r['started_utc'] or '-':<31}{r['station']:<16}{r['serial']:<12}{r['profile'] or '-':<14}"
-              f"{r['status']:<9}{ratio:>9}  {r['run_id']} {r['trace_uri']}")
+    head = ("started (UTC)", "station", "serial", "profile", "status", "ratio", "run / folder")
+    rows = [(r["started_utc"] or "-", str(r["station"]), str(r["serial"]), r["profile"] or "-", str(r["status"]),
+             f"{r['ratio']:.4f}" if r["ratio"] is not None else "-", f"{r['run_id']} {r['trace_uri']}")
+            for r in runs]
+    # columns as wide as their widest cell, two spaces apart: never run together
+    widths = [max(len(x[k]) for x in [head, *rows]) for k in range(len(head) - 1)]
+    print(_row(head, widths))
+    for r, cells in zip(runs, rows):
+        print(_row(cells, widths))
         for m in r["measurements"]:
             if m["name"].startswith("limit."):
                 ok = "PASS" if m["passed"] else "FAIL"
-                print(f"    {ok} {m['name'][6:]:<40} {m['value']}")
+                value = "-" if m["value"] is None else f"{m['value']:.6g}"
+                print(f"    {ok} {m['name'][6:]:<40} {value}")
     return 0
+
+
+def _row(cells, widths) -> str:
+    """One line: every column but the last padded to its width (the ratio right-aligned)."""
+    out = [c.rjust(w) if k == 5 else c.ljust(w) for k, (c, w) in enumerate(zip(cells, widths))]
+    return "  ".join(out + [cells[-1]])

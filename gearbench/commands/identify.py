@@ -13,7 +13,12 @@ HELP = "Fit one single-motor trace: b2 = Kt/J, D/J, Tc/J (and C/J for the paper'
 
 
 def add_arguments(p) -> None:
-    p.add_argument("trace", metavar="TRACE", help="single-motor CSV or Parquet trace")
+    p.add_argument("trace", metavar="TRACE",
+                   help="single-motor trace: CSV or Parquet with columns time_s, position_rad, current_a "
+                        "(optional command, velocity_rad_s), or a run folder's trace-<step>.parquet "
+                        "with --motor")
+    p.add_argument("--motor", choices=["in", "out"],
+                   help="in a gearbench run trace (in.position_rad, out.position_rad ...): the motor to fit")
     p.add_argument("--method", choices=METHODS, default="default",
                    help="identification method (default: bias-reduced, torque-side form; accel, torque, "
                         "iv: the default's formulations; paper: as published)")
@@ -31,7 +36,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    trace = read_trace(args.trace, SINGLE_MOTOR_COLUMNS)
+    trace = read_trace(args.trace, SINGLE_MOTOR_COLUMNS, motor=args.motor)
     opts = {"spring": True} if args.spring and args.method == "default" else {}
     if args.load_angle is not None:
         if not (math.isfinite(args.load_angle) and args.load_angle > 0):

@@ -14,7 +14,7 @@ def add_arguments(p) -> None:
                    help="run folders (local paths or fsspec URLs, e.g. s3://bucket/run); "
                         "none with --central: the central database's runs matching the filters")
     p.add_argument("--method", choices=["default", "paper"], default="default",
-                   help="identification method (default: bias-corrected; paper: as published)")
+                   help="identification method: default (bias-reduced), paper (as published, at the data rate)")
     p.add_argument("--scheduler", default="local",
                    help="local (a LocalCluster of worker processes, default), tcp://HOST:PORT "
                         "(a running dask scheduler), or serial (this process, no Dask)")

@@ -23,16 +23,19 @@ def add_arguments(p) -> None:
 
 def run(args) -> int:
     from ..reports.live import open_live_view
+    from ..reports.live.rerun_view import check_connect_url
     from ..reports.live.replay import replay_records
 
+    check_connect_url(args.connect)
     live = args.live or not (args.rrd or args.connect)
     records = replay_records(args.result_dir)
     first = next(records)  # checks the folder before anything is opened
     notice = io.StringIO()
-    view = open_live_view(live=live, connect=args.connect, rrd=args.rrd, stderr=notice)
+    view = open_live_view(live=live, connect=args.connect, rrd=args.rrd, stderr=notice, fallback="")
     if view is None:
-        raise GearbenchError(f"{notice.getvalue().strip() or 'no viewer'}; "
-                             f"pass --rrd FILE to write a recording instead")
+        why = notice.getvalue().strip().removeprefix("gearbench: live view: ") or "no viewer"
+        raise GearbenchError(f"{why}; pass --rrd FILE to write a recording (open it later with "
+                             f"'rerun FILE'), or --connect rerun+http://HOST:9876/proxy")
     if notice.getvalue():
         sys.stderr.write(notice.getvalue())
     try:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import sqlite3
 from pathlib import Path
+from ..analysis.calibration import motor_value
 from ..station.database import connect
 
 RATIO_REL_TOL = 0.002   # the ratio has no interval; 0.2 % is far above encoder resolution
@@ -43,14 +44,14 @@ def compare(baseline: dict, result: dict) -> list[dict]:
         rows.append(_row(f"motors.{m}.Kt", b.get("Kt"), n.get("Kt"),
                          math.hypot(hb, hn) if hb is not None and hn is not None else None))
         sb, sn = (b.get("fit") or {}).get("J_std"), (n.get("fit") or {}).get("J_std")
-        rows.append(_row(f"motors.{m}.J", b.get("J"), n.get("J"),
+        rows.append(_row(f"motors.{m}.J", motor_value(b, "J"), motor_value(n, "J"),
                          Z95 * math.hypot(sb, sn) if sb is not None and sn is not None else None))
         cb, cn = (b.get("fit") or {}).get("loss_covariance"), (n.get("fit") or {}).get("loss_covariance")
         for k, key in enumerate(("D", "Tc")):
             tol = None
             if cb and cn:
                 tol = Z95 * math.sqrt(max(cb[k][k], 0) + max(cn[k][k], 0))
-            rows.append(_row(f"motors.{m}.{key}", b.get(key), n.get(key), tol))
+            rows.append(_row(f"motors.{m}.{key}", motor_value(b, key), motor_value(n, key), tol))
     if baseline.get("ratio") is not None:
         rows.append(_row("ratio", baseline["ratio"], result.get("ratio"),
                          RATIO_REL_TOL * abs(baseline["ratio"])))

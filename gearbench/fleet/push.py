@@ -29,6 +29,7 @@ from ..station.records import RunStop, Subscriber
 from ..station.results import _clean
 from . import migrations
 from ..station.config import target_name, trace_store
+from ..analysis.calibration import motor_value
 from ..station.recorder import _safe
 from ..station.database import connect as sqlite_connect, station_id
 
@@ -122,8 +123,8 @@ def _insert_run(cur, station: str, result: dict, out_dir: str, store: str | None
           _num(lim.get("high")), bool(lim.get("passed"))) for i, lim in enumerate(result.get("limits") or [])])
     cur.executemany(
         "INSERT INTO motor_calibrations VALUES (%s,%s,%s,%s,%s,%s,%s,%s,%s)",
-        [(rid, m, _num(p.get("Kt")), *_pair(p.get("Kt_ci95")), _num(p.get("J")), _num(p.get("D")),
-          _num(p.get("Tc")), p.get("method")) for m, p in (result.get("motors") or {}).items()])
+        [(rid, m, _num(p.get("Kt")), *_pair(p.get("Kt_ci95")), _num(motor_value(p, "J")), _num(motor_value(p, "D")),
+          _num(motor_value(p, "Tc")), p.get("method")) for m, p in (result.get("motors") or {}).items()])
     cur.executemany(
         "INSERT INTO efficiency_points VALUES (%s,%s,%s,%s,%s,%s,%s,%s,%s,%s,%s,%s,%s,%s)",
         [(rid, i, _num(p.get("speed_setpoint_rad_s")), _num(p.get("speed_in_rad_s")),

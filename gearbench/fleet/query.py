@@ -96,8 +96,8 @@ class SqliteResults:
         self._golden = golden
 
     def runs(self, q: RunQuery = RunQuery(), *, with_result: bool = False) -> list[dict]:
-        if q.station is not None and q.station != self.station:
-            return []
+        # a station is asked for by its id or by its bench's name (the profile's bench.name)
+        by_bench = q.station is not None and q.station != self.station
         where, args = _where(q, "?", None)
         rows = self.con.execute(
             "SELECT r.run_id, r.serial, r.profile, r.started_utc, r.status, r.passed, r.exit_code, "
@@ -106,6 +106,9 @@ class SqliteResults:
         for r in rows:
             d = dict(r)
             result_json = d.pop("result_json")
+            if by_bench and ((json.loads(result_json or "{}").get("station") or {}).get("name")
+                             != q.station):
+                continue
             golden = (d["serial"], d["profile"]) in self._golden
             if q.golden is not None and golden != q.golden:
                 continue

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from ..errors import ProfileError
 from .model import (BenchSpec, BusSpec, CalibrateStep, DiskSpec, EfficiencyStep, LimitSpec, LoadStep, MotorSpec,
-                    Profile, ReducerSpec, Step, Targets, WaveformSpec)
+                    Outputs, Profile, ReducerSpec, Step, Targets, WaveformSpec)
 from .parse import build_profile
 from .yamlmarks import load_with_marks
 from .shipped import find_profile, shipped_profiles
@@ -36,8 +36,13 @@ def load_profile(path: str | Path) -> Profile:
     try:
         data = p.read_bytes()
     except FileNotFoundError:
-        raise ProfileError(f"{shown}: no such profile file; check the path, or give a shipped "
-                           f"profile by name ({', '.join(shipped_profiles())})") from None
+        from .yamlmarks import did_you_mean
+
+        names = shipped_profiles()
+        hint = did_you_mean(Path(str(path)).stem, names) if p.parent == Path(".") else ""
+        hint = hint + " " if hint.startswith("did you mean") else ""
+        raise ProfileError(f"{shown}: no such profile file; {hint}check the path, or give a shipped "
+                           f"profile by name ({', '.join(names)})") from None
     except IsADirectoryError:
         raise ProfileError(f"{shown}: is a folder, not a profile; give a .yaml file inside it") from None
     except OSError as exc:

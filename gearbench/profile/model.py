@@ -215,6 +215,14 @@ class Targets:
 
 
 @dataclass(frozen=True)
+class Outputs:
+    """Files written with every run besides result.json, junit.xml and the traces:
+    ``mdf`` the traces as ASAM MDF4 (``traces.mf4``, as ``gearbench export --mdf``)."""
+
+    mdf: bool = False
+
+
+@dataclass(frozen=True)
 class Profile:
     path: Path
     sha256: str
@@ -230,6 +238,11 @@ class Profile:
     simulation: dict | None
     raw: dict
     targets: Targets = Targets()
+    outputs: "Outputs" = None
+
+    def __post_init__(self):
+        if self.outputs is None:
+            object.__setattr__(self, "outputs", Outputs())
 
     @property
     def operating_points(self) -> int:

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import ProfileError
 from . import waveforms as wf
-from .model import (BenchSpec, BusSpec, CalibrateStep, DiskSpec, EfficiencyStep, LimitSpec, LoadStep,
+from .model import (Outputs, BenchSpec, BusSpec, CalibrateStep, DiskSpec, EfficiencyStep, LimitSpec, LoadStep,
                     MotorSpec, Profile, ReducerSpec, Targets, WaveformSpec)
 from .yamlmarks import MarkedDoc, did_you_mean, one_line
 
@@ -25,7 +25,8 @@ _MISSING = object()
 _NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_.-]{0,63}$")
 
 TOP_KEYS = ("name", "description", "bench", "motors", "reducer", "disks", "waveforms", "steps", "limits",
-            "simulation", "targets")
+            "simulation", "targets", "outputs")
+OUTPUT_KEYS = ("mdf",)
 MOTOR_NAMES = ("in", "out")
 CAN_EXAMPLE_CHANNELS = {"socketcan": "can0", "pcan": "PCAN_USBBUS1", "kvaser": 0, "ixxat": 0, "vector": 0}
 STEP_KINDS = ("calibrate", "load", "efficiency")
@@ -215,10 +216,18 @@ def build_profile(doc: MarkedDoc, path: Path, sha256: str, base_dir: Path) -> Pr
     waveforms = _design_waveforms(c, waveforms, steps, motors, disks, bench.period_s)
     targets = _targets(c, top, steps)
     limits = _limits(c, top, motors, reducer, steps)
-    simulation = _simulation(c, top, bench)
+    simulation = _simulation(c, top, bench, motors)
+    outputs = _outputs(c, top)
     return Profile(path=path, sha256=sha256, name=name, description=description, bench=bench, motors=motors,
                    reducer=reducer, disks=disks, waveforms=waveforms, steps=steps, limits=limits,
-                   simulation=simulation, raw=top, targets=targets)
+                   simulation=simulation, raw=top, targets=targets, outputs=outputs)
+
+
+def _outputs(c: _Checker, top) -> Outputs:
+    """``outputs: {mdf: true}``: files written with every run besides the required ones."""
+    m = c.mapping(top.get("outputs") or {}, ("outputs",), "outputs: {mdf: true}")
+    c.keys(m, ("outputs",), OUTPUT_KEYS)
+    return Outputs(mdf=c.boolean(m, ("outputs",), "mdf", False))
 
 
 def _targets(c: _Checker, top, steps) -> Targets:
@@ -752,11 +761,46 @@ def _sim_error_path(doc: MarkedDoc, message: str) -> tuple:
     return path
 
 
-def _simulation(c: _Checker, top, bench: BenchSpec) -> dict | None:
+# The simulated drive reports the simulated motor's ratings (0x6075 ...), which the station
+# checks against the profile's motors: the same numbers, filled in when left out.
+SIM_RATINGS = ("rated_current_a", "current_limit_a", "speed_limit_rad_s", "counts_per_rev")
+
+
+def _sim_ratings(c: _Checker, m: dict, motors: dict) -> dict:
+    """``simulation.motors.<m>`` with the profile motor's ratings filled in; a rating that
+    differs from the profile's is refused here (validate), not at the start of ``run --sim``."""
+    sim_motors = m.get("motors")
+    if not isinstance(sim_motors, dict):
+        sim_motors = {}
+    out = {}
+    for name, spec in motors.items():
+        given = sim_motors.get(name)
+        if given is not None and not isinstance(given, dict):
+            continue            # the plant's own check names it
+        given = dict(given or {})
+        for key in SIM_RATINGS:
+            want = getattr(spec, key)
+            if key in given and isinstance(given[key], (int, float)) and not isinstance(given[key], bool) \
+                    and abs(float(given[key]) - float(want)) > 1e-9 * max(abs(float(want)), 1.0):
+                c.fail(("simulation", "motors", name, key),
+                       f"({given[key]:g}) differs from motors.{name}.{key} ({want:g}): the simulated "
+                       f"drive would report {given[key]:g} and the run be refused at its start",
+                       f"make them equal, or leave simulation.motors.{name}.{key} out (the motor's "
+                       f"rating is then used)", at_value=True)
+            given.setdefault(key, want)
+        out[name] = given
+    for name, v in sim_motors.items():
+        out.setdefault(name, v)
+    return {**m, "motors": out}
+
+
+def _simulation(c: _Checker, top, bench: BenchSpec, motors: dict | None = None) -> dict | None:
     if top.get("simulation") is None:
         return None
     p = ("simulation",)
     m = c.mapping(top["simulation"], p, "simulation: {motor_in: {...}, motor_out: {...}, ratio: ...}")
+    if motors and isinstance(m.get("motors", {}), dict):
+        m = _sim_ratings(c, m, motors)
     if "period_s" in m:
         period = c.number(m, p, "period_s", gt=0.0)
         if abs(period - bench.period_s) > 1e-12:

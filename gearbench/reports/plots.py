@@ -17,6 +17,11 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 SPEED_COLOURS = ("#1b6ca8", "#d95f02", "#1b9e77", "#7570b3", "#e7298a", "#66a61e", "#a6761d")
+# each speed its own marker and dash too: lines that coincide (a harmonic drive's efficiency
+# barely depends on speed) stay distinguishable, and are drawn side by side (DODGE_REL)
+SPEED_MARKERS = ("o", "s", "^", "D", "v", "P", "X")
+SPEED_DASHES = ("-", "--", "-.", ":", (0, (5, 1)), (0, (3, 1, 1, 1)), (0, (1, 1)))
+DODGE_REL = 0.012           # horizontal offset per speed, relative to the torque span
 MOTOR_COLOURS = {"in": "#1b6ca8", "out": "#d95f02"}
 DPI = 100
 
@@ -72,6 +77,8 @@ def efficiency_map_png(points: Iterable[dict], limits: Sequence[dict] = (),
               "eta_absolute": "absolute efficiency P_out / P_in"}
     fig, axes = plt.subplots(1, len(keys), figsize=(5 * len(keys), 4.6), squeeze=False)
     speeds = sorted({round(float(p.get("speed_setpoint_rad_s") or p["speed_in_rad_s"]), 6) for p in pts})
+    torques = [float(p["torque_out_nm"]) for p in pts]
+    dodge = DODGE_REL * (max(torques) - min(torques) or max(abs(t) for t in torques) or 1.0)
     for ax, key in zip(axes[0], keys):
         title = titles.get(key, key)
         for k, s in enumerate(speeds):
@@ -79,7 +86,7 @@ def efficiency_map_png(points: Iterable[dict], limits: Sequence[dict] = (),
                           and _finite(p.get(key)) is not None), key=lambda p: p["torque_out_nm"])
             if not row:
                 continue
-            x = np.array([p["torque_out_nm"] for p in row])
+            x = np.array([p["torque_out_nm"] for p in row]) + (k - (len(speeds) - 1) / 2) * dodge
             y = 100 * np.array([p[key] for p in row])
             lo, hi = [], []
             for p, yy in zip(row, y):
@@ -93,7 +100,8 @@ def efficiency_map_png(points: Iterable[dict], limits: Sequence[dict] = (),
                 else:
                     lo.append(0.0)
                     hi.append(0.0)
-            ax.errorbar(x, y, yerr=[lo, hi], marker="o", ms=4, capsize=3, lw=1.4,
+            ax.errorbar(x, y, yerr=[lo, hi], marker=SPEED_MARKERS[k % len(SPEED_MARKERS)], ms=5,
+                        capsize=3, lw=1.4, ls=SPEED_DASHES[k % len(SPEED_DASHES)], mfc="white", mew=1.3,
                         color=SPEED_COLOURS[k % len(SPEED_COLOURS)], label=f"ω_in = {s:.4g} rad/s")
         drawn = False
         for lim in limits:
@@ -109,7 +117,7 @@ def efficiency_map_png(points: Iterable[dict], limits: Sequence[dict] = (),
         ax.set_title(title, fontsize=10)
         ax.grid(alpha=0.3)
         if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3)
+            ax.legend(fontsize=9, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3)
     fig.suptitle("Efficiency map, error bars: 95 % intervals", fontsize=10)
     fig.tight_layout()
     return _png(fig)
@@ -120,19 +128,20 @@ def trace_thumbnail_png(time_s, columns: dict[str, np.ndarray], *, title: str,
     """One recorded step, small: velocity and current of each motor on their own axes."""
     t = np.asarray(time_s, float)
     step = max(1, len(t) // max_points)
-    fig, axes = plt.subplots(2, 1, figsize=(4.2, 2.6), sharex=True)
+    fig, axes = plt.subplots(2, 1, figsize=(4.2, 3.0), sharex=True)
     for ax, qty, unit in ((axes[0], "velocity_rad_s", "ω [rad/s]"), (axes[1], "current_a", "i [A]")):
         for name, v in columns.items():
             motor, _, q = name.partition(".")
             if q == qty:
                 ax.plot(t[::step], np.asarray(v, float)[::step], lw=0.8,
                         color=MOTOR_COLOURS.get(motor), label=f"motor {motor}")
-        ax.set_ylabel(unit, fontsize=8)
-        ax.tick_params(labelsize=7)
+        ax.set_ylabel(unit, fontsize=9)
+        ax.tick_params(labelsize=8)
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=6, loc="upper right")
-    axes[1].set_xlabel("time [s]", fontsize=8)
-    axes[0].set_title(title, fontsize=8)
+    # the legend above the plot, full size: readable on a printed thumbnail
+    axes[0].legend(fontsize=9, loc="lower center", bbox_to_anchor=(0.5, 1.12), ncol=2, frameon=False)
+    axes[1].set_xlabel("time [s]", fontsize=9)
+    axes[0].set_title(title, fontsize=9, pad=22)
     fig.tight_layout()
     return _png(fig)
 

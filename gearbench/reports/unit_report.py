@@ -15,11 +15,10 @@ from pathlib import Path
 from .. import __version__
 from ..errors import GearbenchError
 from ..station.results import finite_or_none
-from ..station.recorder import load_step_trace
+from ..analysis.calibration import motor_value
 from ..analysis.model_check import torque_balance
-from .plots import torque_fit_png
-from .plots import efficiency_map_png
-from .plots import trace_thumbnail_png
+from ..station.recorder import load_step_trace
+from .plots import efficiency_map_png, torque_fit_png, trace_thumbnail_png
 
 _CSS = """
 body{font-family:system-ui,-apple-system,'Segoe UI',Roboto,sans-serif;margin:24px auto;max-width:1050px;color:#222}
@@ -32,8 +31,32 @@ th{background:#f2f2f2} td.num{text-align:right;font-variant-numeric:tabular-nums
 img{max-width:100%;border:1px solid #ddd} .thumbs{display:flex;flex-wrap:wrap;gap:8px}
 .thumbs figure{margin:0;width:330px} figcaption{font-size:11px;color:#555}
 .note{font-size:12px;color:#555} code{font-size:12px}
-@media print{body{margin:0;max-width:none} h2{page-break-after:avoid} img{page-break-inside:avoid}}
+.sim{background:#6e40c9;margin-left:8px} .nowrap{white-space:nowrap} .hash{word-break:break-all;font-size:11px}
+.footnote{font-size:12px;color:#444;border-left:3px solid #d4a72c;padding:2px 8px;margin:6px 0}
+.page-furniture{display:none}
+@media print{
+ body{margin:0;max-width:none;font-size:11px} h1{font-size:18px} h2{font-size:14px;margin-top:16px}
+ h2,h3{break-after:avoid-page;page-break-after:avoid}
+ img,figure,table,.keep{break-inside:avoid;page-break-inside:avoid}
+ section{break-inside:auto} .keep-with-next{break-after:avoid-page}
+ .thumbs figure{width:48%} figcaption{break-before:avoid}
+}
 """
+
+# A4 with the unit's serial, the verdict and "page n of N" on every printed page (CSS paged
+# media margin boxes; Chromium >= 131 prints them; older ones print the page without them)
+_PAGE_CSS = """
+@page{{size:A4;margin:16mm 12mm 16mm 12mm;
+ @top-left{{content:"gearbench efficiency test · {serial}";font:9px system-ui,sans-serif;color:#555}}
+ @top-right{{content:"{verdict}";font:bold 9px system-ui,sans-serif;color:#555}}
+ @bottom-left{{content:"run {run_id} · {started}";font:9px system-ui,sans-serif;color:#555}}
+ @bottom-right{{content:"page " counter(page) " of " counter(pages);font:9px system-ui,sans-serif;color:#555}}}}
+"""
+
+
+def _css_string(text) -> str:
+    """Text safe inside a CSS string in a <style> element."""
+    return re.sub(r'["\\<>\n]', " ", str(text or ""))
 
 
 def _e(x) -> str:
@@ -100,8 +123,8 @@ def _motor_section(result: dict, traces: dict) -> str:
         return "<h2>Motors</h2><p class='note'>No motor was calibrated in this run.</p>"
     rows = []
     for m, p in motors.items():
-        rows.append([_e(m), _f(p.get("Kt")), _ci(p.get("Kt_ci95")), _f(p.get("J")), _f(p.get("D")),
-                     _f(p.get("Tc")), _e(p.get("method", ""))])
+        rows.append([_e(m), _f(p.get("Kt")), _ci(p.get("Kt_ci95")), _f(motor_value(p, "J")), _f(motor_value(p, "D")),
+                     _f(motor_value(p, "Tc")), _e(p.get("method", ""))])
     parts = ["<h2>Motors: torque constant Kt (paper eq. 17, from two inertias)</h2>",
              _table(["motor", "Kt [N·m/A]", "Kt 95 % interval", "J [kg·m²]", "D [N·m·s/rad]",
                      "Tc [N·m]", "method"], rows, (1, 2, 3, 4, 5))]
@@ -128,7 +151,7 @@ def _motor_section(result: dict, traces: dict) -> str:
             loaded = not step.endswith("-unloaded")
             try:
                 b = torque_balance(tr.time_s, tr[f"{m}.position_rad"], tr[f"{m}.current_a"],
-                                   Kt=p["Kt"], J=p["J"], D=p["D"], Tc=p["Tc"],
+                                   Kt=p["Kt"], J=motor_value(p, "J"), D=motor_value(p, "D"), Tc=motor_value(p, "Tc"),
                                    disk_kgm2=disk if loaded else 0.0)
             except Exception:
                 continue
@@ -152,7 +175,7 @@ def _efficiency_section(result: dict) -> str:
     parts.append(_img(efficiency_map_png(pts, result.get("limits") or []), "efficiency map"))
     rows = []
     for p in pts:
-        flag = "extrapolated motor loss" if p.get("loss_extrapolated") else ""
+        flag = "extrapolated motor loss *" if p.get("loss_extrapolated") else ""
         rows.append([_f(p.get("speed_setpoint_rad_s") or p.get("speed_in_rad_s"), ".4g"),
                      _f(p.get("speed_in_rad_s"), ".5g"), _f(p.get("torque_out_nm"), ".4g"),
                      _f(p.get("eta_incremental"), ".2f", 100), _ci(p.get("eta_incremental_ci95"), ".2f", 100),
@@ -160,6 +183,23 @@ def _efficiency_section(result: dict) -> str:
                      _e(flag)])
     parts.append(_table(["ω_in set [rad/s]", "ω_in [rad/s]", "T_out [N·m]", "η_inc [%]", "95 %",
                          "η_abs [%]", "95 %", "note"], rows, (0, 1, 2, 3, 4, 5, 6)))
+    if any(p.get("incremental_method") == "slope" for p in pts):
+        parts.append("<p class='note'>η_inc is one value per input speed: eq. 18 as the slope of input "
+                     "on output current over that speed's torque staircase (each point's own secant "
+                     "is in result.json).</p>")
+    ext = [p for p in pts if p.get("loss_extrapolated")]
+    if ext:
+        rng = ", ".join(f"motor {m}: {_f(r[0], '.4g')}–{_f(r[1], '.4g')} rad/s"
+                        for m, r in (("in", ext[0].get("loss_speed_range_in_rad_s")),
+                                     ("out", ext[0].get("loss_speed_range_out_rad_s")))
+                        if isinstance(r, (list, tuple)) and len(r) == 2)
+        parts.append("<p class='footnote'>* <b>extrapolated motor loss</b>: the absolute efficiency "
+                     "subtracts each motor's own friction D·ω + Tc, identified from its calibration runs; "
+                     f"at these points a motor turned faster or slower than its calibration covered "
+                     f"({_e(rng) or 'range not recorded'}), so its friction is extrapolated and the "
+                     "absolute efficiency's interval is widened. The incremental efficiency (eq. 18) does "
+                     "not use the friction and is unaffected. Fix: let the calibration waveform cover the "
+                     "map's speeds (docs/profile-authoring.md, “Calibration covering the map”).</p>")
     return "\n".join(parts)
 
 
@@ -237,22 +277,34 @@ def _header(result: dict, run_dir: Path) -> str:
         ("run id", result.get("run_id")),
         ("run folder", str(run_dir)),
     ]
-    if result.get("simulation_truth"):
+    sim = _simulated(result)
+    if sim:
         rows.append(("bench", "SIMULATED (--sim): numbers are from the emulated bench"))
     verdict = status.upper()
     reason = f" — {_e(result.get('reason'))}" if result.get("reason") else ""
+    badge = ("<span class='verdict sim' title='measured on the simulated bench (--sim), not on a "
+             "real unit'>SIMULATED</span>") if sim else ""
+    nowrap = {"start (UTC)", "end (UTC)", "run id"}
+    cells = [[f"<b>{_e(k)}</b>",
+              f"<span class='nowrap'>{_e(v)}</span>" if k in nowrap else
+              f"<span class='hash'>{_e(v)}</span>" if k == "profile sha256" else _e(v)] for k, v in rows]
     head = (f"<h1>Efficiency test report · {_e(result.get('serial'))}</h1>"
-            f"<p><span class='verdict {_e(status)}'>{_e(verdict)}</span>{reason}</p>"
-            + _table(None, [[f"<b>{_e(k)}</b>", _e(v)] for k, v in rows]))
+            f"<p><span class='verdict {_e(status)}'>{_e(verdict)}</span>{badge}{reason}</p>"
+            + _table(None, cells))
     prompts = result.get("prompts") or []
     if prompts:
         who = {"AutoOperator": "answered automatically (--yes / simulated bench)",
                "TerminalOperator": "confirmed at the terminal"}
         head += "<h2>Operator prompts</h2>" + _table(
             ["prompt", "shown (UTC)", "confirmed (UTC)", "by"],
-            [[_e(p.get("prompt")), _e(p.get("shown_utc")), _e(p.get("confirmed_utc")),
+            [[_e(p.get("prompt")), f"<span class='nowrap'>{_e(p.get('shown_utc'))}</span>",
+              f"<span class='nowrap'>{_e(p.get('confirmed_utc'))}</span>",
               _e(who.get(p.get("operator"), p.get("operator")))] for p in prompts])
     return head
+
+
+def _simulated(result: dict) -> bool:
+    return bool(result.get("simulation_truth")) or bool(result.get("sim"))
 
 
 def build_report(run_dir: str | Path) -> str:
@@ -263,8 +315,12 @@ def build_report(run_dir: str | Path) -> str:
     body = "\n".join([_header(result, d), _limits_section(result), _motor_section(result, traces),
                       _efficiency_section(result), _samples_section(result, traces)])
     title = f"gearbench report {result.get('serial', '')} {result.get('started_utc', '')}"
+    verdict = str(result.get("status", "?")).upper() + (" · SIMULATED" if _simulated(result) else "")
+    page = _PAGE_CSS.format(serial=_css_string(result.get("serial")), verdict=_css_string(verdict),
+                            run_id=_css_string(result.get("run_id")),
+                            started=_css_string(result.get("started_utc")))
     return (f"<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'><title>{_e(title)}</title>"
-            f"<style>{_CSS}</style></head><body>\n{body}\n"
+            f"<style>{_CSS}{page}</style></head><body>\n{body}\n"
             f"<p class='note'>Report made by gearbench {_e(__version__)} from {_e(d / 'result.json')}.</p>"
             "</body></html>\n")
 

@@ -6,11 +6,15 @@ in one transaction, so a crash never leaves half a run.
 from __future__ import annotations
 
 import json
+import os
 import sqlite3
 from pathlib import Path
 
+from ..analysis.calibration import motor_value
+from ..errors import GearbenchError
+from .limits import point_name
 from .records import RunStop, Subscriber
-from .config import default_station
+from .config import default_station, station_config
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS runs (
@@ -41,14 +45,39 @@ def connect(path: str | Path) -> sqlite3.Connection:
     return con
 
 
-def station_id(con: sqlite3.Connection, db_path: str | Path | None = None) -> str:
+def check_writable(path: str | Path) -> None:
+    """Refuse, before anything moves, a station database that cannot be written (a
+    read-only folder, a read-only file): a probe row is written and rolled back, which
+    needs the journal file beside it. Raises GearbenchError (exit 2) naming the path."""
+    p = Path(path)
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        con = sqlite3.connect(p)
+        try:
+            con.executescript(SCHEMA)
+            con.execute("BEGIN IMMEDIATE")
+            con.execute("INSERT OR REPLACE INTO meta VALUES ('write_probe', '1')")
+            con.rollback()
+        finally:
+            con.close()
+    except (OSError, sqlite3.Error) as exc:
+        raise GearbenchError(
+            f"{p}: cannot write the station database ({exc}); the folder it is in must be "
+            f"writable (SQLite keeps its journal beside it): choose another --out or --db, "
+            f"or fix the permissions") from None
+
+
+def station_id(con: sqlite3.Connection, db_path: str | Path | None = None,
+               bench_name: str | None = None) -> str:
     """The station this database belongs to, fixed when first asked: $GEARBENCH_STATION,
-    else the station config's ``station:``, else the host name."""
+    else the station config's ``station:``, else the name of the bench of its first run
+    (the profile's ``bench.name``, what the people at the line call it), else the host name."""
     row = con.execute("SELECT value FROM meta WHERE key = 'station'").fetchone()
     if row:
         return row[0]
 
-    sid = default_station(db_path)
+    explicit = os.environ.get("GEARBENCH_STATION") or str(station_config(db_path).get("station") or "")
+    sid = explicit or bench_name or default_station(db_path)
     with con:
         con.execute("INSERT OR IGNORE INTO meta VALUES ('station', ?)", (sid,))
     return con.execute("SELECT value FROM meta WHERE key = 'station'").fetchone()[0]
@@ -60,12 +89,12 @@ def measurements_of(result: dict) -> list[tuple]:
     limits = {lim["name"]: lim for lim in result.get("limits", [])}
     for motor, p in (result.get("motors") or {}).items():
         for key, unit in (("Kt", "N m/A"), ("J", "kg m^2"), ("D", "N m s/rad"), ("Tc", "N m")):
-            if p.get(key) is not None:
-                rows.append((f"motors.{motor}.{key}", p[key], None, None, None, unit))
+            if motor_value(p, key) is not None:
+                rows.append((f"motors.{motor}.{key}", motor_value(p, key), None, None, None, unit))
     if result.get("ratio") is not None:
         rows.append(("ratio", result["ratio"], None, None, None, ""))
     for i, pt in enumerate(result.get("efficiency") or []):
-        tag = f"efficiency[{i}]@{pt.get('speed_in_rad_s', 0):.0f}rad_s,{pt.get('torque_out_nm', 0):.3g}Nm"
+        tag = f"efficiency[{i}]@{point_name('', pt)[1:-1]}"   # the commanded point
         for key in ("eta_incremental", "eta_absolute"):
             rows.append((f"{tag}.{key}", pt.get(key), None, None, None, ""))
     for name, lim in limits.items():
@@ -77,7 +106,8 @@ def measurements_of(result: dict) -> list[tuple]:
 def store_run(path: str | Path, result: dict) -> None:
     con = connect(path)
     try:
-        station_id(con, path)   # a station database knows its station before its first run
+        # a station database knows its station before its first run
+        station_id(con, path, (result.get("station") or {}).get("name"))
         with con:
             con.execute(
                 "INSERT OR REPLACE INTO runs VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?)",

@@ -265,16 +265,33 @@ def staircase_segment(profile, step, k: int, speed: float, known: Known) -> Segm
                    meta=dict(speed=speed, settle_s=0.0, n_ramp=ctl.n_ramp), controller=ctl)
 
 
+def output_friction_nm(profile, speed_in_rad_s: float, known: Known) -> float:
+    """The output motor's friction torque |D ω + Tc| at the output speed the reducer
+    turns it at (input speed over the profile's nominal ratio); 0 while the output motor is
+    not calibrated or the profile names no reducer ratio."""
+    reducer = profile.reducer
+    if known.loss_out is None or reducer is None or not reducer.ratio:
+        return 0.0
+    loss = abs(float(known.loss_out(speed_in_rad_s / abs(reducer.ratio))))
+    return loss if np.isfinite(loss) else 0.0
+
+
 def efficiency_segment(profile, step, k: int, speed: float, known: Known) -> Segment:
     """Input motor at ``speed`` (velocity mode, ramped); output motor in current mode:
-    zero load, each braking torque, zero load again (the references of eq. 18)."""
+    zero load, each braking torque, zero load again (the references of eq. 18).
+
+    The output motor's own friction at the output speed (``known.loss_out``, once it is
+    calibrated) already brakes the reducer, so each level's current is reduced by it, as
+    the adaptive staircase does from its measured zero-load speed: the braking torque is
+    then the profile's, not that plus the motor's friction."""
     per = profile.bench.period_s
     n_level = int(round((step.settle_s + step.measure_s) / per))
     n_ramp = int(round(max(abs(speed) / RAMP_RAD_S2, 0.05) / per))
     kt_out = known.kt["out"]
     zero = [0.0] if step.include_zero_load else []
     torques = zero + list(step.torques_out_nm) + zero
-    levels = zero + [-abs(t) / kt_out for t in step.torques_out_nm] + zero
+    loss = output_friction_nm(profile, speed, known)
+    levels = zero + [-max(abs(t) - loss, 0.0) / kt_out for t in step.torques_out_nm] + zero
     stop = stop_ramp(speed, RAMP_RAD_S2, per)
     speed_cmd = np.concatenate([np.linspace(0.0, speed, n_ramp), np.full(n_level * len(levels), speed), stop])
     cur_cmd = np.concatenate([np.zeros(n_ramp)] + [np.full(n_level, c) for c in levels]
@@ -285,3 +302,15 @@ def efficiency_segment(profile, step, k: int, speed: float, known: Known) -> Seg
                    {"in": (Mode.VELOCITY, speed_cmd), "out": (Mode.TORQUE, cur_cmd)},
                    f"input {speed:g} rad/s, {len(step.torques_out_nm)} braking torques",
                    meta=dict(speed=speed, settle_s=step.settle_s, n_ramp=n_ramp, points=points))
+
+
+def command_units(profile) -> dict[str, dict[str, str]]:
+    """Per segment name per motor the unit of its ``<motor>.command`` column: ``"rad_s"``
+    (velocity mode) or ``"a"`` (current/torque mode), from the plan (datasheet values
+    standing in; the modes do not depend on them)."""
+    out: dict[str, dict[str, str]] = {}
+    for action in plan(profile):
+        if isinstance(action, Segment):
+            out[action.name] = {m: "rad_s" if mode is Mode.VELOCITY else "a"
+                                for m, (mode, _) in action.commands.items()}
+    return out

@@ -453,7 +453,8 @@ class Sequencer:
 
     @property
     def efficiency(self) -> list[dict]:
-        return [p.to_dict() for p in self.points]
+        # with the commanded point (speed set point, the profile's torque level): stable names
+        return limits.with_setpoints(self.profile, [p.to_dict() for p in self.points])
 
     def _motor_run(self, trace: Trace, motor: str) -> Trace:
         ctl = self.adaptive.get(trace.source)

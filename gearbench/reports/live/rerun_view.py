@@ -30,6 +30,8 @@ from ...station.records import (Calibration, EfficiencyPoint, LimitResult, Messa
                        RunStart, RunStop, SampleBatch, StepStart, StepStop, Subscriber)
 from . import paths as P
 from .blueprint import default_blueprint, panel_names
+from ...analysis.calibration import motor_value
+from ...errors import GearbenchError
 
 DEFAULT_VIEWER_URL = "rerun+http://127.0.0.1:9876/proxy"
 
@@ -288,7 +290,7 @@ class RerunView(Subscriber):
                 kt = _num(p.get("Kt"))
                 lo, hi = _interval(kt, p.get("Kt_ci95"))
                 lines.append(f"| {motor} | {_fmt(kt)} | [{_fmt(lo)}, {_fmt(hi)}] | "
-                             f"{_fmt(p.get('J'))} | {_fmt(p.get('D'))} | {_fmt(p.get('Tc'))} |")
+                             f"{_fmt(motor_value(p, 'J'))} | {_fmt(motor_value(p, 'D'))} | {_fmt(motor_value(p, 'Tc'))} |")
             lines.append("")
         speeds, torques, cells = self.efficiency_grid()
         if speeds:
@@ -312,10 +314,22 @@ class RerunView(Subscriber):
 
 
 # ------------------------------------------------------------------- factory
+RERUN_SCHEMES = ("rerun+http://", "rerun+https://", "rerun://")
+
+
+def check_connect_url(url: str | None) -> None:
+    """Refuse a ``--connect`` that is not a Rerun URL (``localhost:9876``), naming the fix."""
+    if url and not url.startswith(RERUN_SCHEMES):
+        bare = url.split("://", 1)[-1].split("/", 1)[0] or "127.0.0.1:9876"
+        raise GearbenchError(f"--connect {url}: not a Rerun viewer URL; write it as "
+                             f"rerun+http://{bare}/proxy")
+
+
 def open_live_view(*, live: bool = False, connect: str | None = None,
                    rrd: str | os.PathLike | None = None, application_id: str = "gearbench",
                    recording_id: str | None = None, motors: Sequence[str] | None = None,
-                   stderr: TextIO | None = None) -> RerunView | None:
+                   stderr: TextIO | None = None,
+                   fallback: str = "run continues without it") -> RerunView | None:
     """A ``RerunView`` on a dedicated recording stream with the requested sinks.
 
     ``live``: spawn (or reuse) a local viewer; ``connect``: a viewer already open
@@ -347,8 +361,9 @@ def open_live_view(*, live: bool = False, connect: str | None = None,
             elif problem:
                 problems.append(problem)
         if problems:
-            fallback = f"recording to {rrd} only" if rrd else "run continues without it"
-            print(f"gearbench: live view: {'; '.join(problems)}; {fallback}", file=err)
+            fallback = f"recording to {rrd} only" if rrd else fallback
+            print(f"gearbench: live view: {'; '.join(problems)}" + (f"; {fallback}" if fallback else ""),
+                  file=err)
         if not sinks:
             return None
         rec.set_sinks(*sinks)
@@ -435,8 +450,8 @@ def _fmt(v) -> str:
 def _param_line(p: dict) -> str:
     kt = _num(p.get("Kt"))
     lo, hi = _interval(kt, p.get("Kt_ci95"))
-    return (f"Kt = {_fmt(kt)} N·m/A [{_fmt(lo)}, {_fmt(hi)}], J = {_fmt(p.get('J'))} kg·m², "
-            f"D = {_fmt(p.get('D'))} N·m·s/rad, Tc = {_fmt(p.get('Tc'))} N·m")
+    return (f"Kt = {_fmt(kt)} N·m/A [{_fmt(lo)}, {_fmt(hi)}], J = {_fmt(motor_value(p, 'J'))} kg·m², "
+            f"D = {_fmt(motor_value(p, 'D'))} N·m·s/rad, Tc = {_fmt(motor_value(p, 'Tc'))} N·m")
 
 
 def _point_line(p: dict) -> str:
