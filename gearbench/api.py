@@ -43,9 +43,9 @@ from .station.config import central_url
 from .station.console import ProgressDisplay
 from .station.database import StationDatabase
 from .station.database import check_writable as check_db_writable
-from .station.records import RecordStream
+from .station.records import LimitResult, RecordStream
 from .station.recorder import ParquetRecorder
-from .station.results import ResultWriter
+from .station.results import ResultWriter, as_written
 from .station.sequencer import AutoOperator, Sequencer
 
 __all__ = ["load_profile", "open_network", "open_bench", "run_profile", "Bench", "RunResult",
@@ -72,20 +72,7 @@ MotorResult = MotorCalibration
 EfficiencyPointResult = EfficiencyPoint
 
 
-@dataclass(frozen=True)
-class LimitCheck:
-    """One profile limit applied to one value (efficiency limits: one per point)."""
-    name: str
-    quantity: str
-    value: float | None
-    low: float | None
-    high: float | None
-    passed: bool
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "LimitCheck":
-        return cls(d["name"], d.get("quantity", ""), d.get("value"), d.get("low"), d.get("high"),
-                   bool(d["passed"]))
+LimitCheck = LimitResult          # one limit's verdict: the record the run emitted
 
 
 @dataclass(frozen=True)
@@ -120,7 +107,7 @@ class RunResult:
                    {m: MotorCalibration.from_dict(v, f"motors.{m}", m) for m, v in (d.get("motors") or {}).items()},
                    None if d.get("ratio") is None else float(d["ratio"]),
                    tuple(EfficiencyPoint.from_dict(p) for p in d.get("efficiency") or ()),
-                   tuple(LimitCheck.from_dict(x) for x in d.get("limits") or ()),
+                   tuple(LimitResult.from_dict(x) for x in d.get("limits") or ()),
                    str(d.get("out_dir", "")), int(d.get("samples", 0)), int(d.get("lost_samples", 0)),
                    float(d.get("bench_time_s", 0.0)), float(d.get("wall_time_s", 0.0)), dict(d))
 
@@ -256,7 +243,8 @@ class Bench:
     def finish(self) -> RunResult:
         """Check the profile's limits, write the outputs; idempotent."""
         if self.result is None:
-            self.result = RunResult.from_dict(self.sequencer.finish(error=self.error))
+            # typed from the result as written, so it equals RunResult.from_dict(result.json)
+            self.result = RunResult.from_dict(as_written(self.sequencer.finish(error=self.error)))
         return self.result
 
 

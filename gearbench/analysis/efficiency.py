@@ -111,24 +111,28 @@ class EfficiencyPoint:
         back as 0 / NaN; everything ``to_dict`` writes round-trips."""
         nan = float("nan")
 
+        def num(key, default=nan):
+            v = d.get(key, default) if default is not None else d[key]   # None: a required key
+            return nan if v is None else float(v)
+
         def pair(v):
-            return (nan, nan) if v is None else (float(v[0]), float(v[1]))
+            return (nan, nan) if v is None else tuple(nan if x is None else float(x) for x in v)
 
         def opt_pair(v):
             return None if v is None else pair(v)
-        w = SteadyWindow(0, 0, float(d.get("t_mid_s", nan)), float(d.get("in_command", nan)),
-                         float(d.get("out_command", nan)), nan, nan, nan, nan,
-                         float(d["speed_in_rad_s"]), float(d.get("speed_out_rad_s", nan)))
+        w = SteadyWindow(0, 0, num("t_mid_s"), num("in_command"),
+                         num("out_command"), nan, nan, nan, nan,
+                         num("speed_in_rad_s", None), num("speed_out_rad_s"))
         sp = d.get("speed_setpoint_rad_s")
-        return cls(w, float(d["speed_in_rad_s"]), float(d.get("torque_in_nm", nan)), float(d["torque_out_nm"]),
-                   float(d.get("delta_current_in_a", nan)), float(d.get("delta_current_out_a", nan)),
-                   float(d["eta_incremental"]), pair(d.get("eta_incremental_ci95")),
-                   float(d.get("eta_absolute", nan)), pair(d.get("eta_absolute_ci95")),
-                   float(d.get("power_in_w", nan)), float(d.get("power_out_w", nan)),
+        return cls(w, num("speed_in_rad_s", None), num("torque_in_nm"), num("torque_out_nm", None),
+                   num("delta_current_in_a"), num("delta_current_out_a"),
+                   num("eta_incremental", None), pair(d.get("eta_incremental_ci95")),
+                   num("eta_absolute"), pair(d.get("eta_absolute_ci95")),
+                   num("power_in_w"), num("power_out_w"),
                    bool(d.get("loss_extrapolated", False)), opt_pair(d.get("loss_speed_range_in_rad_s")),
                    opt_pair(d.get("loss_speed_range_out_rad_s")),
-                   float(d.get("eta_incremental_std", 0.0)), float(d.get("eta_incremental_dof", DOF_MAX)),
-                   float(d.get("eta_absolute_std", 0.0)), float(d.get("eta_absolute_dof", DOF_MAX)),
+                   num("eta_incremental_std", 0.0), num("eta_incremental_dof", DOF_MAX),
+                   num("eta_absolute_std", 0.0), num("eta_absolute_dof", DOF_MAX),
                    str(d.get("incremental_method", "secant")), d.get("eta_incremental_secant"),
                    opt_pair(d.get("eta_incremental_secant_ci95")),
                    None if sp is None else float(sp), int(d.get("interpolated_samples", 0) or 0))

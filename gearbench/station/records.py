@@ -127,6 +127,8 @@ class EfficiencyPoint(Record):
 
 @dataclass(frozen=True)
 class LimitResult(Record):
+    """One profile limit judged on one value (efficiency limits: one per point)."""
+
     name: str
     value: float | None
     low: float | None
@@ -134,6 +136,16 @@ class LimitResult(Record):
     passed: bool
     quantity: str = ""
     kind = "limit"
+
+    def to_dict(self) -> dict:
+        """As written out (one entry of result.json ``limits``)."""
+        return dict(name=self.name, quantity=self.quantity, value=self.value, low=self.low,
+                    high=self.high, passed=self.passed)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "LimitResult":
+        return cls(d["name"], d.get("value"), d.get("low"), d.get("high"), bool(d["passed"]),
+                   d.get("quantity", ""))
 
 
 @dataclass(frozen=True)

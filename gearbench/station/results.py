@@ -56,6 +56,11 @@ def _clean(o):
     return o
 
 
+def as_written(result: dict) -> dict:
+    """The result exactly as result.json holds it (JSON-safe, float noise rounded)."""
+    return _clean(result)
+
+
 def write_result_json(path: str | Path, result: dict) -> Path:
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)

@@ -480,8 +480,7 @@ class Sequencer:
         out = []
         for rec in limits.check(self.profile, self.motors_result, self.ratio, self.efficiency):
             self.emit(rec)
-            out.append(dict(name=rec.name, quantity=rec.quantity, value=rec.value,
-                            low=rec.low, high=rec.high, passed=rec.passed))
+            out.append(rec.to_dict())
         return out
 
     # ---------------------------------------------------------------- result
