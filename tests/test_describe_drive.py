@@ -29,6 +29,14 @@ def gearbench(*args, cwd=None) -> subprocess.CompletedProcess:
                           timeout=180, cwd=cwd, env=dict(os.environ, PYTHONUNBUFFERED="1"))
 
 
+def test_bad_input_is_one_line_and_exit_2(tmp_path):
+    bad = tmp_path / "bad.eds"
+    bad.write_text("[FileInfo]\nbroken")
+    for args in ((tmp_path / "absent.eds",), (bad,), (DEFAULT_EDS, "--probe")):
+        r = gearbench("describe-drive", *args)
+        assert r.returncode == 2 and "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) <= 2, r.stderr
+
+
 @pytest.mark.parametrize("path", VENDOR_FILES, ids=lambda p: p.name)
 def test_draft_from_every_vendor_file_is_yaml_naming_candidates_and_todos(path):
     m = resolve(str(path), descriptions=[])

@@ -120,6 +120,14 @@ def variants(tmp: Path) -> dict[str, tuple[str, str, str]]:
     out["0x60C2 unit 1 s, exponent read-only"] = (fixed, fixed, "")
     ms = write("ref-60c2-ms-readonly.eds", ref + interpolation("ro", -3))
     out["0x60C2 unit 1 ms, exponent read-only"] = (ms, ms, "")
+    slow = write("ref-slow-6080.eds", ref + var("6080", "Max motor speed", "0x0007", "rw", 0, "30000"))
+    out["0x6080 max motor speed below the profile's limit"] = (slow, slow, "")
+    fast = write("ref-fast-6080.eds", ref + var("6080", "Max motor speed", "0x0007", "rw", 0, "3000000"))
+    out["0x6080 max motor speed above the profile's limit"] = (fast, fast, "")
+    if (SHARED / "elmo-gold.dcf").is_file():
+        elmo = (SHARED / "elmo-gold.dcf").read_text()
+        geared = write("elmo-feed-4.dcf", set_key(elmo, "6092sub1", "DefaultValue", "4"))
+        out["position factor group not 1:1 (Elmo 0x6092:01 = 4)"] = (geared, geared, "")
     wrong = write("ref-wrong-type.eds", set_key(ref, "1000", "DefaultValue", "0x00020191"))
     out["wrong device type (0x0191)"] = (wrong, wrong, "")
     no1017 = write("ref-no-1017.eds", drop(ref, "1017"))
@@ -204,6 +212,10 @@ VARIANT_EXPECTED = {      # the verdict itself (validate == start-up is checked 
     "0x60C2 unit 1 s, exponent writable": True,
     "0x60C2 unit 1 s, exponent read-only": False,
     "0x60C2 unit 1 ms, exponent read-only": True,
+    "0x6080 max motor speed below the profile's limit": False,
+    "0x6080 max motor speed above the profile's limit": True,
+    # the description says the drive must read 1: the emulator plays it so, validate warns
+    "position factor group not 1:1 (Elmo 0x6092:01 = 4)": True,
     "wrong device type (0x0191)": False,
     "no 0x1017 heartbeat": False,
     "0x6071 missing on the input drive only (EPOS4)": True,
@@ -221,3 +233,5 @@ def test_validate_verdict_equals_start_on_synthetic_variants(tmp_path, name):
     assert valid == started, f"{name}: validate {'accepted' if valid else 'refused'} but start-up " \
                              f"{'ran' if started else 'failed: ' + why}\n" + "\n".join(report.errors)
     assert valid is VARIANT_EXPECTED[name], "\n".join(report.errors) or why
+    if "factor group" in name:
+        assert any("0x6092:01" in w and "expects 1" in w for w in report.warnings), report.warnings

@@ -75,14 +75,17 @@ def probe(model, bus_spec: str, node_id: int, timeout_s: float) -> dict:
 def run(args) -> int:
     from ..drives.description import import_eds, resolve
     from ..drives.drafting import draft
-    from ..errors import DriveError
+    from ..errors import DriveError, GearbenchError
 
-    import_eds(args.eds)   # DriveError (exit 2) naming the file if missing or malformed
+    try:
+        import_eds(args.eds)
+    except DriveError as exc:   # a missing or malformed file is bad input (exit 2), not a drive fault
+        raise GearbenchError(str(exc)) from None
     model = resolve(args.eds, args.node, descriptions=[])     # what the EDS alone says
     probed, source = {}, ""
     if args.probe:
         if not args.can:
-            raise DriveError("--probe needs --can INTERFACE:CHANNEL (the drive's bus) and --node N")
+            raise GearbenchError("--probe needs --can INTERFACE:CHANNEL (the drive's bus) and --node N")
         probed = probe(model, args.can, args.node, args.timeout)
         source = (f"read from node {args.node} on {args.can} by gearbench describe-drive --probe, "
                   f"{time.strftime('%Y-%m-%d %H:%M', time.gmtime())} UTC")

@@ -121,7 +121,7 @@ class DriveModel:
 
     def mappable(self, ref: ObjRef) -> bool:
         v = self.var(ref)
-        return v is not None and bool(v.pdo_mappable) and ref_bits_ok(self, ref)
+        return v is not None and bool(v.pdo_mappable) and self.bits(ref) > 0
 
     @property
     def exponent_writable(self) -> bool:
@@ -164,10 +164,6 @@ class DriveModel:
         return [r1, r2]
 
 
-def ref_bits_ok(m: DriveModel, ref: ObjRef) -> bool:
-    return m.bits(ref) > 0
-
-
 def _standard(od, ref: ObjRef) -> bool:
     idx = ref.index
     return idx in od and (ref.subindex == 0 or isinstance(od[idx], (ODRecord, ODArray))
@@ -183,9 +179,6 @@ def eds_identity(od) -> tuple[int | None, int | None]:
         vendor = subs[1].default if 1 in subs and subs[1].default is not None else vendor
         product = subs[2].default if 2 in subs and subs[2].default is not None else product
     return vendor, product
-
-
-_identity = eds_identity
 
 
 def import_eds(path: str, node_id: int = 1) -> canopen.ObjectDictionary:

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from ..errors import DriveError, ProfileError
 from .description import Problem, resolve, role_problems
-from .objects import interpolation_setting, mode_name
+from .objects import ObjRef, interpolation_setting, mode_name, velocity_unit_rad_s
 
 DEFAULT_BITRATE = 1_000_000
 BUS_WARN, BUS_REFUSE = 0.60, 0.90
@@ -77,7 +77,7 @@ def _check_canopen(profile, report: DeviceReport) -> None:
         models[name] = model
         kinds = profile.drive_modes(name)
         problems = [p for p in model.problems if "torque" not in p.problem or "torque" in kinds] + \
-            role_problems(model, kinds, name) + start_problems(model, kinds, profile.bench.period_s, cyclic)
+            role_problems(model, kinds, name) + start_problems(model, kinds, profile.bench.period_s, cyclic, motor)
         for p in problems:
             text = str(p)
             if text in seen:
@@ -89,6 +89,21 @@ def _check_canopen(profile, report: DeviceReport) -> None:
         _bus_budget(profile, models, report)
 
 
+def _velocity_per_count(m, counts_per_rev) -> float | None:
+    """rad/s per velocity count as the drive's defaults give it (None when unknown before start-up)."""
+    unit = m.velocity_unit
+    if isinstance(unit, ObjRef):
+        v = m.var(unit)
+        unit = v.default if v is not None and v.default is not None else None
+        if m.velocity_set is not None:
+            unit = m.velocity_set
+    if isinstance(unit, int) and not isinstance(unit, bool):
+        return velocity_unit_rad_s(unit)
+    if unit == "inc/s" and counts_per_rev:
+        return 2 * math.pi / counts_per_rev
+    return None
+
+
 def chosen_modes(m, kinds, cyclic) -> dict:
     """{kind: 0x6060 code} the start-up will pick from the EDS's modes (``CiA402Drive._select_modes``)."""
     if m.supported_modes is None:
@@ -97,10 +112,34 @@ def chosen_modes(m, kinds, cyclic) -> dict:
     return {k: m.mode_for(k, usable) for k in kinds}
 
 
-def start_problems(m, kinds, period_s: float, cyclic) -> list[Problem]:
-    """What the start-up checks beyond the model itself, decided from the EDS: the SYNC period
-    expressed in 0x60C2 (exponent written only where 0x60C2:02 is writable)."""
+def start_problems(m, kinds, period_s: float, cyclic, motor=None) -> list[Problem]:
+    """What the start-up checks beyond the model itself, decided from the EDS as the drive
+    would answer with its defaults: the SYNC period expressed in 0x60C2 (exponent written
+    only where 0x60C2:02 is writable), the factor groups 1:1, the max motor speed 0x6080
+    against the profile's speed limit (``CiA402Drive.configure``)."""
     out, where = [], Path(m.eds).name
+    for ref, want in m.expect.items():
+        v = m.var(ref)
+        got = v.default if v is not None else None
+        if isinstance(want, tuple):
+            other = m.var(want[1])
+            want = other.default if other is not None else None
+        elif got is not None and got != want:   # a described value: the drive is checked at start-up
+            out.append(Problem(where, m.label(ref), f"EDS/DCF value {got}, but {m.description.where('position.expect')}"
+                               f" expects {want}", "the start-up refuses a drive configured as this file says: "
+                               "set the factor group to 1:1", fatal=False))
+            continue
+        if got is not None and want is not None and got != want:
+            out.append(Problem(where, m.label(ref), f"EDS default {got}, but gearbench reads positions in encoder "
+                               f"increments and needs {want} (factor group 1:1)",
+                               "set the factor group to 1:1 in the drive (and its EDS/DCF)"))
+    if motor is not None and 0x6080 in m.od and m.od[0x6080].default is not None:
+        per = _velocity_per_count(m, motor.counts_per_rev)
+        top = m.od[0x6080].default
+        if per is not None and top * per < motor.speed_limit_rad_s * (1 - 1e-3):
+            out.append(Problem(where, m.label("0x6080"), f"EDS default {top} ({top * per:.1f} rad/s) is below the "
+                               f"profile's speed_limit_rad_s {motor.speed_limit_rad_s:g}",
+                               "lower the profile's limit or raise the drive's max motor speed"))
     modes = chosen_modes(m, kinds | {"velocity", "torque"}, cyclic)
     if any(code in (9, 10) for code in modes.values()) and 0x60C2 in m.od:
         exponent = m.exponent_default()
