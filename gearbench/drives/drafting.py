@@ -80,13 +80,23 @@ def _q(ref: ObjRef) -> str:
 
 
 def draft(m: DriveModel, probed: dict | None = None, probe_source: str = "") -> str:
-    """The description YAML for ``m`` (an EDS resolved without a description)."""
-    od, probed = m.od, probed or {}
+    """The description YAML for ``m`` (an EDS resolved without a description): one section
+    per fact gearbench needs, each either read from the EDS (or the live drive, ``probed``)
+    or left as a TODO saying where to find it."""
+    probed = probed or {}
+    L = _header(m, probed, probe_source)
+    for section in (_modes, _position, _velocity, _current_actual, _ratings, _torque):
+        L += [""] + section(m, probed)
+    return "\n".join(L + [""] + _missing(m)) + "\n"
+
+
+def _header(m: DriveModel, probed: dict, probe_source: str) -> list[str]:
+    """Identity (0x1018, vendor id and product code) and the sources the facts cite."""
+    od = m.od
     info = od.device_information
     name = Path(m.eds).name
     vendor = probed.get(ObjRef(0x1018, 1), m.vendor_id)
     product = probed.get(ObjRef(0x1018, 2), m.product_code)
-    ident_src = "probe 0x1018" if ObjRef(0x1018, 1) in probed else "eds [DeviceInfo]/[1018]"
     L = [f"# Drive description drafted by `gearbench describe-drive {name}`"
          + (" --probe" if probed else "") + ".",
          "# Every TODO is a fact the EDS cannot give: replace it with the value and name its source",
@@ -107,9 +117,14 @@ def draft(m: DriveModel, probed: dict | None = None, probe_source: str = "") -> 
     dtype = probed.get(ObjRef(0x1000), od[0x1000].default if 0x1000 in od else None)
     if isinstance(dtype, int) and (0x1000 not in od or od[0x1000].default is None):
         L += ["identity:", f"  device_type: 0x{dtype:08X}", "  source: probe 0x1000"]
-    # ---- modes
+    return L
+
+
+def _modes(m: DriveModel, probed: dict) -> list[str]:
+    """0x6502's modes and the ones gearbench would use (or a TODO)."""
+    od = m.od
+    L: list[str] = []
     bits = probed.get(ObjRef(0x6502), od[0x6502].default if 0x6502 in od else None)
-    L.append("")
     if isinstance(bits, int):
         modes = modes_from_bits(bits)
         L.append(f"# modes: 0x6502 = 0x{bits:08X} -> " + ", ".join(f"{x} {mode_name(x)}" for x in modes)
@@ -124,8 +139,13 @@ def draft(m: DriveModel, probed: dict | None = None, probe_source: str = "") -> 
               "  source: manual"]
     if 0x6060 in od and m.mode_by_sdo:
         L.append("# 0x6060 modes of operation is not PDO-mappable: gearbench writes it by SDO per segment")
-    # ---- position
-    L.append("")
+    return L
+
+
+def _position(m: DriveModel, probed: dict) -> list[str]:
+    """Encoder resolution: 0x608F, else candidates by name."""
+    od = m.od
+    L: list[str] = []
     if 0x608F in od:
         L.append("# encoder resolution: 0x608F (CiA 402) - no entry needed; "
                  + "; ".join(object_line(m, r, probed) for r in (ObjRef(0x608F, 1), ObjRef(0x608F, 2))))
@@ -136,8 +156,13 @@ def draft(m: DriveModel, probed: dict | None = None, probe_source: str = "") -> 
              ["position:", f"  counts_per_rev: {_q(cands[0]) if cands else 'TODO'}   # TODO confirm: increments "
                            "per MOTOR revolution (manual, object dictionary chapter)",
               "  source: TODO   # e.g. eds [" + (f"{cands[0].index:04X}" if cands else "....") + "]; manual"]
-    # ---- velocity
-    L.append("")
+    return L
+
+
+def _velocity(m: DriveModel, probed: dict) -> list[str]:
+    """Velocity unit: 0x60A9, else a TODO."""
+    od = m.od
+    L: list[str] = []
     if 0x60A9 in od:
         code = probed.get(ObjRef(0x60A9), od[0x60A9].default)
         L.append("# velocity unit: 0x60A9 (read at start-up) - no entry needed"
@@ -148,8 +173,13 @@ def draft(m: DriveModel, probed: dict | None = None, probe_source: str = "") -> 
               "velocity:", "  unit: TODO   # inc/s (encoder increments per second), a 0x60A9 code (0x00B44700 = rpm) "
                            "or the object holding it; manual 'units' / 'factor group' chapter",
               "  source: manual"]
-    # ---- current actual
-    L.append("")
+    return L
+
+
+def _current_actual(m: DriveModel, probed: dict) -> list[str]:
+    """Current actual: a mappable 0x6078, else candidates by name."""
+    od = m.od
+    L: list[str] = []
     if 0x6078 in od and m.mappable(ObjRef(0x6078)):
         L += [f"# current actual: {object_line(m, ObjRef(0x6078), probed)} (per-mille of rated current 0x6075, "
               "CiA 402) - no entry needed",
@@ -163,10 +193,17 @@ def draft(m: DriveModel, probed: dict | None = None, probe_source: str = "") -> 
               "  unit: TODO   # mA | A | permille_rated; and peak or rms? (manual: object dictionary)",
               "  # scale: 0.7071   # only if the drive reports peak and the datasheet Kt is per rms",
               "  source: TODO   # e.g. eds [....]; manual"]
-    # ---- rated current / limit
+    return L
+
+
+def _ratings(m: DriveModel, probed: dict) -> list[str]:
+    """Rated current 0x6075 and current limit 0x6073, else candidates."""
+    od = m.od
+    L: list[str] = []
     for section, std, kind, unit_hint in (("rated_current", 0x6075, "rated_current", "mA (CiA 402)"),
                                           ("current_limit", 0x6073, "current_limit", "per-mille of rated (CiA 402)")):
-        L.append("")
+        if L:
+            L.append("")
         if std in od:
             L.append(f"# {section.replace('_', ' ')}: {object_line(m, ObjRef(std), probed)}, {unit_hint} - "
                      f"no entry needed")
@@ -176,8 +213,14 @@ def draft(m: DriveModel, probed: dict | None = None, probe_source: str = "") -> 
              [f"#   {object_line(m, r, probed)}" for r in cands] + \
              [f"{section}:", f"  object: {_q(cands[0]) if cands else 'TODO'}   # TODO confirm",
               "  unit: TODO   # mA | A | permille_rated (manual)", "  source: TODO"]
-    # ---- torque
-    L.append("")
+    return L
+
+
+def _torque(m: DriveModel, probed: dict) -> list[str]:
+    """Target torque 0x6071 in a torque mode, else a manufacturer current mode to describe."""
+    od = m.od
+    L: list[str] = []
+    bits = probed.get(ObjRef(0x6502), od[0x6502].default if 0x6502 in od else None)
     tq_modes = [x for x in modes_from_bits(bits)] if isinstance(bits, int) else []
     if 0x6071 in od and any(x in (4, 10) for x in tq_modes):
         L += [f"# target torque: {object_line(m, ObjRef(0x6071), probed)}; rated torque 0x6076 "
@@ -193,14 +236,18 @@ def draft(m: DriveModel, probed: dict | None = None, probe_source: str = "") -> 
              ["torque:", "  mode: TODO   # the 0x6060 number of the current mode (negative: manufacturer)",
               f"  setpoint: {_q(cands[0]) if cands else 'TODO'}   # TODO confirm", "  unit: TODO   # mA | A",
               "  source: manual"]
-    # ---- missing
+    return L
+
+
+def _missing(m: DriveModel) -> list[str]:
+    """The CiA 301/402 objects gearbench needs that the EDS lacks; SYNC counter; 0x60C2."""
+    od = m.od
     missing = [f"0x{i:04X}" for i in (0x1017, 0x6040, 0x6041, 0x6060, 0x6061, 0x6064, 0x606C, 0x60FF) if i not in od]
-    L += ["", "# missing CiA 301/402 objects gearbench needs: " + (", ".join(missing) if missing else "none"),
+    return ["# missing CiA 301/402 objects gearbench needs: " + (", ".join(missing) if missing else "none"),
           f"# 0x1019 SYNC counter: {'present' if 0x1019 in od else 'absent (SYNC without counter byte)'}; "
           f"0x60C2 interpolation period: " + ("absent" if 0x60C2 not in od else
                                                f"exponent 0x60C2:02 {'writable' if m.exponent_writable else 'read-only'}"
                                                f" (EDS default {m.exponent_default()})")]
-    return "\n".join(L) + "\n"
 
 
 __all__ = ["PROBE_OBJECTS", "candidates", "draft", "object_line", "MODE_BIT"]
