@@ -30,6 +30,7 @@ from ..drives.base import DriveNetwork
 from ..drives.realtime import acquisition_priority
 from ..errors import Aborted, BenchFault, GearbenchError
 from . import analyse, limits
+from .results import as_written
 from . import plan as planning
 from .plan import Analyse, CalibrationAnalysis, Known, Prompt, Segment
 from ..analysis.efficiency import EfficiencyPoint
@@ -510,4 +511,4 @@ class Sequencer:
         }
         if self.sim_truth is not None:   # the simulated plant's truth at the commanded points
             result["simulation_truth"] = self.sim_truth(self.efficiency)
-        return result
+        return as_written(result)   # every output (files, databases, screen) sees the same numbers
