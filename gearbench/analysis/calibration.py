@@ -118,7 +118,28 @@ def calibrate_from_fits(unloaded: IdentificationResult, loaded: IdentificationRe
     noise is model error, and it grows when the loss is extrapolated along Δ).
     ``disk_std_kgm2`` is the disk inertia's standard uncertainty (it enters Kt 1:1);
     ``disk_name`` names the disk, so two motors calibrated with one disk are known to
-    share its error (``efficiency.shared_disk_covariance``)."""
+    share its error (``efficiency.shared_disk_covariance``).
+
+    Parameters
+    ----------
+    unloaded, loaded : the two runs' fits (motor alone, with the disk).
+    disk_kgm2, disk_std_kgm2 : the disk's inertia and its standard uncertainty.
+    disk_name : names the disk (shared by motors calibrated with it).
+    unloaded_name, loaded_name : the runs' names for messages.
+
+    Returns
+    -------
+    MotorCalibration
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md), eqs. 11-17 (eq. 17 corrected); JCGM 100:2008, "Evaluation of measurement data — Guide to the expression of uncertainty in measurement" (GUM)
+
+    Examples
+    --------
+    >>> cal = calibrate_from_fits(fu, fl, 2e-5)   # doctest: +SKIP
+
+    """
     kt = torque_constant(unloaded, loaded, disk_kgm2, disk_inertia_std=disk_std_kgm2,
                          unloaded_name=unloaded_name, loaded_name=loaded_name)
     J = kt.rotor_inertia_kgm2
@@ -174,7 +195,30 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
                     disk_name: str = "", **options) -> MotorCalibration:
     """Identify both runs with ``method`` (``default``, ``paper``, ``paper-15ms``) and
     combine them (corrected eq. 17); ``disk_std_kgm2`` is the disk inertia's standard
-    uncertainty. Raises GearbenchError subclasses on bad input."""
+    uncertainty. Raises GearbenchError subclasses on bad input.
+
+    Parameters
+    ----------
+    unloaded, loaded : the two runs' traces.
+    disk_kgm2 : the disk's inertia.
+    method : identification method (``identify.METHODS``).
+    disk_std_kgm2, disk_name : the disk's standard uncertainty and name.
+    **options : ``identify_default`` options.
+
+    Returns
+    -------
+    MotorCalibration
+        Raises ``ExcitationError`` when either run cannot identify Kt/J (its advice).
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md), eqs. 11-17; M. Gautier and W. Khalil, "On the identification of the inertial parameters of robots", Proc. 27th IEEE Conf. Decision and Control, 1988, pp. 2264-2269
+
+    Examples
+    --------
+    >>> cal = calibrate_motor(Trace.read("u.csv"), Trace.read("l.csv"), 2e-5)   # doctest: +SKIP
+
+    """
     if not (np.isfinite(disk_kgm2) and disk_kgm2 > 0):
         raise GearbenchError(f"inertia must be > 0 kg m^2 (got {disk_kgm2}); pass the disk's "
                              f"inertia, e.g. --inertia 1.5e-5")

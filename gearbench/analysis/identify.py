@@ -119,6 +119,28 @@ def identify_paper(time_s: np.ndarray, position_rad: np.ndarray, current_a: np.n
     no-load current), ``[A_e B_e] = [Q1 Q2] [[Q11, Q12], [Q12ᵀ, Q22]]⁻¹`` (eq. 10)
     with every integral a sum × dt. ``decimate_s`` keeps every k-th sample first
     (the paper sampled at 15 ms).
+
+    Parameters
+    ----------
+    time_s, position_rad, current_a : the run's samples (s, rad, A).
+    decimate_s : keep every k-th sample first (the paper sampled at 15 ms).
+    no_load_current_a : subtracted from the current (the paper's variant).
+    check : refuse constant speed or current.
+    source : the run's name for messages.
+
+    Returns
+    -------
+    IdentificationResult
+        ``Kt/J``, ``D/J``, ``C/J`` with a white-residual covariance (information only).
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md)
+
+    Examples
+    --------
+    >>> fit = identify_paper(t, theta, i, decimate_s=0.015)   # doctest: +SKIP
+
     """
     t = np.asarray(time_s, float)
     th = np.asarray(position_rad, float)
@@ -675,12 +697,51 @@ def smoothing_half_width(dt_s: float) -> int:
     data (10 samples at 1 kHz, as tuned there), at least 3 samples. A fixed 10 samples
     spans 210 ms at 100 Hz, smears a joint's dwell at a reversal into the motion on
     either side and misplaces the Coulomb step: Fc −6 %, Fv +14 % on the robot-joint
-    traces of ``bench accuracy`` (with 10 ms: see its real section)."""
+    traces of ``bench accuracy`` (with 10 ms: see its real section).
+
+    Parameters
+    ----------
+    dt_s : sample period.
+
+    Returns
+    -------
+    int
+
+    References
+    ----------
+    A. Savitzky and M. J. E. Golay, "Smoothing and differentiation of data by simplified least squares procedures", Anal. Chem. 36(8), 1964, pp. 1627-1639
+
+    Examples
+    --------
+    >>> smoothing_half_width(1e-3), smoothing_half_width(1e-2)
+    (10, 3)
+
+    """
     return max(3, int(round(0.010 / dt_s)))
 
 
 def count_reversals(velocity: np.ndarray, moving: np.ndarray | None = None) -> int:
-    """Speed sign changes between moving stretches (a dwell's chatter counts once)."""
+    """Speed sign changes between moving stretches (a dwell's chatter counts once).
+
+    Parameters
+    ----------
+    velocity : the run's speed.
+    moving : 0 while sticking (those samples are skipped).
+
+    Returns
+    -------
+    int
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md)
+
+    Examples
+    --------
+    >>> count_reversals([1.0, 1.0, -1.0, -1.0, 1.0])
+    2
+
+    """
     w = np.asarray(velocity, float)
     if moving is not None:
         w = w[moving > 0]
@@ -737,7 +798,24 @@ def cogging_order_scores(position_rad: np.ndarray, velocity_rad_s: np.ndarray,
     and those samples only add noise); NaN for an order no sample can show. White
     residual: E z_k = 1. O(n) in one pass: per speed class (limits 2π f_c/2^j) a
     histogram of e over ``bins`` angle bins, then one FFT per class.
-    Returns ``z`` (index k − 1)."""
+    Returns ``z`` (index k − 1).
+
+    Parameters
+    ----------
+    position_rad, velocity_rad_s : rotor angle and speed under the residual's samples.
+    residual : the base fit's residual.
+    cutoff_hz : the fit's low-pass cutoff.
+    max_order, bins : orders screened; angle bins of the histogram.
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md); cogging as a periodic rotor-angle torque
+
+    Examples
+    --------
+    >>> z = cogging_order_scores(th, w, e, cutoff_hz=40.0)   # doctest: +SKIP
+
+    """
     th = np.asarray(position_rad, float)
     e = np.asarray(residual, float)
     speed = np.abs(np.asarray(velocity_rad_s, float))
@@ -767,7 +845,29 @@ def cogging_candidates(scores: np.ndarray) -> tuple[int, ...]:
     ``COGGING_SCREEN`` x the median score of the orders the run can show. The median
     calibrates out the residual's colour; with fewer than ``MIN_SCREEN_ORDERS`` visible
     orders (a fast run: the filter hides all but the lowest) there is nothing to
-    compare with and no cogging can bias the fit, so none are tried."""
+    compare with and no cogging can bias the fit, so none are tried.
+
+    Parameters
+    ----------
+    scores : ``cogging_order_scores`` output.
+
+    Returns
+    -------
+    tuple of int
+        Orders to test in the regression (at most ``COGGING_CANDIDATES``).
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> s = np.ones(64); s[5] = 100.0
+    >>> cogging_candidates(s)
+    (6,)
+
+    """
     visible = np.isfinite(scores)
     if visible.sum() < MIN_SCREEN_ORDERS:
         return ()
@@ -780,7 +880,28 @@ def cogging_candidates(scores: np.ndarray) -> tuple[int, ...]:
 def identify(time_s, position_rad, current_a, *, method: str = "default",
              source: str = "<array>", **options) -> IdentificationResult:
     """Dispatch on ``method``: ``default`` (form ``auto``), ``accel``, ``torque``, ``iv``
-    (``identify_default`` in that form), ``paper`` (data rate) or ``paper-15ms``."""
+    (``identify_default`` in that form), ``paper`` (data rate) or ``paper-15ms``.
+
+    Parameters
+    ----------
+    time_s, position_rad, current_a : the run's samples.
+    method : one of ``METHODS``.
+    source : the run's name for messages.
+    **options : passed to the method's function.
+
+    Returns
+    -------
+    IdentificationResult
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md); M. Gautier and W. Khalil, "On the identification of the inertial parameters of robots", Proc. 27th IEEE Conf. Decision and Control, 1988, pp. 2264-2269
+
+    Examples
+    --------
+    >>> fit = identify(t, theta, i, method="torque")   # doctest: +SKIP
+
+    """
     if method == "default":
         return identify_default(time_s, position_rad, current_a, source=source, **options)
     if method in ("accel", "torque", "iv"):
@@ -801,7 +922,27 @@ METHODS = ("default", "accel", "torque", "iv", "paper", "paper-15ms")
 
 def identify_trace(trace, *, method: str = "default", **options) -> IdentificationResult:
     """Validate a single-motor ``Trace`` (columns ``position_rad``, ``current_a``; a
-    ``command`` column in velocity mode is the iv form's instrument) and fit it."""
+    ``command`` column in velocity mode is the iv form's instrument) and fit it.
+
+    Parameters
+    ----------
+    trace : a single-motor ``Trace``.
+    method : one of ``METHODS``.
+    **options : passed on (``identify_default``'s options).
+
+    Returns
+    -------
+    IdentificationResult
+
+    References
+    ----------
+    M. Gautier and W. Khalil, "On the identification of the inertial parameters of robots", Proc. 27th IEEE Conf. Decision and Control, 1988, pp. 2264-2269
+
+    Examples
+    --------
+    >>> fit = identify_trace(Trace.read("run.csv"))   # doctest: +SKIP
+
+    """
     trace.validate(["position_rad", "current_a"], min_samples=50)
     if method in ("default", "iv") and "command" in trace and "command" not in options \
             and _is_speed_command(trace):
@@ -849,6 +990,11 @@ def check_excitation(*, velocity: np.ndarray, acceleration: np.ndarray, accel_no
     --------
     >>> check_excitation(velocity=w, acceleration=a, accel_noise_rms=0.1, condition=30,
     ...                  b2=900.0, b2_std=5.0, rate_hz=1000.0)   # doctest: +SKIP
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md); M. Gautier and W. Khalil, "On the identification of the inertial parameters of robots", Proc. 27th IEEE Conf. Decision and Control, 1988, pp. 2264-2269
+
     """
     acc_rms = float(np.std(acceleration))
     lo, hi = np.percentile(velocity, [0.5, 99.5]) if len(velocity) else (0.0, 0.0)
@@ -900,6 +1046,11 @@ def b2_shortfall(b2: float, b2_std: float, held: str) -> str | None:
     --------
     >>> b2_shortfall(100.0, 10.0, "a slow run") is not None
     True
+
+    References
+    ----------
+    M. Gautier and W. Khalil, "On the identification of the inertial parameters of robots", Proc. 27th IEEE Conf. Decision and Control, 1988, pp. 2264-2269
+
     """
     rel = b2_std / b2
     if rel <= MAX_B2_REL_STD:
@@ -916,7 +1067,27 @@ def check_fit_quality(*, r2: float, floor_r2: float, source: str = "<array>") ->
 
     ``floor_r2`` is the r² a perfect model would reach, given the encoder and current
     noise; a fit below ``MIN_R2_SHARE`` of it means the model does not describe this
-    axis (or a channel is mis-scaled / mis-assigned) — its numbers would be wrong."""
+    axis (or a channel is mis-scaled / mis-assigned) — its numbers would be wrong.
+
+    Parameters
+    ----------
+    r2 : the fit's coefficient of determination.
+    floor_r2 : what a perfect model would reach given the noise.
+    source : the run's name.
+
+    Returns
+    -------
+    None (raises ``ExcitationError``).
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md)
+
+    Examples
+    --------
+    >>> check_fit_quality(r2=0.97, floor_r2=0.999)
+
+    """
     if not np.isfinite(r2) or r2 < MIN_R2_SHARE * max(floor_r2, 0.0):
         raise ExcitationError(
             f"{source}: the model explains little of the measured acceleration (r2 "
@@ -927,13 +1098,52 @@ def check_fit_quality(*, r2: float, floor_r2: float, source: str = "<array>") ->
 
 
 def top_speed(velocity: np.ndarray) -> float:
-    """The run's top speed (99.5th percentile of |w|), in the trace's own units."""
+    """The run's top speed (99.5th percentile of |w|), in the trace's own units.
+
+    Parameters
+    ----------
+    velocity : speeds (any unit).
+
+    Returns
+    -------
+    float
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md)
+
+    Examples
+    --------
+    >>> top_speed([0.0, 1.0, -2.0]) > 1.9
+    True
+
+    """
     return max(float(np.percentile(np.abs(velocity), 99.5)), 1e-300)
 
 
 def standstill_speed(position: np.ndarray, velocity: np.ndarray, dt_s: float) -> float:
     """Speed below which the rotor counts as sticking: 1 encoder count per 6 samples
-    (the encoder step read from the data), else a small share of the top speed."""
+    (the encoder step read from the data), else a small share of the top speed.
+
+    Parameters
+    ----------
+    position, velocity : angle and speed (the trace's units).
+    dt_s : sample period.
+
+    Returns
+    -------
+    float
+        Speed threshold in the trace's unit per second.
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md)
+
+    Examples
+    --------
+    >>> standstill_speed(th, w, 1e-3)   # doctest: +SKIP
+
+    """
     q = encoder_resolution(position)
     if q > 0:
         return STANDSTILL_COUNTS_PER_SAMPLE * q / dt_s
@@ -977,14 +1187,55 @@ def _encoder_accel_noise(th: np.ndarray, dt: float, taps: np.ndarray) -> float:
 
 def speed_range(velocity_rad_s: np.ndarray) -> list[float]:
     """[low, high] speed a run covered (0.5th/99.5th percentiles, so a glitch does not
-    stretch it): where its friction losses D ω + Tc s(ω) were actually identified."""
+    stretch it): where its friction losses D ω + Tc s(ω) were actually identified.
+
+    Parameters
+    ----------
+    velocity_rad_s : the run's speeds.
+
+    Returns
+    -------
+    list of two float
+        [low, high].
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md)
+
+    Examples
+    --------
+    >>> speed_range([1.0, 2.0, 3.0])[1] <= 3.0
+    True
+
+    """
     lo, hi = np.percentile(velocity_rad_s, [0.5, 99.5])
     return [float(lo), float(hi)]
 
 
 def encoder_resolution(position_rad: np.ndarray) -> float:
     """Encoder step (rad) from the gaps between distinct angle increments; 0 if the
-    angle does not look quantised."""
+    angle does not look quantised.
+
+    Parameters
+    ----------
+    position_rad : sampled angle.
+
+    Returns
+    -------
+    float
+        The encoder step (0: not quantised).
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> round(encoder_resolution(np.arange(100) * 0.01), 6)
+    0.0
+
+    """
     steps = np.diff(np.asarray(position_rad[:200_000], float))
     scale = float(np.max(np.abs(steps))) if len(steps) else 0.0
     if scale == 0:
