@@ -209,6 +209,9 @@ FORMS = ("auto", "accel", "torque", "iv")
 # form fails (friction-dominated joints: J 4-5x too large); iv is unbiased there too but
 # its intervals are 1.5-3x wider, so fewer runs meet the targets.
 AUTO_FORM = "torque"
+# Share of the two regression directions' difference added as model-error variance:
+# (Δ/2)², the variance of a value anywhere between them (as calibration.LOSS_RUN_SPREAD).
+FORM_SPREAD = 0.25
 LOAD_SIN, LOAD_COS = "load_sin", "load_cos"
 
 
@@ -476,7 +479,8 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
                      cogging: bool | tuple[int, ...] = True, check: bool = True,
                      source: str = "<array>", rad_per_unit: float | None = 1.0,
                      form: str = "auto", command: np.ndarray | None = None,
-                     load_rad_per_unit: float | None = None) -> IdentificationResult:
+                     load_rad_per_unit: float | None = None,
+                     form_spread: bool = True) -> IdentificationResult:
     """Bias-reduced fit of ``J θ'' + D θ' + Tc s(θ') [+ C θ] [+ q·(sin, cos) θ_L] = Kt i [+ c]``.
 
     Every run is fitted twice: in ``form`` and, as a cross-check, by the plain filtered
@@ -510,6 +514,12 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
         for a motor angle behind a gear): adds a position-dependent load torque of
         order 1, q_s sin θ_L + q_c cos θ_L (gravity, unbalance, an eccentric load),
         reported as ``load_sin``/``load_cos`` — distinct from cogging (motor angle).
+    form_spread : also fit the other regression direction (accel for the torque side,
+        and vice versa) with the same terms and add ``FORM_SPREAD``·ΔΔᵀ of their
+        difference Δ in (Kt/J, D/J, Tc/J) to the covariance: with a correct model both
+        directions estimate the same parameters, so what separates them beyond noise is
+        model error (closed-loop friction transitions, unmodelled current content) that
+        the block covariance cannot see (``extras["form_spread"]``).
 
     Returns
     -------
@@ -549,6 +559,11 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
     opts = dict(spring=spring, use_bias=use_bias, lag=lag, eiv=eiv_correction, cogging=cogging,
                 rad_per_unit=rad_per_unit, load_rad_per_unit=load_rad_per_unit)
     main = replace(_identify_form(sig, form, **opts), method=label)
+    if form_spread:
+        # the other regression direction, same terms: their spread is model error
+        other = "accel" if form != "accel" else "torque"
+        orders = tuple(main.extras["cogging"]) or False
+        main = _with_form_spread(main, _identify_form(sig, other, **{**opts, "cogging": orders}))
     plain = replace(_identify_form(sig, "torque", **{**opts, "eiv": False, "lag": False,
                                                      "cogging": False}), method="torque-ls")
     cross = _cross_check(main, plain)
@@ -603,6 +618,26 @@ def _identify_form(sig: _Signals, form: str, *, spring, use_bias, lag, eiv, cogg
                 "identified": identified, "regressor_noise_share": share,
                 "per_ampere": per_ampere,
                 "residual_unit": "rad/s^2" if form == "accel" else "A"})
+
+
+def _with_form_spread(main: IdentificationResult, other: IdentificationResult) -> IdentificationResult:
+    """``main`` with ``FORM_SPREAD``·ΔΔᵀ added to its (Kt/J, D/J, Tc/J) covariance, Δ the
+    difference to ``other`` (the opposite regression direction, same terms), and its
+    per-parameter identifiability re-judged with the wider intervals."""
+    names = [n for n in (KT_J, D_J, TC_J) if n in main.names and n in other.names]
+    idx = [main.names.index(n) for n in names]
+    delta = np.array([main.value(n) - other.value(n) for n in names])
+    cov = main.covariance.copy()
+    cov[np.ix_(idx, idx)] += FORM_SPREAD * np.outer(delta, delta)
+    identified = dict(main.extras["identified"])
+    tq = t_quantile(main.dof)
+    for n, k in zip(names, idx):
+        identified[n] = bool(abs(main.values[k]) > tq * np.sqrt(cov[k, k]))
+    b2, b2_std = main.values[idx[0]], float(np.sqrt(cov[idx[0], idx[0]]))
+    identified[KT_J] = bool(b2 > 0 and b2_std <= MAX_B2_REL_STD * b2)
+    extras = {**main.extras, "identified": identified,
+              "form_spread": {"other": other.method, "difference": dict(zip(names, map(float, delta)))}}
+    return replace(main, covariance=cov, extras=extras)
 
 
 def _regressor_noise_share(sig: _Signals, fit: _Fit, b2: float) -> float:
