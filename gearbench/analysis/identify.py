@@ -558,19 +558,31 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
         form = AUTO_FORM
     opts = dict(spring=spring, use_bias=use_bias, lag=lag, eiv=eiv_correction, cogging=cogging,
                 rad_per_unit=rad_per_unit, load_rad_per_unit=load_rad_per_unit)
+    return _identify_checked(sig, form, label, opts, check=check, form_spread=form_spread)
+
+
+def _identify_checked(sig: _Signals, form: str, label: str, opts: dict, *, check: bool,
+                      form_spread: bool) -> IdentificationResult:
+    """``form`` on prepared signals, its form spread, the plain torque-side cross-check,
+    the fallback to the cross-check where only it identifies Kt/J, and the checks."""
     main = replace(_identify_form(sig, form, **opts), method=label)
+    other = None
     if form_spread:
         # the other regression direction, same terms: their spread is model error
-        other = "accel" if form != "accel" else "torque"
         orders = tuple(main.extras["cogging"]) or False
-        main = _with_form_spread(main, _identify_form(sig, other, **{**opts, "cogging": orders}))
+        other = _identify_form(sig, "accel" if form != "accel" else "torque",
+                               **{**opts, "cogging": orders})
+        main = _with_form_spread(main, other)
     plain = replace(_identify_form(sig, "torque", **{**opts, "eiv": False, "lag": False,
                                                      "cogging": False}), method="torque-ls")
     cross = _cross_check(main, plain)
     chosen = main
     if not main.extras["identified"][KT_J] and plain.extras["identified"][KT_J]:
-        chosen = plain            # the textbook fit identifies what this one cannot
-        cross["returned"] = plain.method
+        # the textbook fit may identify what this one cannot (with the same model-error term)
+        alt = _with_form_spread(plain, other) if other is not None else plain
+        if alt.extras["identified"][KT_J]:
+            chosen = alt
+            cross["returned"] = plain.method
     if check:
         _check(sig, chosen)
     chosen.extras["cross_check"] = cross
@@ -979,8 +991,10 @@ def identify_trace(trace, *, method: str = "default", **options) -> Identificati
 
     """
     trace.validate(["position_rad", "current_a"], min_samples=50)
-    if method in ("default", "iv") and "command" in trace and "command" not in options \
-            and _is_speed_command(trace):
+    # the iv form asks for the command; the default form takes it when the trace says it
+    # is a speed setpoint (it is not used there, but reported with the fit's inputs)
+    if "command" in trace and "command" not in options and (
+            method == "iv" or (method == "default" and _is_speed_command(trace))):
         options["command"] = trace["command"]
     return identify(trace.time_s, trace["position_rad"], trace["current_a"], method=method,
                     source=trace.source, **options)
