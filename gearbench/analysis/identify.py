@@ -712,8 +712,8 @@ def _check(sig: _Signals, fit: IdentificationResult) -> None:
     """Refuse only what the run cannot identify, with advice in its own numbers: no
     acceleration content, ill-conditioned regressors, a model that explains little, or
     neither Kt/J nor any friction term. A run whose Kt/J misses ``MAX_B2_REL_STD`` but
-    whose friction is identified is returned with that advice in ``extras["warnings"]``
-    (``calibrate_motor`` refuses it: Kt needs b2)."""
+    whose friction (or b2 itself, at 95 %) is identified is returned with that advice in
+    ``extras["warnings"]`` and its honest (wide) intervals."""
     fs = sig.fs
     acc = fs["acceleration"]
     accel_noise = _encoder_accel_noise(sig.th, sig.dt, sig.taps)
@@ -724,11 +724,15 @@ def _check(sig: _Signals, fit: IdentificationResult) -> None:
         reversals=count_reversals(sig.w_smooth, sig.moving), cutoff_hz=sig.cutoff_hz,
         require_b2=False)
     if advice:
+        # refused only when nothing is identified: Kt/J not even distinguishable from
+        # zero (95 %) and no friction term either; otherwise a warning with the advice
         friction = [n for n in (D_J, TC_J) if fit.extras["identified"].get(n)]
-        if not friction or not (b2 > 0):
+        b2_seen = b2 > t_quantile(fit.dof) * b2_std
+        if not (b2 > 0) or not (friction or b2_seen):
             raise ExcitationError(f"{sig.source}: {advice}")
         fit.extras.setdefault("warnings", []).append(
-            f"{advice}; identified: {', '.join(friction)} (per ampere in extras['per_ampere'])")
+            f"{advice}; identified: {', '.join(friction) or 'none of D/J, Tc/J'} "
+            f"(per ampere in extras['per_ampere'])")
     noise_i = sig.noise_var_raw * float(np.sum(np.convolve(dv.SECOND_DIFFERENCE_MATCH,
                                                            sig.taps) ** 2))
     if fit.extras["form"] == "accel":
