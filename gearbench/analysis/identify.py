@@ -212,6 +212,11 @@ AUTO_FORM = "torque"
 # Share of the two regression directions' difference added as model-error variance:
 # (Δ/2)², the variance of a value anywhere between them (as calibration.LOSS_RUN_SPREAD).
 FORM_SPREAD = 0.25
+# ... unless the other direction's key regressor carries more than this share of noise:
+# then it is attenuated by errors in variables (friction-dominated robot joints: accel form
+# 0.12-5.5) and its difference says nothing about this fit's model error (random plants
+# at 1 kHz: <= 0.05)
+FORM_SPREAD_MAX_SHARE = 0.1
 LOAD_SIN, LOAD_COS = "load_sin", "load_cos"
 
 
@@ -636,6 +641,11 @@ def _with_form_spread(main: IdentificationResult, other: IdentificationResult) -
     """``main`` with ``FORM_SPREAD``·ΔΔᵀ added to its (Kt/J, D/J, Tc/J) covariance, Δ the
     difference to ``other`` (the opposite regression direction, same terms), and its
     per-parameter identifiability re-judged with the wider intervals."""
+    share = other.extras["regressor_noise_share"]
+    if share > FORM_SPREAD_MAX_SHARE:
+        return replace(main, extras={**main.extras, "form_spread": {
+            "other": other.method, "skipped": f"its key regressor's noise share {share:.3g} > "
+            f"{FORM_SPREAD_MAX_SHARE:g}: the difference is its errors in variables, not model error"}})
     names = [n for n in (KT_J, D_J, TC_J) if n in main.names and n in other.names]
     idx = [main.names.index(n) for n in names]
     delta = np.array([main.value(n) - other.value(n) for n in names])
