@@ -26,6 +26,7 @@ what to change.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 from scipy import stats
@@ -248,6 +249,16 @@ class _Signals:
     def matched(self, rows: np.ndarray) -> np.ndarray:
         return dv.matched_filter(rows, self.taps)
 
+    @cached_property
+    def speed_range(self) -> list[float]:
+        """Speeds the run covered (once per run: a percentile of n samples is not free)."""
+        return speed_range(self.w_smooth)
+
+    @cached_property
+    def accel_noise(self) -> float:
+        """rms acceleration encoder quantisation alone produces after the filter."""
+        return _encoder_accel_noise(self.th, self.dt, self.taps)
+
 
 def _prepare(t, th, i, *, cutoff_hz, friction_width_rad_s, command, source) -> _Signals:
     """Filter every signal with one zero-phase FIR (``derivatives.consistent_derivatives``).
@@ -268,6 +279,8 @@ def _prepare(t, th, i, *, cutoff_hz, friction_width_rad_s, command, source) -> _
     hw = smoothing_half_width(dt)
     w_smooth = dv.smooth_velocity(th, dt, half_width=hw)
     extra = {} if command is None else {"command": np.asarray(command, float)}
+    w_rev = REVERSAL_TOP_FRACTION * top_speed(w_smooth)
+    reverses = bool(np.mean(w_smooth > w_rev) > 0.05 and np.mean(w_smooth < -w_rev) > 0.05)
     if friction_width_rad_s:
         # Legacy: smoothed sign of the raw speed, sampled, then 3-tap matched.
         w_raw = np.empty_like(th)
@@ -283,10 +296,9 @@ def _prepare(t, th, i, *, cutoff_hz, friction_width_rad_s, command, source) -> _
             th, dt, velocity=dv.refine_reversals(th, w_smooth, half_width=hw)) * moving}
         if command is not None:
             matched["command_sign"] = np.sign(extra["command"]) * moving
-        fs = dv.consistent_derivatives(th, {"current": i * moving, "moving": moving, **extra},
-                                       dt, taps, matched=matched)
-    w_rev = REVERSAL_TOP_FRACTION * top_speed(w_smooth)
-    reverses = bool(np.mean(w_smooth > w_rev) > 0.05 and np.mean(w_smooth < -w_rev) > 0.05)
+        # the masked offset column is needed only where an offset is fitted (reversing)
+        others = {"current": i * moving, **({"moving": moving} if reverses else {}), **extra}
+        fs = dv.consistent_derivatives(th, others, dt, taps, matched=matched)
     return _Signals(th, dt, cutoff_hz, taps, w_smooth, moving, fs, reverses,
                     _white_noise_variance(i), source)
 
@@ -301,7 +313,7 @@ def _base_columns(sig: _Signals, form: str, *, spring: bool, use_bias: bool) -> 
     else:
         cols = [(KT_J, fs["acceleration"], 1.0), (D_J, fs["velocity"], 1.0),
                 (TC_J, fs["sign"], 1.0)]
-        offset = fs["moving"]
+        offset = fs.get("moving", np.ones(sig.n))
     if spring:
         cols.append((C_J, fs["position"], -1.0 if form == "accel" else 1.0))
     if use_bias:
@@ -357,7 +369,7 @@ def _fit(sig: _Signals, cols: list, form: str, *, lag: bool, eiv: bool) -> _Fit:
                                         source=sig.source)
         return _Fit(form, cols, beta, Xt, None, sig.fs["acceleration"], Gc, G, shift)
     Z = _instruments(sig, cols) if form == "iv" else None
-    acc_noise = _encoder_accel_noise(sig.th, sig.dt, sig.taps) ** 2 if eiv and form == "torque" else 0.0
+    acc_noise = sig.accel_noise ** 2 if eiv and form == "torque" else 0.0
     return _solve_torque(cols, sig, Z=Z, lag=lag, accel_noise_var=acc_noise)
 
 
@@ -630,7 +642,7 @@ def _identify_form(sig: _Signals, form: str, *, spring, use_bias, lag, eiv, cogg
         A=np.array([[0.0, 1.0], [-spring_v, -values[1]]]), B=np.array([0.0, b2]),
         extras={"form": fit.form, "cutoff_hz": sig.cutoff_hz, "filter_taps": len(sig.taps),
                 "current_noise_a": float(np.sqrt(sig.noise_var_raw)), "cogging": cog_amps,
-                "speed_range_rad_s": speed_range(sig.w_smooth),
+                "speed_range_rad_s": sig.speed_range,
                 "current_delay_s": fit.shift_s + (lag_v / b2 if b2 else 0.0),
                 "identified": identified, "regressor_noise_share": share,
                 "per_ampere": per_ampere,
@@ -675,7 +687,7 @@ def _regressor_noise_share(sig: _Signals, fit: _Fit, b2: float) -> float:
         e = fit.residual / b2 if b2 else fit.residual
         noise = float(np.mean(e * e))
     else:
-        noise = _encoder_accel_noise(sig.th, sig.dt, sig.taps) ** 2
+        noise = sig.accel_noise ** 2
     return float(noise / partial) if partial > 0 else float("inf")
 
 
@@ -726,7 +738,7 @@ def _check(sig: _Signals, fit: IdentificationResult) -> None:
     ``extras["warnings"]`` and its honest (wide) intervals."""
     fs = sig.fs
     acc = fs["acceleration"]
-    accel_noise = _encoder_accel_noise(sig.th, sig.dt, sig.taps)
+    accel_noise = sig.accel_noise
     b2, b2_std = fit.b2, fit.b2_std
     advice = check_excitation(
         velocity=fs["velocity"], acceleration=acc, accel_noise_rms=accel_noise,
