@@ -72,6 +72,8 @@ def test_misses_are_split_into_noise_limited_and_biased_and_coverage_is_counted(
     assert s["ok"] == pytest.approx(1 / 3) and s["noise"] == pytest.approx(1 / 3)
     assert s["biased"] == pytest.approx(1 / 3)
     assert s["cover"]["abs"] == pytest.approx(2 / 3) and s["cover"]["kt"] == 1.0
+    # per quantity: only the absolute efficiency of the third plant is a biased miss
+    assert s["biased_by"] == {"kt": 0.0, "inc": 0.0, "abs": pytest.approx(1 / 3)}
 
 
 def test_reversing_case_with_cogging_meets_kt_and_its_interval_covers():

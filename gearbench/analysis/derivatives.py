@@ -27,6 +27,22 @@ def forward_differences(position_rad: np.ndarray, dt_s: float) -> tuple[np.ndarr
 
     Returns ``(velocity, acceleration)`` of length ``len(position) - 2``, aligned with
     ``position[:-2]``: ``ω_k = (θ_{k+1} - θ_k)/dt`` and ``α_k = (ω_{k+1} - ω_k)/dt``.
+
+    Parameters
+    ----------
+    position_rad : sampled angle.
+    dt_s : sample period.
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md), sec. 2.3
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> forward_differences(np.array([0.0, 1.0, 4.0]), 1.0)[1]
+    array([2.])
+
     """
     w = np.diff(position_rad) / dt_s
     a = np.diff(w) / dt_s
@@ -39,6 +55,26 @@ def lowpass_fir(cutoff_hz: float, rate_hz: float, *, transition_hz: float | None
     The Blackman window keeps the stop band below about -70 dB, which matters because
     encoder-quantisation noise in a second difference grows as f²: a filter with
     poor side lobes (Savitzky–Golay) lets that noise through.
+
+    Parameters
+    ----------
+    cutoff_hz, rate_hz : cutoff and sample rate.
+    transition_hz : main-lobe width (default: the cutoff).
+
+    Returns
+    -------
+    numpy.ndarray
+        Odd-length symmetric taps summing to 1.
+
+    References
+    ----------
+    A. V. Oppenheim and R. W. Schafer, "Discrete-Time Signal Processing", 3rd ed., Pearson 2010, sec. 7.5 (window method)
+
+    Examples
+    --------
+    >>> bool(abs(lowpass_fir(40.0, 1000.0).sum() - 1) < 1e-12)
+    True
+
     """
     nyq = rate_hz / 2.0
     cutoff_hz = min(cutoff_hz, 0.8 * nyq)
@@ -52,7 +88,29 @@ def lowpass_fir(cutoff_hz: float, rate_hz: float, *, transition_hz: float | None
 
 def filter_valid(x: np.ndarray, taps: np.ndarray) -> np.ndarray:
     """``x`` convolved with ``taps``, 'valid' part only (no edge padding: edges would
-    break the exact linear relation between filtered signals)."""
+    break the exact linear relation between filtered signals).
+
+    Parameters
+    ----------
+    x : signal.
+    taps : FIR.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``len(x) - len(taps) + 1`` samples.
+
+    References
+    ----------
+    A. V. Oppenheim and R. W. Schafer, "Discrete-Time Signal Processing", 3rd ed., Pearson 2010, sec. 7.5 (window method)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> filter_valid(np.ones(5), np.ones(3) / 3)
+    array([1., 1., 1.])
+
+    """
     if len(x) < len(taps):
         return np.empty(0)
     if len(taps) <= 16:
@@ -64,7 +122,30 @@ def smooth_velocity(position_rad: np.ndarray, dt_s: float, *, half_width: int = 
     """Zero-phase velocity at every sample: Savitzky–Golay (cubic) derivative over
     ``2·half_width + 1`` samples. Precise enough near zero speed to place a reversal
     within a few % of a sample even at 2,000 counts/rev, where a single difference is
-    off by a whole encoder count per sample."""
+    off by a whole encoder count per sample.
+
+    Parameters
+    ----------
+    position_rad : sampled angle.
+    dt_s : sample period.
+    half_width : samples on each side.
+
+    Returns
+    -------
+    numpy.ndarray
+        Speed at every sample.
+
+    References
+    ----------
+    A. Savitzky and M. J. E. Golay, "Smoothing and differentiation of data by simplified least squares procedures", Anal. Chem. 36(8), 1964, pp. 1627-1639
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> float(round(smooth_velocity(np.arange(50) * 0.5, 1.0)[25], 9))
+    0.5
+
+    """
     th = np.asarray(position_rad, float)
     n = len(th)
     L = 2 * half_width + 1
@@ -79,7 +160,28 @@ def smooth_velocity(position_rad: np.ndarray, dt_s: float, *, half_width: int = 
 def standstill(velocity: np.ndarray, speed_rad_s: float, *, min_samples: int = 3) -> np.ndarray:
     """1.0 on samples inside a dwell of at least ``min_samples`` with |ω| < ``speed_rad_s``
     (the rotor sticking at a reversal), else 0.0. A fast reversal crosses the band
-    between two samples and is not a dwell."""
+    between two samples and is not a dwell.
+
+    Parameters
+    ----------
+    velocity : speed.
+    speed_rad_s : threshold.
+    min_samples : shortest dwell.
+
+    Returns
+    -------
+    numpy.ndarray of 0.0/1.0
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md)
+
+    Examples
+    --------
+    >>> standstill([1.0, 0.0, 0.0, 0.0, 1.0], 0.1)
+    array([0., 1., 1., 1., 0.])
+
+    """
     slow = np.abs(velocity) < speed_rad_s
     if not slow.any():
         return np.zeros(len(velocity))
@@ -107,6 +209,22 @@ def coulomb_regressor(position_rad: np.ndarray, dt_s: float, *, velocity: np.nda
     its right and ``σ(2u_c − u_c² − 1/2)`` to the one on its left (``σ/2`` each without a
     crossing). Returns one value per sample, already matched: pass it to
     ``consistent_derivatives`` in ``matched``, not in ``others``.
+
+    Parameters
+    ----------
+    position_rad : sampled angle.
+    dt_s : sample period.
+    velocity : speed at every sample (default ``smooth_velocity``).
+    half_width : of ``smooth_velocity`` when computed here.
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md); M. Gautier and W. Khalil, "On the identification of the inertial parameters of robots", Proc. 27th IEEE Conf. Decision and Control, 1988, pp. 2264-2269
+
+    Examples
+    --------
+    >>> s = coulomb_regressor(theta, 1e-3)   # doctest: +SKIP
+
     """
     w = smooth_velocity(position_rad, dt_s, half_width=half_width) if velocity is None else velocity
     wa, wb = w[:-1], w[1:]
@@ -149,6 +267,15 @@ def consistent_derivatives(position_rad: np.ndarray, others: dict[str, np.ndarra
     once and differenced afterwards (cheaper: one FFT convolution per signal). The
     angle's mean ramp is removed first (a symmetric unit-gain FIR passes a ramp
     unchanged) so no float cancellation can creep into the second difference.
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md); A. V. Oppenheim and R. W. Schafer, "Discrete-Time Signal Processing", 3rd ed., Pearson 2010, sec. 7.5 (window method)
+
+    Examples
+    --------
+    >>> fs = consistent_derivatives(theta, {"current": i}, 1e-3, lowpass_fir(40, 1000))   # doctest: +SKIP
+
     """
     th = np.asarray(position_rad, float)
     n = len(th)
@@ -184,7 +311,29 @@ def consistent_derivatives(position_rad: np.ndarray, others: dict[str, np.ndarra
 def matched_filter(signals: np.ndarray, taps: np.ndarray) -> np.ndarray:
     """Rows of ``signals`` (k x n) through the 3-tap second-difference match and the FIR,
     aligned exactly as the ``others`` outputs of :func:`consistent_derivatives` (for
-    regressors added after the main filtering, e.g. cogging harmonics)."""
+    regressors added after the main filtering, e.g. cogging harmonics).
+
+    Parameters
+    ----------
+    signals : k x n rows.
+    taps : FIR.
+
+    Returns
+    -------
+    numpy.ndarray
+        k x (n − len(taps) − 1).
+
+    References
+    ----------
+    A. V. Oppenheim and R. W. Schafer, "Discrete-Time Signal Processing", 3rd ed., Pearson 2010, sec. 7.5 (window method)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> matched_filter(np.ones((1, 10)), np.ones(3) / 3).shape
+    (1, 6)
+
+    """
     x = np.atleast_2d(np.asarray(signals, float))
     if x.shape[1] < len(taps) + 2:
         return np.empty((x.shape[0], 0))
@@ -213,6 +362,27 @@ def refine_reversals(position_rad: np.ndarray, velocity: np.ndarray, *, half_wid
     crossing ``u_c = ω_j/(ω_j − ω_{j+1})`` lands on t_c. Crossings within
     ``2·half_width`` samples of another (a dwell's chatter, masked by ``standstill``
     anyway) or of the ends are left as they are.
+
+    Parameters
+    ----------
+    position_rad : sampled angle.
+    velocity : speed at every sample.
+    half_width : samples each side of a crossing.
+    steps : grid points per sample.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``velocity`` with refined crossings.
+
+    References
+    ----------
+    A. Savitzky and M. J. E. Golay, "Smoothing and differentiation of data by simplified least squares procedures", Anal. Chem. 36(8), 1964, pp. 1627-1639
+
+    Examples
+    --------
+    >>> w = refine_reversals(theta, smooth_velocity(theta, 1e-3))   # doctest: +SKIP
+
     """
     th = np.asarray(position_rad, float)
     w = np.array(velocity, float)

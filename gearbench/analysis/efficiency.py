@@ -170,7 +170,25 @@ def _as_list(r):
 
 def loss_speed_range(motor: MotorCalibration) -> tuple[float, float] | None:
     """Speeds the motor's calibration runs covered (``fit.speed_range_rad_s``), or None
-    when unknown (``--kt-in`` only, or an older calibrate --json)."""
+    when unknown (``--kt-in`` only, or an older calibrate --json).
+
+    Parameters
+    ----------
+    motor : a calibration.
+
+    Returns
+    -------
+    tuple of float or None
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md)
+
+    Examples
+    --------
+    >>> loss_speed_range(cal)   # doctest: +SKIP
+
+    """
     r = motor.fit.get("speed_range_rad_s") if motor.fit else None
     try:
         lo, hi = float(r[0]), float(r[1])
@@ -182,7 +200,26 @@ def loss_speed_range(motor: MotorCalibration) -> tuple[float, float] | None:
 def shared_disk_covariance(motor_in: MotorCalibration, motor_out: MotorCalibration) -> float:
     """Covariance of the two Kt through a disk both were calibrated with (``fit.disk``
     names it): the product of their disk parts ``fit.Kt_std_disk``; 0 for different or
-    unnamed disks."""
+    unnamed disks.
+
+    Parameters
+    ----------
+    motor_in, motor_out : the two calibrations.
+
+    Returns
+    -------
+    float
+        Cov(Kt_in, Kt_out), (N m/A)^2.
+
+    References
+    ----------
+    JCGM 100:2008, "Evaluation of measurement data — Guide to the expression of uncertainty in measurement" (GUM), 5.2
+
+    Examples
+    --------
+    >>> shared_disk_covariance(cal_in, cal_out)   # doctest: +SKIP
+
+    """
     a, b = (m.fit.get("disk") if m.fit else None for m in (motor_in, motor_out))
     if not a or a != b:
         return 0.0
@@ -191,7 +228,27 @@ def shared_disk_covariance(motor_in: MotorCalibration, motor_out: MotorCalibrati
 
 def is_extrapolated(speed_rad_s: float, speed_range: tuple[float, float] | None) -> bool:
     """True when the motor has a loss model (a known calibrated range) and
-    ``speed_rad_s`` lies outside that range."""
+    ``speed_rad_s`` lies outside that range.
+
+    Parameters
+    ----------
+    speed_rad_s : the operating speed.
+    speed_range : the calibrated range (None: no loss model).
+
+    Returns
+    -------
+    bool
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md)
+
+    Examples
+    --------
+    >>> is_extrapolated(300.0, (70.0, 230.0))
+    True
+
+    """
     return speed_range is not None and not (speed_range[0] <= speed_rad_s <= speed_range[1])
 
 
@@ -219,6 +276,24 @@ def steady_windows(time_s: np.ndarray, in_command: np.ndarray, out_command: np.n
 
     Ramps (a command changing every sample) produce no window. Windows shorter than
     ``min_window_s`` after settling are dropped.
+
+    Parameters
+    ----------
+    time_s, in_command, out_command : the bench trace's time and commands.
+    settle_s, min_window_s : settling time dropped after each change; shortest window kept.
+
+    Returns
+    -------
+    list of (start, stop) index pairs
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md), sec. 4 (steady operating points)
+
+    Examples
+    --------
+    >>> steady_windows(t, cin, cout)   # doctest: +SKIP
+
     """
     change = np.flatnonzero((np.diff(in_command) != 0) | (np.diff(out_command) != 0)) + 1
     bounds = np.concatenate([[0], change, [len(time_s)]])
@@ -254,7 +329,27 @@ def _mean_sem(x: np.ndarray, blocks: int = 10) -> tuple[float, float, float]:
 def measure_windows(trace: Trace, *, settle_s: float = 0.5,
                     ranges: list[tuple[int, int]] | None = None) -> list[SteadyWindow]:
     """Steady windows from the command levels minus ``settle_s``, or exactly ``ranges``
-    (index pairs; an adaptive run knows where each level settled and ended)."""
+    (index pairs; an adaptive run knows where each level settled and ended).
+
+    Parameters
+    ----------
+    trace : the bench trace.
+    settle_s : settling dropped after each command change.
+    ranges : exact index pairs (adaptive runs).
+
+    Returns
+    -------
+    list of SteadyWindow
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md)
+
+    Examples
+    --------
+    >>> measure_windows(trace)   # doctest: +SKIP
+
+    """
     t = trace.time_s
     if ranges is None:
         ranges = steady_windows(t, trace["in_command"], trace["out_command"], settle_s=settle_s)
@@ -273,7 +368,27 @@ def measure_windows(trace: Trace, *, settle_s: float = 0.5,
 
 
 def measured_ratio(windows: list[SteadyWindow], trace: Trace) -> float:
-    """Signed n = Δθ_in/Δθ_out summed over the steady windows (free of start-up backlash)."""
+    """Signed n = Δθ_in/Δθ_out summed over the steady windows (free of start-up backlash).
+
+    Parameters
+    ----------
+    windows : steady windows.
+    trace : the bench trace.
+
+    Returns
+    -------
+    float
+        Signed ratio n.
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md)
+
+    Examples
+    --------
+    >>> measured_ratio(ws, trace)   # doctest: +SKIP
+
+    """
     din = sum(trace["in_position_rad"][w.stop - 1] - trace["in_position_rad"][w.start] for w in windows)
     dout = sum(trace["out_position_rad"][w.stop - 1] - trace["out_position_rad"][w.start] for w in windows)
     if abs(dout) < 1e-9 * max(abs(din), 1.0) or abs(dout) == 0:
@@ -285,14 +400,56 @@ def measured_ratio(windows: list[SteadyWindow], trace: Trace) -> float:
 # ---------------------------------------------------------------------- equations
 def incremental_efficiency(kt_in: float, kt_out: float, delta_current_in_a: float,
                            delta_current_out_a: float, ratio_signed: float) -> float:
-    """Paper eq. 18 with signs: η = −K_out Δi_out / (n_s K_in Δi_in)."""
+    """Paper eq. 18 with signs: η = −K_out Δi_out / (n_s K_in Δi_in).
+
+    Parameters
+    ----------
+    kt_in, kt_out : torque constants.
+    delta_current_in_a, delta_current_out_a : current changes from no load.
+    ratio_signed : n with its sign.
+
+    Returns
+    -------
+    float
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md), eq. 18
+
+    Examples
+    --------
+    >>> round(incremental_efficiency(0.05, 0.05, 0.1, -0.8, 8.0), 6)
+    1.0
+
+    """
     return -kt_out * delta_current_out_a / (ratio_signed * kt_in * delta_current_in_a)
 
 
 def shaft_powers(current_in_a: float, current_out_a: float, speed_in_rad_s: float,
                  speed_out_rad_s: float, motor_in: MotorCalibration,
                  motor_out: MotorCalibration) -> tuple[float, float, float, float]:
-    """(T_in, T_out, P_in, P_out) at the reducer's shafts, signs in the module docstring."""
+    """(T_in, T_out, P_in, P_out) at the reducer's shafts, signs in the module docstring.
+
+    Parameters
+    ----------
+    current_in_a, current_out_a : the motors' currents.
+    speed_in_rad_s, speed_out_rad_s : shaft speeds.
+    motor_in, motor_out : calibrations (Kt and losses).
+
+    Returns
+    -------
+    tuple of float
+        (T_in, T_out, P_in, P_out).
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md)
+
+    Examples
+    --------
+    >>> shaft_powers(1.0, -0.5, 100.0, 12.5, cal_in, cal_out)   # doctest: +SKIP
+
+    """
     t_in = motor_in.Kt * current_in_a - motor_in.loss_torque_nm(speed_in_rad_s)
     t_out = -motor_out.Kt * current_out_a + motor_out.loss_torque_nm(speed_out_rad_s)
     return t_in, t_out, t_in * speed_in_rad_s, t_out * speed_out_rad_s
@@ -301,7 +458,26 @@ def shaft_powers(current_in_a: float, current_out_a: float, speed_in_rad_s: floa
 def absolute_efficiency(current_in_a: float, current_out_a: float, speed_in_rad_s: float,
                         speed_out_rad_s: float, motor_in: MotorCalibration,
                         motor_out: MotorCalibration) -> float:
-    """P_out / P_in at the reducer's shafts using each motor's identified losses."""
+    """P_out / P_in at the reducer's shafts using each motor's identified losses.
+
+    Parameters
+    ----------
+    current_in_a, current_out_a, speed_in_rad_s, speed_out_rad_s : the operating point.
+    motor_in, motor_out : calibrations.
+
+    Returns
+    -------
+    float
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md)
+
+    Examples
+    --------
+    >>> absolute_efficiency(1.0, -0.5, 100.0, 12.5, cal_in, cal_out)   # doctest: +SKIP
+
+    """
     _, _, p_in, p_out = shaft_powers(current_in_a, current_out_a, speed_in_rad_s,
                                      speed_out_rad_s, motor_in, motor_out)
     return p_out / p_in
@@ -317,7 +493,28 @@ def efficiency(trace: Trace, motor_in: MotorCalibration, motor_out: MotorCalibra
     ``windows``: the steady index ranges (else found from the commands and ``settle_s``).
     ``incremental="slope"``: eq. 18 as the weighted regression slope of input on output
     current over all levels at the same speed (``incremental_slope``), one value per
-    speed; every point keeps its own secant beside it."""
+    speed; every point keeps its own secant beside it.
+
+    Parameters
+    ----------
+    trace : the bench trace.
+    motor_in, motor_out : calibrations.
+    settle_s, windows, incremental : see above.
+
+    Returns
+    -------
+    EfficiencyResult
+        Points with incremental and absolute efficiency, intervals and ``loss_extrapolated``.
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md), eq. 18; JCGM 100:2008, "Evaluation of measurement data — Guide to the expression of uncertainty in measurement" (GUM)
+
+    Examples
+    --------
+    >>> res = efficiency(Trace.read("bench.csv"), cal_in, cal_out)   # doctest: +SKIP
+
+    """
     trace.validate(BENCH_COLUMNS, min_samples=100)
     if ratio is not None and not (np.isfinite(ratio) and ratio > 0):
         raise GearbenchError(f"--ratio must be a positive number, got {ratio}")
@@ -356,7 +553,21 @@ def incremental_slope(windows: list[SteadyWindow]) -> tuple[float, float, float]
     """Eq. 18 as a slope: weighted straight line of the input current's window means on
     the output current's over one speed's levels (zero load included); the reducer's
     no-load loss is the intercept. Returns (slope dI_in/dI_out, its standard error, dof:
-    the smallest window dof, as each mean's error is known from its own blocks)."""
+    the smallest window dof, as each mean's error is known from its own blocks).
+
+    Parameters
+    ----------
+    windows : one speed's steady windows.
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md), eq. 18 as a regression slope
+
+    Examples
+    --------
+    >>> incremental_slope(ws)   # doctest: +SKIP
+
+    """
 
     x = np.array([w.current_out_a for w in windows])
     y = np.array([w.current_in_a for w in windows])

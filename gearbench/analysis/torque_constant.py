@@ -57,12 +57,53 @@ class TorqueConstant:
 
 
 def torque_constant_from_b2(b2_unloaded: float, b2_loaded: float, disk_inertia_kgm2: float) -> float:
-    """Corrected eq. 17: ``Kt = j b2~ b2^ / (b2~ − b2^)``."""
+    """Corrected eq. 17: ``Kt = j b2~ b2^ / (b2~ − b2^)``.
+
+    Parameters
+    ----------
+    b2_unloaded, b2_loaded : Kt/J without and with the disk.
+    disk_inertia_kgm2 : the disk's inertia j.
+
+    Returns
+    -------
+    float
+        Kt, N m/A.
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md), eq. 17 (corrected)
+
+    Examples
+    --------
+    >>> round(torque_constant_from_b2(2.0, 1.0, 1.0), 6)
+    2.0
+
+    """
     return disk_inertia_kgm2 * b2_unloaded * b2_loaded / (b2_unloaded - b2_loaded)
 
 
 def paper_printed_eq17(b2_unloaded: float, b2_loaded: float, disk_inertia_kgm2: float) -> float:
-    """Eq. 17 as printed (denominator b2^ − b2~): negative Kt. For tests only."""
+    """Eq. 17 as printed (denominator b2^ − b2~): negative Kt. For tests only.
+
+    Parameters
+    ----------
+    b2_unloaded, b2_loaded, disk_inertia_kgm2 : as ``torque_constant_from_b2``.
+
+    Returns
+    -------
+    float
+        The printed formula's (negative) value.
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md), eq. 17 as printed
+
+    Examples
+    --------
+    >>> paper_printed_eq17(2.0, 1.0, 1.0)
+    -2.0
+
+    """
     return disk_inertia_kgm2 * b2_unloaded * b2_loaded / (b2_loaded - b2_unloaded)
 
 
@@ -79,6 +120,26 @@ def torque_constant(unloaded: IdentificationResult, loaded: IdentificationResult
     docstring), largest when the disk is light (None: ``MODEL_B2_REL``). The interval is
     Student-t with ν = σ⁴/(σ_stat⁴/ν_stat) (Welch–Satterthwaite), ν_stat the smaller of
     the two runs' degrees of freedom.
+
+    Parameters
+    ----------
+    unloaded, loaded : the two runs' fits.
+    disk_inertia_kgm2, disk_inertia_std : the disk's inertia and its standard uncertainty.
+    model_b2_rel : relative b2 model error not shared by the runs (None: ``MODEL_B2_REL``).
+    unloaded_name, loaded_name : the runs' names for messages.
+
+    Returns
+    -------
+    TorqueConstant
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", Iwate University (the reference paper; shared/reference/PAPER-NOTES.md), eqs. 11-17; JCGM 100:2008, "Evaluation of measurement data — Guide to the expression of uncertainty in measurement" (GUM)
+
+    Examples
+    --------
+    >>> tc = torque_constant(fu, fl, 2e-5)   # doctest: +SKIP
+
     """
     j = float(disk_inertia_kgm2)
     if not (j > 0) or not np.isfinite(j):

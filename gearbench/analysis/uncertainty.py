@@ -29,7 +29,27 @@ TOLERANCE_SOURCES = {
 
 
 def coverage_factor(dof: float, level: float = COVERAGE) -> float:
-    """k for a ``level`` coverage interval with ``dof`` degrees of freedom (Student-t)."""
+    """k for a ``level`` coverage interval with ``dof`` degrees of freedom (Student-t).
+
+    Parameters
+    ----------
+    dof : degrees of freedom (>= DOF_MAX: normal).
+    level : coverage.
+
+    Returns
+    -------
+    float
+
+    References
+    ----------
+    JCGM 100:2008, "Evaluation of measurement data — Guide to the expression of uncertainty in measurement" (GUM), G.3
+
+    Examples
+    --------
+    >>> round(coverage_factor(1e6), 2)
+    1.96
+
+    """
     dof = float(dof)
     if not dof >= 1.0:
         dof = 1.0
@@ -39,14 +59,53 @@ def coverage_factor(dof: float, level: float = COVERAGE) -> float:
 
 
 def interval(value: float, std: float, dof: float, level: float = COVERAGE) -> tuple[float, float]:
-    """The ``level`` coverage interval value ± k(dof)·std."""
+    """The ``level`` coverage interval value ± k(dof)·std.
+
+    Parameters
+    ----------
+    value, std, dof : estimate, standard uncertainty, degrees of freedom.
+    level : coverage.
+
+    Returns
+    -------
+    tuple of float
+
+    References
+    ----------
+    JCGM 100:2008, "Evaluation of measurement data — Guide to the expression of uncertainty in measurement" (GUM), 6.2
+
+    Examples
+    --------
+    >>> interval(1.0, 0.0, 10)
+    (1.0, 1.0)
+
+    """
     half = coverage_factor(dof, level) * std
     return float(value - half), float(value + half)
 
 
 def effective_dof(variances, dofs) -> float:
     """Welch–Satterthwaite: ν = (Σ v_i)² / Σ (v_i²/ν_i) over the contributions' variances
-    v_i; a contribution with ν_i = inf (or ≥ DOF_MAX) is known exactly. Capped at DOF_MAX."""
+    v_i; a contribution with ν_i = inf (or ≥ DOF_MAX) is known exactly. Capped at DOF_MAX.
+
+    Parameters
+    ----------
+    variances, dofs : each contribution's variance and degrees of freedom.
+
+    Returns
+    -------
+    float
+
+    References
+    ----------
+    JCGM 100:2008, "Evaluation of measurement data — Guide to the expression of uncertainty in measurement" (GUM), G.4 (Welch-Satterthwaite)
+
+    Examples
+    --------
+    >>> effective_dof([1.0], [5])
+    5.0
+
+    """
     total = 0.0
     denom = 0.0
     for v, nu in zip(variances, dofs):
@@ -61,7 +120,27 @@ def effective_dof(variances, dofs) -> float:
 
 def tolerance_std(tolerance: float, source: str) -> float:
     """Standard uncertainty of a value known to ± ``tolerance`` from ``source``
-    (``datasheet``: limits, u = a/√3; ``measured``: 95 % expanded uncertainty, u = a/2)."""
+    (``datasheet``: limits, u = a/√3; ``measured``: 95 % expanded uncertainty, u = a/2).
+
+    Parameters
+    ----------
+    tolerance : the ± value.
+    source : ``datasheet`` or ``measured``.
+
+    Returns
+    -------
+    float
+
+    References
+    ----------
+    JCGM 100:2008, "Evaluation of measurement data — Guide to the expression of uncertainty in measurement" (GUM), 4.3.7
+
+    Examples
+    --------
+    >>> tolerance_std(2.0, "measured")
+    1.0
+
+    """
     try:
         return float(tolerance) / TOLERANCE_SOURCES[source]
     except KeyError:
@@ -73,7 +152,29 @@ def coverage_acceptance(trials: int, level: float = COVERAGE, alpha: float = 2e-
     """Two-sided binomial acceptance range for the number of intervals (out of ``trials``
     independent ones) that hold the truth when their true coverage is ``level``: a count
     outside [low, high] has probability <= ``alpha`` (half on each side). Intervals too
-    wide fall above it, too narrow below it."""
+    wide fall above it, too narrow below it.
+
+    Parameters
+    ----------
+    trials : independent intervals.
+    level : their nominal coverage.
+    alpha : two-sided risk.
+
+    Returns
+    -------
+    tuple of int
+        (low, high) counts.
+
+    References
+    ----------
+    JCGM 100:2008, "Evaluation of measurement data — Guide to the expression of uncertainty in measurement" (GUM)
+
+    Examples
+    --------
+    >>> low, high = coverage_acceptance(100); low < 95 < high
+    True
+
+    """
     low = int(stats.binom.ppf(alpha / 2, trials, level))
     high = int(stats.binom.isf(alpha / 2, trials, level))
     return low, high

@@ -88,12 +88,12 @@ def print_real(rows: list[dict]) -> dict:
     score: dict = {}
     for r in rows:
         cells = []
-        s = score.setdefault(r["form"], {"covered": 0, "total": 0, "emps_max_pct": 0.0})
+        s = score.setdefault(r["form"], {"covered": 0, "total": 0, "emps_max_pct": None})
         for (key, (v, h)), tv in zip(r["vals"].items(), r["truth"].values()):
             err, hw = 100 * (v / tv - 1), 100 * h / abs(tv)
             inside = abs(v - tv) <= h
             if r["data"].startswith("EMPS"):
-                s["emps_max_pct"] = max(s["emps_max_pct"], abs(err))
+                s["emps_max_pct"] = max(s["emps_max_pct"] or 0.0, abs(err))
             else:
                 s["covered"] += inside
                 s["total"] += 1

@@ -236,6 +236,8 @@ def _real_section() -> int:
     rows = _real.emps_rows() + _real.joint_rows()
     score = _real.print_real(rows)
     for form, s in score.items():
+        emps = ("n/a (EMPS recorded no command)" if s["emps_max_pct"] is None else
+                f"{s['emps_max_pct']:.2f} % (target {_real.EMPS_TARGET_PCT:g} %)")
         print(f"  {form:<7} robot joints: truth inside the 95 % interval {s['covered']}/{s['total']}; "
-              f"EMPS worst |error| {s['emps_max_pct']:.2f} % (target {_real.EMPS_TARGET_PCT:g} %)")
+              f"EMPS worst |error| {emps}")
     return 0

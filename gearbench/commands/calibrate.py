@@ -63,4 +63,6 @@ def run(args) -> int:
     print(f"Tc           {cal.Tc:.6g} N m")
     print(f"b2 unloaded  {f['b2_unloaded']:.6g} 1/(A s^2)   loaded {f['b2_loaded']:.6g}")
     print(f"fit          r2 of the acceleration {f['r2']:.6f}  condition {f['condition']:.3g}  samples {f['n_samples']}")
+    for w in f.get("warnings", []):
+        print(f"warning      {w}")
     return 0
