@@ -30,6 +30,11 @@ def add_arguments(p) -> None:
                    help="travel per motor revolution in the position unit (a linear axis's "
                         "screw lead, e.g. 0.0025 for 2.5 mm in m): lets a linear axis be "
                         "tested for cogging and ripple")
+    p.add_argument("--ratio", type=float, metavar="N",
+                   help="gear ratio, motor revolutions per load revolution: a position-"
+                        "dependent load torque (gravity, unbalance) is tested as order 1 of "
+                        "the load angle, distinct from cogging (motor-angle orders); not "
+                        "given: the position is taken as the load's angle")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--report", metavar="DIR", help="write PNG residual maps to DIR")
     p.add_argument("--rrd", metavar="FILE", help="log residuals to a Rerun .rrd file")
@@ -60,7 +65,7 @@ def run(args) -> int:
     trace = Trace.read(p)
     model = load_model(args.model) if args.model else None
     result = diagnose(trace, model, position_unit=args.position_unit,
-                      travel_per_rev=args.travel_per_rev)
+                      travel_per_rev=args.travel_per_rev, ratio=args.ratio)
     out = _jsonable(result.as_dict())
     if args.report:
         out["report"] = write_report(result, Path(args.report))
@@ -106,12 +111,25 @@ def _run_bench(args) -> int:
     return 0
 
 
+def _fmt(params: dict) -> str:
+    return ", ".join(f"{k}={val:.4g}" if isinstance(val, float) else f"{k}={val}"
+                     for k, val in params.items())
+
+
 def summary(d: dict, name: str) -> str:
+    """The diagnosis as text, speeds in the trace's own position unit per second."""
     fit, v = d["nominal"]["fit"], d["verdict"]
     par = d["nominal"]["params"]
-    lines = [f"{name}: nominal Kt/J = {par['kt_over_j']:.4g} 1/(A s^2), D/J = {par['d_over_j']:.4g} 1/s; "
-             f"held-out sim error {fit['sim_rms_rad_s']:.3g} rad/s vs noise floor "
-             f"{fit['noise_floor_rad_s']:.3g} rad/s ({fit['gap_ratio']:.2f}x)"]
+    u = fit.get("position_unit") or "rad"
+    lines = [f"{name}: nominal Kt/J = {par['kt_over_j']:.4g} {u}/(A s^2), D/J = "
+             f"{par['d_over_j']:.4g} 1/s; held-out sim error {fit['sim_rms_rad_s']:.3g} {u}/s "
+             f"vs noise floor {fit['noise_floor_rad_s']:.3g} {u}/s ({fit['gap_ratio']:.2f}x)"]
+    phys = d["nominal"].get("physical") or {}
+    for problem in phys.get("problems", []):
+        lines.append(f"NOMINAL NOT PHYSICAL: {problem}" if not phys.get("ok", True)
+                     else f"nominal: {problem}")
+    if phys.get("what_it_means"):
+        lines.append(f"  what it means: {phys['what_it_means']}")
     hot = [c for c in d["where"] if c["above_floor"]]
     if hot:
         hot.sort(key=lambda c: -c["ratio"])
@@ -124,15 +142,21 @@ def summary(d: dict, name: str) -> str:
         lines.append(f"{c['effect']:22s}{c['nrmse_before']:14.4g}{c['nrmse_after']:10.4g}"
                      f"{(c['shrink'] if c['shrink'] is not None else float('nan')):8.2f}"
                      f"{(c['delta_bic'] if c['delta_bic'] is not None else float('nan')):9.1f}"
-                     f"  {'yes' if c['significant'] else 'no ':3s}  {'yes' if c.get('testable') else 'no'}")
+                     f"  {'yes' if c['significant'] else 'no ':3s}  {'yes' if c.get('testable') else 'no'}"
+                     + (f"  not physical: {c['params']['not_physical']}"
+                        if c["params"].get("not_physical") else ""))
     if v["effect"]:
-        best = d["candidates"][0]
-        lines.append(f"verdict: {v['effect']} (shrink {best['shrink']:.0%}); params "
-                     + ", ".join(f"{k}={val:.4g}" if isinstance(val, float) else f"{k}={val}"
-                                 for k, val in best["params"].items()))
+        # the verdict's own effect: its final parameters from the chain, else its score
+        step = next((c for c in d.get("chain") or [] if c["effect"] == v["effect"]), None)
+        own = next((c for c in d["candidates"] if c["effect"] == v["effect"]), None)
+        shrink = step["shrink_heldout"] if step else own["shrink"]
+        params = (step.get("params_final") or step["params"]) if step else own["params"]
+        lines.append(f"verdict: {v['effect']} (shrink {shrink:.0%}); params " + _fmt(params))
         if v["confused_with"]:
             lines.append(f"  cannot be told apart here from: {', '.join(v['confused_with'])}")
             lines.append(f"  experiment: {v['experiment']}")
+    elif not phys.get("ok", True):
+        lines.append("verdict: refused — the nominal is not physical (see above)")
     elif v.get("experiment"):
         lines.append("verdict: none — a gap remains that no testable effect explains")
         lines.append(f"  {v['experiment']}")
@@ -147,7 +171,7 @@ def summary(d: dict, name: str) -> str:
                          f"{c['cumulative_shrink']:6.0%}  ({c['gap_ratio_after']:.2f}x floor after)"
                          + (f"  [added {c['added_at']}.]" if c.get("added_at", k) != k else "")
                          + (f"  [alike: {', '.join(c['confused_with'])}]" if c["confused_with"] else ""))
-        lines.append("  size (error reopened without it, held-out): " + ", ".join(
+        lines.append(f"  size (error reopened without it, held-out, {u}/s): " + ", ".join(
             f"{c['effect']} {c['drop_one_gap_rad_s']:.3g}" for c in
             sorted(chain, key=lambda c: c["size_rank"])))
     for x in d.get("dropped") or []:
@@ -155,7 +179,10 @@ def summary(d: dict, name: str) -> str:
     if rem:
         state = ("at the noise floor" if rem["at_noise_floor"] else
                  "UNKNOWN EFFECT: a significant gap that no candidate explains"
-                 if rem["unknown_effect"] else f"stopped ({rem['stopped']})")
+                 if rem["unknown_effect"] else
+                 f"stopped at the cap of {len(chain)} effects with a significant gap left"
+                 if rem["stopped"] == "max_steps" and rem.get("significant_gap") else
+                 f"stopped ({rem['stopped']})")
         lines.append(f"remaining: {rem['share_of_gap']:.0%} of the original gap, "
                      f"{rem['gap_ratio']:.2f}x the noise floor — {state}")
         if rem["where"] and not rem["at_noise_floor"]:

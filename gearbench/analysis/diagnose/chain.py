@@ -136,7 +136,7 @@ def nominal_sanity(params: dict, base: Base) -> dict:
 
 def diagnose(trace: Trace, model: GivenModel | None = None, *, chain: bool = True,
              max_chain: int = MAX_CHAIN, position_unit: str = "rad",
-             travel_per_rev: float | None = None) -> Diagnosis:
+             travel_per_rev: float | None = None, ratio: float | None = None) -> Diagnosis:
     """Diagnose one single-motor trace (columns position_rad, current_a).
 
     Parameters
@@ -155,6 +155,10 @@ def diagnose(trace: Trace, model: GivenModel | None = None, *, chain: bool = Tru
         Travel per motor revolution in that unit (a screw's lead): patterns per motor
         revolution (cogging, ripple, rotor-angle friction orders) are tested only where
         the motor angle is known from them.  Everything else is unit-free.
+    ratio : float, optional
+        Gear ratio, motor revolutions per load revolution: a position-dependent load
+        torque (gravity, unbalance) is order 1 of the load angle, cogging orders of the
+        motor angle.  Not given: the position is taken as the load's angle.
 
     Returns
     -------
@@ -180,7 +184,7 @@ def diagnose(trace: Trace, model: GivenModel | None = None, *, chain: bool = Tru
 
     A pure function of its inputs: every memo lives on this call's ``Signals``.
     """
-    sig = prepare(trace, angle_scale(position_unit, travel_per_rev))
+    sig = prepare(trace, angle_scale(position_unit, travel_per_rev), ratio)
     ctx, st = _nominal(_context(sig, model))
     nom, base, mse_nom, floor = st.model_all, st.base_all, st.mse, ctx.floor
     err_nom = simerror.simulate(sig, nom, ctx.starts, ctx.horizon)

@@ -67,6 +67,8 @@ MIN_TORQUE_REVERSALS = 4
 PREREQUISITE = ("backlash",)
 
 EXPERIMENTS = {
+    "load_torque": "move the load over at least a quarter of a revolution (state the "
+                   "position unit as an angle and the gear ratio, --ratio)",
     "presliding_friction": "add velocity reversals (slow ones show the friction build-up)",
     "coulomb_friction": "add velocity reversals or speed steps at different speeds "
                         "(Coulomb friction is a constant torque in one direction)",
@@ -258,6 +260,15 @@ def assess(sig: Signals, floor: NoiseFloor, win: Windows, horizon: int,
         put("torque_ripple", revs_i >= MIN_REVS,
             f"{revs_i:.1f} revolutions at |w| <= {w_slow_u:.3g} units/s with |i| >= "
             f"{RIPPLE_CURRENT_SNR:g}x the current noise ({RIPPLE_CURRENT_SNR * s_i * 1e3:.0f} mA)")
+
+    # a load torque (gravity, unbalance): the load angle must sweep far enough that
+    # sin and cos of it are not a constant and a ramp (the candidate's own grid)
+    k_load = (sig.rad_per_unit / (sig.load_ratio or 1.0)) if sig.rad_per_unit else 0.0
+    sweep = float(np.ptp(th)) * k_load
+    put("load_torque", sweep >= 0.5 * np.pi,
+        f"the load angle sweeps {sweep:.2f} rad (needs a quarter revolution, "
+        f"{0.5 * np.pi:.2f} rad; position unit and gear ratio as stated)"
+        if k_load else "the position is not a known angle")
 
     di = float(np.sqrt(np.mean(np.diff(i_s) ** 2)))
     need = 2 * s_i / np.sqrt(horizon)
