@@ -17,10 +17,17 @@ HELP = "diagnose the sim-to-real gap of a single-motor trace (where, which effec
 
 def add_arguments(p) -> None:
     p.add_argument("trace", metavar="TRACE", nargs="?", help="single-motor trace (.csv or "
-                   ".parquet) with time_s, position_rad, current_a")
+                   ".parquet) with time_s, position_rad, current_a — or a RUN_DIR written by "
+                   "'gearbench run': every step diagnosed (calibrations per motor, efficiency "
+                   "steps against the reducer model built from the run's calibrations)")
     p.add_argument("--bench", metavar="BENCH_TRACE",
                    help="diagnose a two-motor reducer bench trace instead (in_/out_ position "
                         "and current): where the simulated reducer and the bench disagree")
+    p.add_argument("--motor-in", metavar="IN.json",
+                   help="with --bench: the input motor's calibration (what 'gearbench "
+                        "calibrate --json' prints); the reducer is then fitted in N m")
+    p.add_argument("--motor-out", metavar="OUT.json",
+                   help="with --bench: the output motor's calibration")
     p.add_argument("--model", metavar="MODEL.json",
                    help='nominal model {"Kt":..,"J":..,"D":..} instead of identifying it on the trace')
     p.add_argument("--position-unit", default="rad", choices=("rad", "deg", "rev", "m", "mm", "um"),
@@ -61,7 +68,7 @@ def run(args) -> int:
         raise TraceError("give a TRACE to diagnose (or --bench BENCH_TRACE for a reducer bench)")
     p = Path(args.trace)
     if p.is_dir():
-        raise TraceError(f"{p}: is a folder, not a trace file; pass a .csv or .parquet file")
+        return _run_dir(args, p)
     trace = Trace.read(p)
     model = load_model(args.model) if args.model else None
     result = diagnose(trace, model, position_unit=args.position_unit,
@@ -84,12 +91,27 @@ def _run_bench(args) -> int:
     p = Path(args.bench)
     if p.is_dir():
         raise TraceError(f"{p}: is a folder, not a trace file; pass a .csv or .parquet file")
-    d = _jsonable(diagnose_bench(Trace.read(p)).as_dict())
+    if bool(args.motor_in) != bool(args.motor_out):
+        raise TraceError("give both --motor-in and --motor-out (each motor's calibration), "
+                         "or neither")
+    cal_in = _calibration(args.motor_in) if args.motor_in else None
+    cal_out = _calibration(args.motor_out) if args.motor_out else None
+    d = _jsonable(diagnose_bench(Trace.read(p), motor_in=cal_in, motor_out=cal_out).as_dict())
     if args.json:
         print(json.dumps(d, indent=1))
         return 0
     lines = [f"{p}: simulated reducer (constant efficiency, ideal ratio "
-             f"{d['nominal']['noise']['ratio_estimate']:.4g}, Coulomb + viscous drag) vs bench"]
+             f"{d['nominal']['noise']['ratio_estimate']:.4g}, Coulomb + viscous drag) vs bench; "
+             f"torques in {d['nominal']['noise'].get('torque_unit', 'A')}"
+             + ("" if cal_in else " (no motor calibrations: the motors' own losses are in "
+                "the nominal)")]
+    phys = d["nominal"].get("physical") or {}
+    eff = ", ".join(f"{k} {phys[k]:.3f}" for k in ("efficiency_forward", "efficiency_backward")
+                    if phys.get(k) is not None)
+    if eff:
+        lines.append(f"  implied {eff}")
+    for problem in phys.get("problems", []):
+        lines.append(f"  NOT PHYSICAL: {problem}")
     for rel in ("kinematics", "torque"):
         n = d["nominal"][rel]
         lines.append(f"  {rel}: held-out rms {n['rms']:.3g} vs noise floor {n['noise_floor']:.3g} "
@@ -256,6 +278,92 @@ def write_rrd(result, path: Path) -> str:
     rec.send_columns("diagnose/equation_error_rad_s2",
                      indexes=[rr.TimeColumn("time", duration=maps["ee_time_s"])],
                      columns=rr.Scalars.columns(scalars=maps["equation_error"]))
+    rec.flush()
+    rec.disconnect()
+    return str(path)
+
+
+def _calibration(path: str) -> dict:
+    from ..analysis.diagnose.reducer import calibration
+
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text())
+    except FileNotFoundError:
+        raise TraceError(f"{p}: calibration file not found; give what 'gearbench calibrate "
+                         f"--json' printed") from None
+    except (OSError, json.JSONDecodeError) as exc:
+        raise TraceError(f"{p}: not valid JSON ({exc})") from None
+    return calibration(data, str(p))
+
+
+def _run_dir(args, folder: Path) -> int:
+    """``gearbench diagnose RUN_DIR``: every step of a finished run."""
+    from ..analysis.diagnose.runs import diagnose_run
+    from ..recorder import load_step_trace
+
+    res = folder / "result.json"
+    try:
+        result = json.loads(res.read_text())
+    except FileNotFoundError:
+        raise TraceError(f"{folder}: no result.json; give the output folder of a "
+                         f"'gearbench run' (or a trace file)") from None
+    except (OSError, json.JSONDecodeError) as exc:
+        raise TraceError(f"{res}: unreadable ({exc})") from None
+    files = {q.stem[len("trace-"):]: q for q in sorted(folder.glob("trace-*.arrows"))}
+    files.update({q.stem[len("trace-"):]: q for q in sorted(folder.glob("trace-*.parquet"))})
+    if not files:
+        raise TraceError(f"{folder}: no trace-*.parquet; record the run with traces")
+    steps = {}
+    for name, q in files.items():
+        try:
+            steps[name] = load_step_trace(q)
+        except Exception as exc:    # a damaged trace must not hide the rest of the run
+            print(f"{q}: unreadable ({exc}); skipped")
+    run = diagnose_run(steps, result, ratio=args.ratio)
+    out = _jsonable({"run_dir": str(folder), **run})
+    if args.rrd:
+        out["rrd"] = _run_rrd(run, Path(args.rrd))
+    if args.json:
+        print(json.dumps(out, indent=1))
+        return 0
+    lines = [f"{folder}: {len(run['steps'])} traces diagnosed"]
+    for e in run["steps"]:
+        state = ("at the noise floor" if e["at_noise_floor"] else
+                 "UNKNOWN EFFECT" if e["unknown_effect"] else "above the floor")
+        lines.append(f"  {e['step']:28s} {e['motor']:8s} {e['kind']:5s} nominal "
+                     f"{e['gap_ratio_nominal']:7.2f}x -> "
+                     + (", ".join(f"{c['effect']} {c['shrink_heldout']:.0%}"
+                                  + (f" [alike: {', '.join(c['confused_with'])}]"
+                                     if c["confused_with"] else "") for c in e["chain"])
+                        or "no effect")
+                     + f" -> {e['gap_ratio_after']:.2f}x ({state})")
+        phys = e.get("physical") or {}
+        for problem in phys.get("problems", []):
+            lines.append(f"      NOT PHYSICAL: {problem}")
+    for x in run["skipped"]:
+        lines.append(f"  skipped {x.get('step')} {x.get('motor', '')}: {x['why']}")
+    if run["worst_gap_ratio"] is not None:
+        lines.append(f"worst remainder {run['worst_gap_ratio']:.2f}x the noise floor; unknown "
+                     f"effects: {', '.join(run['unknown_effects']) or 'none'}")
+    print("\n".join(lines))
+    return 0
+
+
+def _run_rrd(run: dict, path: Path) -> str:
+    """Each diagnosed single-motor step's held-out error and floor in one recording."""
+    import rerun as rr
+
+    rec = rr.RecordingStream("gearbench_diagnose_run")
+    try:
+        rec.save(str(path))
+    except Exception as exc:  # rerun raises its own error types for bad paths
+        raise GearbenchError(f"{path}: cannot write Rerun file ({exc}); choose a writable --rrd FILE") from None
+    for e in run["steps"]:
+        base = f"diagnose/{e['step']}/{e['motor']}".replace(">", "")
+        rec.log(f"{base}/gap_ratio", rr.Scalars([e["gap_ratio_after"]]), static=True)
+        rec.log(f"{base}/summary", rr.TextDocument(
+            ", ".join(c["effect"] for c in e["chain"]) or "no effect"), static=True)
     rec.flush()
     rec.disconnect()
     return str(path)

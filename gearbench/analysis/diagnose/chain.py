@@ -78,9 +78,11 @@ def _nominal(ctx: Context):
         c_folds = _refined(ctx, [fit_model(sig, spring_base.terms(), w)[0] for w in ctx.wins])
         mse_c = held_out(ctx, c_folds)
         s = vd.score("spring", {}, mse_nom, mse_c, 1, ctx.floor.mse, ctx.v_rms, overlap=ctx.ov)
-        if s.significant:
-            base, nom_folds, mse_nom = spring_base, c_folds, mse_c
-            nom, _ = fit_model(sig, base.terms(), ctx.win_all)
+        c_nom, _ = fit_model(sig, spring_base.terms(), ctx.win_all)
+        # a spring to ground pulls back (C > 0); a negative one stood in for something
+        # else on EMPS (C/J = -0.22 kept as "the paper's spring")
+        if s.significant and physical(c_nom)["c_over_j"] > 0:
+            base, nom_folds, mse_nom, nom = spring_base, c_folds, mse_c, c_nom
         # the current's hold fraction as simulation error chose it per fold (refine),
         # then held: candidates fitted by equation error with free taps misjudged it
         bases = [replace(base, hold=hold_fraction(m)) for m in nom_folds]
