@@ -337,6 +337,36 @@ def _physical_nominal(params: dict, s: _Sig, brake_share: float) -> dict:
     return {**out, "ok": not problems, "problems": problems}
 
 
+def _score(s: _Sig, state: dict, cand: _Cand):
+    """One candidate added to its relation's current model: its best grid setting by
+    held-out error, scored (significant only if testable and physical)."""
+    st, f = state[cand.relation], s.floor[cand.relation]
+    y = _nominal(s, cand.relation)[0]
+    best = None
+    for hp in cand.grid(s):
+        E = cand.cols(s, hp)
+        X = np.column_stack([st["X"], E])
+        r, c = _held_out(y, X, s.blocks)
+        mse = _block_mse(r, s.blocks)
+        if best is None or mse.mean() < best[0].mean():
+            best = (mse, hp, E, c)
+    mse, hp, E, c = best
+    why_not = cand.inadmissible(c[-E.shape[1]:], s, hp)
+    params = cand.describe(c[-E.shape[1]:], s, hp)
+    if why_not:
+        params["not_physical"] = why_not
+    sc = vd.score(cand.name, params, st["mse"], mse,
+                  E.shape[1] + (len(cand.grid(s)) > 1), f, 1.0)
+    u = _unique_share(st["X"], E)
+    testable = u >= U_MIN
+    sc = vd.Score(**{**sc.__dict__, "significant": bool(sc.significant and testable
+                                                        and not why_not),
+                     "testable": testable,
+                     "why": f"{u:.0%} of the candidate's columns unique against the "
+                            f"model's (needs {U_MIN:.0%})"})
+    return sc, E
+
+
 def diagnose_bench(trace: Trace, max_chain: int = MAX_CHAIN, motor_in: dict | None = None,
                    motor_out: dict | None = None) -> BenchDiagnosis:
     """Diagnose a two-motor reducer bench trace against the simulated reducer.
@@ -375,35 +405,7 @@ def diagnose_bench(trace: Trace, max_chain: int = MAX_CHAIN, motor_in: dict | No
     chain, first = [], None
     chosen: set[str] = set()
     for step in range(max_chain):
-        scores = []
-        for cand in CANDIDATES:
-            if cand.name in chosen:
-                continue
-            st, f = state[cand.relation], s.floor[cand.relation]
-            y = _nominal(s, cand.relation)[0]
-            best = None
-            for hp in cand.grid(s):
-                E = cand.cols(s, hp)
-                X = np.column_stack([st["X"], E])
-                r, c = _held_out(y, X, s.blocks)
-                mse = _block_mse(r, s.blocks)
-                if best is None or mse.mean() < best[0].mean():
-                    best = (mse, hp, E, c)
-            mse, hp, E, c = best
-            why_not = cand.inadmissible(c[-E.shape[1]:], s, hp)
-            params = cand.describe(c[-E.shape[1]:], s, hp)
-            if why_not:
-                params["not_physical"] = why_not
-            sc = vd.score(cand.name, params, st["mse"], mse,
-                          E.shape[1] + (len(cand.grid(s)) > 1), f, 1.0)
-            u = _unique_share(st["X"], E)
-            testable = u >= U_MIN
-            sc = vd.Score(**{**sc.__dict__, "significant": bool(sc.significant and testable
-                                                                and not why_not),
-                             "testable": testable,
-                             "why": f"{u:.0%} of the candidate's columns unique against the "
-                                    f"model's (needs {U_MIN:.0%})"})
-            scores.append((sc, E))
+        scores = [_score(s, state, cand) for cand in CANDIDATES if cand.name not in chosen]
         ranked = sorted(scores, key=lambda p: (not p[0].significant, p[0].delta_bic))
         if first is None:
             first = [dict(p[0].as_dict(), relation=next(c.relation for c in CANDIDATES

@@ -175,7 +175,7 @@ def _bandwidth_hz(sig: Signals, noise_a: float) -> float:
 def assess(sig: Signals, floor: NoiseFloor, win: Windows, horizon: int,
            given_model: bool) -> dict[str, Testability]:
     """Testability of every effect in the library on this trace (see module doc)."""
-    n, dt = len(sig), sig.dt_s
+    n = len(sig)
     w, th = sig.velocity_rad_s, sig.position_rad
     s_i, s_w = floor.current_noise_a, floor.velocity_noise_rad_s
     # current noise and the loop's reaction to it smoothed away over a horizon (the
@@ -234,6 +234,100 @@ def assess(sig: Signals, floor: NoiseFloor, win: Windows, horizon: int,
         f"{n_rev} velocity reversals; friction varying along the travel "
         + unique(u_pos, p_pos))
 
+    out.update(_angles(sig, i_s, s_i))
+
+    di = float(np.sqrt(np.mean(np.diff(i_s) ** 2)))
+    need = 2 * s_i / np.sqrt(horizon)
+    put("time_delay", di >= need,
+        f"current changes {di * 1e3:.2g} mA per sample (rms) vs {need * 1e3:.2g} mA of "
+        f"current noise left over a horizon")
+
+    i99 = float(np.percentile(np.abs(i_s), 99))
+    u_cub, p_cub = _unique_share(sig, win, basis, i_s ** 3)
+    # a cubic term peaks with the current, so its spread is naturally low: not required
+    put("kt_saturation", i99 >= SAT_CURRENT_SNR * s_i and u_cub >= U_MIN,
+        f"current up to {i99:.3g} A ({i99 / max(s_i, 1e-12):.0f}x its noise, needs "
+        f"{SAT_CURRENT_SNR:g}x); a cubic term is {u_cub:.0%} unique against the nominal's "
+        f"regressors")
+
+    out.update(_mechanical(sig, win, basis_c, floor, s_i, s_w))
+    out.update(_sensing(sig, floor, given_model))
+    return out
+
+
+def _mechanical(sig: Signals, win: Windows, basis_c: np.ndarray, floor: NoiseFloor,
+                s_i: float, s_w: float) -> dict[str, Testability]:
+    """Shaft compliance and backlash (see the module doc)."""
+    n, dt, th, w = len(sig), sig.dt_s, sig.position_rad, sig.velocity_rad_s
+    out: dict[str, Testability] = {}
+    # A two-mass resonance shows well below its frequency: the disk lags the motor by
+    # ~acc/w_d^2, so the coupling torque is the disk's inertia (absorbed by Kt/J) plus
+    # r th^(4)/w_d^2 (r = J_disk/J), whose velocity error over a horizon is ~r jerk/w_d^2.
+    # Testable when, for a disk as large as the motor (r = 1) at the lowest plausible
+    # resonance, the part of that jerk signature no nominal regressor mimics reaches the
+    # noise floor — checked against injected two-mass cases (a 0.3-6 Hz multisine
+    # reveals 16-60 Hz shafts there), unlike the former rule "excitation bandwidth must
+    # reach the resonance", which hid them.  min_amplitude: the highest resonance
+    # (mildest shaft, r = 1) this trace still shows.
+    jerk = savgol_filter(th, min(51, n - (1 - n % 2)), 3, deriv=3, delta=dt)
+    u_j, p_j = _unique_share(sig, win, basis_c, jerk)
+    sig_rms = u_j * float(np.sqrt(np.mean(jerk ** 2)))
+    f_top = float(np.sqrt(sig_rms / (SHAFT_SNR * np.sqrt(floor.mse))) / (2 * np.pi))
+    fbw = _bandwidth_hz(sig, s_i)
+    ok = f_top >= F_SHAFT_MIN and p_j >= MIN_SPREAD
+    out["shaft_compliance"] = Testability(
+        ok, f"a two-mass resonance shows below its frequency through the jerk: here up to "
+            f"~{f_top:.0f} Hz for a disk as large as the motor (needs {F_SHAFT_MIN:g} Hz; jerk "
+            f"{u_j:.0%} unique against the nominal's regressors, spread {p_j:.2f}; current "
+            f"excited up to {fbw:.1f} Hz)",
+        None if ok else EXPERIMENTS["shaft_compliance"], {"highest_resonance_hz": f_top})
+
+    acc = savgol_filter(w, min(51, n - (1 - n % 2)), 2, deriv=1, delta=dt)
+    a_band = 5 * s_w / (25 * dt)
+    n_trev = _reversals(acc, a_band)
+    g_min = _smallest_gap(acc, n_trev, n * dt, floor.mse, dt)
+    out["backlash"] = Testability(
+        n_trev >= MIN_TORQUE_REVERSALS,
+        f"{n_trev} torque (acceleration) reversals (needs {MIN_TORQUE_REVERSALS}); "
+        f"smallest gap that shows above the floor ~{g_min:.2g} rad",
+        None if n_trev >= MIN_TORQUE_REVERSALS else EXPERIMENTS["backlash"],
+        {"gap_rad": g_min})
+
+    return out
+
+
+def _sensing(sig: Signals, floor: NoiseFloor, given_model: bool) -> dict[str, Testability]:
+    """Encoder quantisation and inertia mismatch (see the module doc)."""
+    dt, th = sig.dt_s, sig.position_rad
+    out: dict[str, Testability] = {}
+
+    def put(name, ok, why):
+        out[name] = Testability(bool(ok), why, None if ok else EXPERIMENTS[name])
+
+    q = lattice_step(th)
+    if q:
+        qn = np.sqrt(end_noise_var(q / np.sqrt(12), dt))
+        put("encoder_quantization", qn ** 2 >= 0.1 * floor.mse,
+            f"angles on a lattice of {q:.3g} rad ({2 * np.pi / q:.0f} counts/rev): "
+            f"quantisation noise {qn:.3g} rad/s vs floor {np.sqrt(floor.mse):.3g} rad/s")
+    else:
+        put("encoder_quantization", False, "angles are not on a lattice (interpolated or "
+            "filtered positions): the encoder step cannot be checked")
+
+    put("inertia_mismatch", given_model,
+        "against the given model" if given_model else
+        "no model given: the nominal identified on this trace absorbs any inertia")
+    return out
+
+
+def _angles(sig: Signals, i_s: np.ndarray, s_i: float) -> dict[str, Testability]:
+    """Cogging, torque ripple (motor-angle orders) and the load torque (load angle)."""
+    dt, th, w = sig.dt_s, sig.position_rad, sig.velocity_rad_s
+    out: dict[str, Testability] = {}
+
+    def put(name, ok, why):
+        out[name] = Testability(bool(ok), why, None if ok else EXPERIMENTS[name])
+
     # angle covered where the order-6 pattern is at most fs/20 (>= 20 samples/period);
     # in radians of rotor angle: orders are per revolution, so the position unit must
     # be known as an angle (or a lead given) — never assumed
@@ -270,64 +364,4 @@ def assess(sig: Signals, floor: NoiseFloor, win: Windows, horizon: int,
         f"{0.5 * np.pi:.2f} rad; position unit and gear ratio as stated)"
         if k_load else "the position is not a known angle")
 
-    di = float(np.sqrt(np.mean(np.diff(i_s) ** 2)))
-    need = 2 * s_i / np.sqrt(horizon)
-    put("time_delay", di >= need,
-        f"current changes {di * 1e3:.2g} mA per sample (rms) vs {need * 1e3:.2g} mA of "
-        f"current noise left over a horizon")
-
-    i99 = float(np.percentile(np.abs(i_s), 99))
-    u_cub, p_cub = _unique_share(sig, win, basis, i_s ** 3)
-    # a cubic term peaks with the current, so its spread is naturally low: not required
-    put("kt_saturation", i99 >= SAT_CURRENT_SNR * s_i and u_cub >= U_MIN,
-        f"current up to {i99:.3g} A ({i99 / max(s_i, 1e-12):.0f}x its noise, needs "
-        f"{SAT_CURRENT_SNR:g}x); a cubic term is {u_cub:.0%} unique against the nominal's "
-        f"regressors")
-
-    # A two-mass resonance shows well below its frequency: the disk lags the motor by
-    # ~acc/w_d^2, so the coupling torque is the disk's inertia (absorbed by Kt/J) plus
-    # r th^(4)/w_d^2 (r = J_disk/J), whose velocity error over a horizon is ~r jerk/w_d^2.
-    # Testable when, for a disk as large as the motor (r = 1) at the lowest plausible
-    # resonance, the part of that jerk signature no nominal regressor mimics reaches the
-    # noise floor — checked against injected two-mass cases (a 0.3-6 Hz multisine
-    # reveals 16-60 Hz shafts there), unlike the former rule "excitation bandwidth must
-    # reach the resonance", which hid them.  min_amplitude: the highest resonance
-    # (mildest shaft, r = 1) this trace still shows.
-    jerk = savgol_filter(th, min(51, n - (1 - n % 2)), 3, deriv=3, delta=dt)
-    u_j, p_j = _unique_share(sig, win, basis_c, jerk)
-    sig_rms = u_j * float(np.sqrt(np.mean(jerk ** 2)))
-    f_top = float(np.sqrt(sig_rms / (SHAFT_SNR * np.sqrt(floor.mse))) / (2 * np.pi))
-    fbw = _bandwidth_hz(sig, s_i)
-    ok = f_top >= F_SHAFT_MIN and p_j >= MIN_SPREAD
-    out["shaft_compliance"] = Testability(
-        ok, f"a two-mass resonance shows below its frequency through the jerk: here up to "
-            f"~{f_top:.0f} Hz for a disk as large as the motor (needs {F_SHAFT_MIN:g} Hz; jerk "
-            f"{u_j:.0%} unique against the nominal's regressors, spread {p_j:.2f}; current "
-            f"excited up to {fbw:.1f} Hz)",
-        None if ok else EXPERIMENTS["shaft_compliance"], {"highest_resonance_hz": f_top})
-
-    acc = savgol_filter(w, min(51, n - (1 - n % 2)), 2, deriv=1, delta=dt)
-    a_band = 5 * s_w / (25 * dt)
-    n_trev = _reversals(acc, a_band)
-    g_min = _smallest_gap(acc, n_trev, n * dt, floor.mse, dt)
-    out["backlash"] = Testability(
-        n_trev >= MIN_TORQUE_REVERSALS,
-        f"{n_trev} torque (acceleration) reversals (needs {MIN_TORQUE_REVERSALS}); "
-        f"smallest gap that shows above the floor ~{g_min:.2g} rad",
-        None if n_trev >= MIN_TORQUE_REVERSALS else EXPERIMENTS["backlash"],
-        {"gap_rad": g_min})
-
-    q = lattice_step(th)
-    if q:
-        qn = np.sqrt(end_noise_var(q / np.sqrt(12), dt))
-        put("encoder_quantization", qn ** 2 >= 0.1 * floor.mse,
-            f"angles on a lattice of {q:.3g} rad ({2 * np.pi / q:.0f} counts/rev): "
-            f"quantisation noise {qn:.3g} rad/s vs floor {np.sqrt(floor.mse):.3g} rad/s")
-    else:
-        put("encoder_quantization", False, "angles are not on a lattice (interpolated or "
-            "filtered positions): the encoder step cannot be checked")
-
-    put("inertia_mismatch", given_model,
-        "against the given model" if given_model else
-        "no model given: the nominal identified on this trace absorbs any inertia")
     return out
