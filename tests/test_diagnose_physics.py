@@ -151,3 +151,38 @@ def test_cli_bench_calibrations_must_come_in_pairs(tmp_path, capsys):
     cal.write_text(json.dumps({"Kt": 0.05, "J": 1e-5, "D": 1e-6, "Tc": 0.008}))
     assert main(["diagnose", "--bench", str(f), "--motor-in", str(cal)]) == 2
     assert "both --motor-in and --motor-out" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def sim_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("simrun") / "run"
+    assert main(["run", "profiles/cvt.yaml", "--sim", "--yes", "--out", str(out)]) in (0, 1)
+    return out
+
+
+@pytest.mark.slow
+def test_a_sim_run_diagnosed_whole_without_non_physical_numbers(sim_run, capsys):
+    capsys.readouterr()
+    assert main(["diagnose", str(sim_run), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    kinds = {e["kind"] for e in d["steps"]}
+    assert kinds == {"motor", "bench"}
+    for e in d["steps"]:
+        if e["kind"] == "motor":
+            p = e["diagnosis"]["nominal"]["params"]
+            assert p["kt_over_j"] > 0 and p["d_over_j"] >= 0 and p["c_over_j"] >= 0
+        else:
+            assert e["calibrated"]
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="issue 24 deliverable 4 not met yet: the disk "
+                   "calibration traces stay 31-40x the floor (gap at reversals and near "
+                   "zero speed: the emulator's current-loop and setpoint effects are not "
+                   "candidates yet)")
+def test_every_step_of_a_sim_run_diagnoses_to_the_floor(sim_run):
+    from gearbench.recorder import load_step_trace
+
+    steps = {q.stem[len("trace-"):]: load_step_trace(q) for q in sim_run.glob("trace-*.parquet")}
+    run = diagnose_run(steps, json.loads((sim_run / "result.json").read_text()))
+    assert all(e["gap_ratio_after"] <= 1.5 for e in run["steps"])
