@@ -133,6 +133,11 @@ def _run_bench(args) -> int:
     return 0
 
 
+def _label(text: str, unit: str) -> str:
+    """A where-cell label in the trace's position unit (cells say ``units``)."""
+    return text.replace("units/s", f"{unit}/s")
+
+
 def _fmt(params: dict) -> str:
     return ", ".join(f"{k}={val:.4g}" if isinstance(val, float) else f"{k}={val}"
                      for k, val in params.items())
@@ -155,8 +160,8 @@ def summary(d: dict, name: str) -> str:
     hot = [c for c in d["where"] if c["above_floor"]]
     if hot:
         hot.sort(key=lambda c: -c["ratio"])
-        lines.append("where: " + "; ".join(f"{c['dimension']} {c['label']} {c['ratio']:.1f}x"
-                                           for c in hot[:6]))
+        lines.append("where: " + "; ".join(f"{c['dimension']} {_label(c['label'], u)} "
+                                           f"{c['ratio']:.1f}x" for c in hot[:6]))
     else:
         lines.append("where: no cell above 1.5x its noise floor")
     lines.append(f"{'effect':22s}{'nrmse before':>14s}{'after':>10s}{'shrink':>8s}{'dBIC':>9s}  sig  testable")
@@ -208,8 +213,8 @@ def summary(d: dict, name: str) -> str:
         lines.append(f"remaining: {rem['share_of_gap']:.0%} of the original gap, "
                      f"{rem['gap_ratio']:.2f}x the noise floor — {state}")
         if rem["where"] and not rem["at_noise_floor"]:
-            lines.append("  where: " + "; ".join(f"{c['dimension']} {c['label']} {c['ratio']:.1f}x"
-                                                 for c in rem["where"][:5]))
+            lines.append("  where: " + "; ".join(f"{c['dimension']} {_label(c['label'], u)} "
+                                                 f"{c['ratio']:.1f}x" for c in rem["where"][:5]))
     if v.get("untestable"):
         lines.append(f"not testable on this trace: {', '.join(v['untestable'])}")
     return "\n".join(lines)
