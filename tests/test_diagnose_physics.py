@@ -186,3 +186,15 @@ def test_every_step_of_a_sim_run_diagnoses_to_the_floor(sim_run):
     steps = {q.stem[len("trace-"):]: load_step_trace(q) for q in sim_run.glob("trace-*.parquet")}
     run = diagnose_run(steps, json.loads((sim_run / "result.json").read_text()))
     assert all(e["gap_ratio_after"] <= 1.5 for e in run["steps"])
+
+
+@pytest.mark.parametrize("model,field", [({"Kt": -0.05, "J": 1e-5, "D": 0.0}, "Kt/J"),
+                                         ({"Kt": 0.05, "J": 1e-5, "D": -1e-6}, "D and C")])
+def test_a_non_physical_given_model_is_refused(tmp_path, model, field):
+    from gearbench.analysis.diagnose import load_model
+    from gearbench.errors import ProfileError
+
+    f = tmp_path / "m.json"
+    f.write_text(json.dumps(model))
+    with pytest.raises(ProfileError, match=field):
+        load_model(f)

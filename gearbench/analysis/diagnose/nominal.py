@@ -506,18 +506,26 @@ def load_model(path: str | Path) -> GivenModel:
         raise ProfileError(f"{p}: expected a JSON object with Kt, J, D")
     try:
         if "kt_over_j" in data:
-            return GivenModel(float(data["kt_over_j"]), float(data.get("d_over_j", 0.0)),
-                              float(data.get("c_over_j", 0.0)), str(p))
-        J = float(data["J"])
-        if J <= 0:
-            raise ProfileError(f"{p}: field 'J' must be > 0 (kg m^2)")
-        return GivenModel(float(data["Kt"]) / J, float(data.get("D", 0.0)) / J,
-                          float(data.get("C", 0.0)) / J, str(p))
+            g = GivenModel(float(data["kt_over_j"]), float(data.get("d_over_j", 0.0)),
+                           float(data.get("c_over_j", 0.0)), str(p))
+        else:
+            J = float(data["J"])
+            if J <= 0:
+                raise ProfileError(f"{p}: field 'J' must be > 0 (kg m^2)")
+            g = GivenModel(float(data["Kt"]) / J, float(data.get("D", 0.0)) / J,
+                           float(data.get("C", 0.0)) / J, str(p))
     except KeyError as exc:
         raise ProfileError(f"{p}: missing field {exc}; give Kt (N m/A), J (kg m^2) and D "
                            f"(N m s/rad), or kt_over_j and d_over_j") from None
     except (TypeError, ValueError):
         raise ProfileError(f"{p}: Kt, J, D must be numbers") from None
+    # a non-physical model is refused, never used silently (issue 24)
+    if not g.kt_over_j > 0:
+        raise ProfileError(f"{p}: Kt/J = {g.kt_over_j:.4g} must be > 0 (Kt > 0, J > 0)")
+    if g.d_over_j < 0 or g.c_over_j < 0:
+        raise ProfileError(f"{p}: D and C must be >= 0 (got D/J = {g.d_over_j:.4g}, "
+                           f"C/J = {g.c_over_j:.4g})")
+    return g
 
 
 def kt_over_j(model: Model) -> float:
