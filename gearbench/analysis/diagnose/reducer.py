@@ -334,7 +334,17 @@ def _physical_nominal(params: dict, s: _Sig, brake_share: float) -> dict:
             problems.append(f"{k} {out[k]:.3f} outside (0, 1]")
     if params["load_ratio_braking"] <= 0 or params["load_ratio_driving"] < 0:
         problems.append("a negative load ratio (the load would help the input)")
-    if params["drag_a"] < 0:
+    w_top = max(float(np.percentile(np.abs(s.w_in), 99.5)), 1e-300)
+    if abs(float(np.mean(np.tanh(s.w_in / (0.01 * w_top))))) > 0.99:
+        # the input never reverses: its Coulomb drag and a current offset are one
+        # column (the fit splits them evenly); only their sum is measured
+        out["drag_plus_offset"] = params["drag_a"] + params["offset_a"]
+        out["note"] = ("the input turns one way only: drag and offset are one column, "
+                       "their sum is the drag; reverse the input to separate them")
+        drag = out["drag_plus_offset"]
+    else:
+        drag = params["drag_a"]
+    if drag < 0:
         problems.append("negative drag")
     return {**out, "ok": not problems, "problems": problems}
 
