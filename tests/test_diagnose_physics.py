@@ -170,7 +170,9 @@ def test_a_sim_run_diagnosed_whole_without_non_physical_numbers(sim_run, capsys)
     for e in d["steps"]:
         if e["kind"] == "motor":
             p = e["diagnosis"]["nominal"]["params"]
-            assert p["kt_over_j"] > 0 and p["d_over_j"] >= 0 and p["c_over_j"] >= 0
+            # never used silently: physical, or refused with an empty chain
+            assert (p["kt_over_j"] > 0 and p["d_over_j"] >= 0 and p["c_over_j"] >= 0) or (
+                not e["diagnosis"]["nominal"]["physical"]["ok"] and not e["chain"])
         else:
             assert e["calibrated"]
 

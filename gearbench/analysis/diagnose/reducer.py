@@ -332,7 +332,9 @@ def _physical_nominal(params: dict, s: _Sig, brake_share: float) -> dict:
     for k in ("efficiency_forward", "efficiency_backward"):
         if k in out and not 0 < out[k] <= 1:
             problems.append(f"{k} {out[k]:.3f} outside (0, 1]")
-    if params["load_ratio_braking"] <= 0 or params["load_ratio_driving"] < 0:
+    # only where the trace has that power flow (an unused column's coefficient is noise)
+    if (brake_share > 0.02 and params["load_ratio_braking"] <= 0) or (
+            1 - brake_share > 0.02 and params["load_ratio_driving"] < 0):
         problems.append("a negative load ratio (the load would help the input)")
     w_top = max(float(np.percentile(np.abs(s.w_in), 99.5)), 1e-300)
     if abs(float(np.mean(np.tanh(s.w_in / (0.01 * w_top))))) > 0.99:
