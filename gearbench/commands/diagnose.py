@@ -17,10 +17,17 @@ HELP = "diagnose the sim-to-real gap of a single-motor trace (where, which effec
 
 def add_arguments(p) -> None:
     p.add_argument("trace", metavar="TRACE", nargs="?", help="single-motor trace (.csv or "
-                   ".parquet) with time_s, position_rad, current_a")
+                   ".parquet) with time_s, position_rad, current_a — or a RUN_DIR written by "
+                   "'gearbench run': every step diagnosed (calibrations per motor, efficiency "
+                   "steps against the reducer model built from the run's calibrations)")
     p.add_argument("--bench", metavar="BENCH_TRACE",
                    help="diagnose a two-motor reducer bench trace instead (in_/out_ position "
                         "and current): where the simulated reducer and the bench disagree")
+    p.add_argument("--motor-in", metavar="IN.json",
+                   help="with --bench: the input motor's calibration (what 'gearbench "
+                        "calibrate --json' prints); the reducer is then fitted in N m")
+    p.add_argument("--motor-out", metavar="OUT.json",
+                   help="with --bench: the output motor's calibration")
     p.add_argument("--model", metavar="MODEL.json",
                    help='nominal model {"Kt":..,"J":..,"D":..} instead of identifying it on the trace')
     p.add_argument("--position-unit", default="rad", choices=("rad", "deg", "rev", "m", "mm", "um"),
@@ -30,6 +37,11 @@ def add_arguments(p) -> None:
                    help="travel per motor revolution in the position unit (a linear axis's "
                         "screw lead, e.g. 0.0025 for 2.5 mm in m): lets a linear axis be "
                         "tested for cogging and ripple")
+    p.add_argument("--ratio", type=float, metavar="N",
+                   help="gear ratio, motor revolutions per load revolution: a position-"
+                        "dependent load torque (gravity, unbalance) is tested as order 1 of "
+                        "the load angle, distinct from cogging (motor-angle orders); not "
+                        "given: the position is taken as the load's angle")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--report", metavar="DIR", help="write PNG residual maps to DIR")
     p.add_argument("--rrd", metavar="FILE", help="log residuals to a Rerun .rrd file")
@@ -56,11 +68,11 @@ def run(args) -> int:
         raise TraceError("give a TRACE to diagnose (or --bench BENCH_TRACE for a reducer bench)")
     p = Path(args.trace)
     if p.is_dir():
-        raise TraceError(f"{p}: is a folder, not a trace file; pass a .csv or .parquet file")
+        return _run_dir(args, p)
     trace = Trace.read(p)
     model = load_model(args.model) if args.model else None
     result = diagnose(trace, model, position_unit=args.position_unit,
-                      travel_per_rev=args.travel_per_rev)
+                      travel_per_rev=args.travel_per_rev, ratio=args.ratio)
     out = _jsonable(result.as_dict())
     if args.report:
         out["report"] = write_report(result, Path(args.report))
@@ -79,12 +91,27 @@ def _run_bench(args) -> int:
     p = Path(args.bench)
     if p.is_dir():
         raise TraceError(f"{p}: is a folder, not a trace file; pass a .csv or .parquet file")
-    d = _jsonable(diagnose_bench(Trace.read(p)).as_dict())
+    if bool(args.motor_in) != bool(args.motor_out):
+        raise TraceError("give both --motor-in and --motor-out (each motor's calibration), "
+                         "or neither")
+    cal_in = _calibration(args.motor_in) if args.motor_in else None
+    cal_out = _calibration(args.motor_out) if args.motor_out else None
+    d = _jsonable(diagnose_bench(Trace.read(p), motor_in=cal_in, motor_out=cal_out).as_dict())
     if args.json:
         print(json.dumps(d, indent=1))
         return 0
     lines = [f"{p}: simulated reducer (constant efficiency, ideal ratio "
-             f"{d['nominal']['noise']['ratio_estimate']:.4g}, Coulomb + viscous drag) vs bench"]
+             f"{d['nominal']['noise']['ratio_estimate']:.4g}, Coulomb + viscous drag) vs bench; "
+             f"torques in {d['nominal']['noise'].get('torque_unit', 'A')}"
+             + ("" if cal_in else " (no motor calibrations: the motors' own losses are in "
+                "the nominal)")]
+    phys = d["nominal"].get("physical") or {}
+    eff = ", ".join(f"{k} {phys[k]:.3f}" for k in ("efficiency_forward", "efficiency_backward")
+                    if phys.get(k) is not None)
+    if eff:
+        lines.append(f"  implied {eff}")
+    for problem in phys.get("problems", []):
+        lines.append(f"  NOT PHYSICAL: {problem}")
     for rel in ("kinematics", "torque"):
         n = d["nominal"][rel]
         lines.append(f"  {rel}: held-out rms {n['rms']:.3g} vs noise floor {n['noise_floor']:.3g} "
@@ -106,17 +133,35 @@ def _run_bench(args) -> int:
     return 0
 
 
+def _label(text: str, unit: str) -> str:
+    """A where-cell label in the trace's position unit (cells say ``units``)."""
+    return text.replace("units/s", f"{unit}/s")
+
+
+def _fmt(params: dict) -> str:
+    return ", ".join(f"{k}={val:.4g}" if isinstance(val, float) else f"{k}={val}"
+                     for k, val in params.items())
+
+
 def summary(d: dict, name: str) -> str:
+    """The diagnosis as text, speeds in the trace's own position unit per second."""
     fit, v = d["nominal"]["fit"], d["verdict"]
     par = d["nominal"]["params"]
-    lines = [f"{name}: nominal Kt/J = {par['kt_over_j']:.4g} 1/(A s^2), D/J = {par['d_over_j']:.4g} 1/s; "
-             f"held-out sim error {fit['sim_rms_rad_s']:.3g} rad/s vs noise floor "
-             f"{fit['noise_floor_rad_s']:.3g} rad/s ({fit['gap_ratio']:.2f}x)"]
+    u = fit.get("position_unit") or "rad"
+    lines = [f"{name}: nominal Kt/J = {par['kt_over_j']:.4g} {u}/(A s^2), D/J = "
+             f"{par['d_over_j']:.4g} 1/s; held-out sim error {fit['sim_rms_rad_s']:.3g} {u}/s "
+             f"vs noise floor {fit['noise_floor_rad_s']:.3g} {u}/s ({fit['gap_ratio']:.2f}x)"]
+    phys = d["nominal"].get("physical") or {}
+    for problem in phys.get("problems", []):
+        lines.append(f"NOMINAL NOT PHYSICAL: {problem}" if not phys.get("ok", True)
+                     else f"nominal: {problem}")
+    if phys.get("what_it_means"):
+        lines.append(f"  what it means: {phys['what_it_means']}")
     hot = [c for c in d["where"] if c["above_floor"]]
     if hot:
         hot.sort(key=lambda c: -c["ratio"])
-        lines.append("where: " + "; ".join(f"{c['dimension']} {c['label']} {c['ratio']:.1f}x"
-                                           for c in hot[:6]))
+        lines.append("where: " + "; ".join(f"{c['dimension']} {_label(c['label'], u)} "
+                                           f"{c['ratio']:.1f}x" for c in hot[:6]))
     else:
         lines.append("where: no cell above 1.5x its noise floor")
     lines.append(f"{'effect':22s}{'nrmse before':>14s}{'after':>10s}{'shrink':>8s}{'dBIC':>9s}  sig  testable")
@@ -124,15 +169,21 @@ def summary(d: dict, name: str) -> str:
         lines.append(f"{c['effect']:22s}{c['nrmse_before']:14.4g}{c['nrmse_after']:10.4g}"
                      f"{(c['shrink'] if c['shrink'] is not None else float('nan')):8.2f}"
                      f"{(c['delta_bic'] if c['delta_bic'] is not None else float('nan')):9.1f}"
-                     f"  {'yes' if c['significant'] else 'no ':3s}  {'yes' if c.get('testable') else 'no'}")
+                     f"  {'yes' if c['significant'] else 'no ':3s}  {'yes' if c.get('testable') else 'no'}"
+                     + (f"  not physical: {c['params']['not_physical']}"
+                        if c["params"].get("not_physical") else ""))
     if v["effect"]:
-        best = d["candidates"][0]
-        lines.append(f"verdict: {v['effect']} (shrink {best['shrink']:.0%}); params "
-                     + ", ".join(f"{k}={val:.4g}" if isinstance(val, float) else f"{k}={val}"
-                                 for k, val in best["params"].items()))
+        # the verdict's own effect: its final parameters from the chain, else its score
+        step = next((c for c in d.get("chain") or [] if c["effect"] == v["effect"]), None)
+        own = next((c for c in d["candidates"] if c["effect"] == v["effect"]), None)
+        shrink = step["shrink_heldout"] if step else own["shrink"]
+        params = (step.get("params_final") or step["params"]) if step else own["params"]
+        lines.append(f"verdict: {v['effect']} (shrink {shrink:.0%}); params " + _fmt(params))
         if v["confused_with"]:
             lines.append(f"  cannot be told apart here from: {', '.join(v['confused_with'])}")
             lines.append(f"  experiment: {v['experiment']}")
+    elif not phys.get("ok", True):
+        lines.append("verdict: refused — the nominal is not physical (see above)")
     elif v.get("experiment"):
         lines.append("verdict: none — a gap remains that no testable effect explains")
         lines.append(f"  {v['experiment']}")
@@ -147,7 +198,7 @@ def summary(d: dict, name: str) -> str:
                          f"{c['cumulative_shrink']:6.0%}  ({c['gap_ratio_after']:.2f}x floor after)"
                          + (f"  [added {c['added_at']}.]" if c.get("added_at", k) != k else "")
                          + (f"  [alike: {', '.join(c['confused_with'])}]" if c["confused_with"] else ""))
-        lines.append("  size (error reopened without it, held-out): " + ", ".join(
+        lines.append(f"  size (error reopened without it, held-out, {u}/s): " + ", ".join(
             f"{c['effect']} {c['drop_one_gap_rad_s']:.3g}" for c in
             sorted(chain, key=lambda c: c["size_rank"])))
     for x in d.get("dropped") or []:
@@ -155,12 +206,15 @@ def summary(d: dict, name: str) -> str:
     if rem:
         state = ("at the noise floor" if rem["at_noise_floor"] else
                  "UNKNOWN EFFECT: a significant gap that no candidate explains"
-                 if rem["unknown_effect"] else f"stopped ({rem['stopped']})")
+                 if rem["unknown_effect"] else
+                 f"stopped at the cap of {len(chain)} effects with a significant gap left"
+                 if rem["stopped"] == "max_steps" and rem.get("significant_gap") else
+                 f"stopped ({rem['stopped']})")
         lines.append(f"remaining: {rem['share_of_gap']:.0%} of the original gap, "
                      f"{rem['gap_ratio']:.2f}x the noise floor — {state}")
         if rem["where"] and not rem["at_noise_floor"]:
-            lines.append("  where: " + "; ".join(f"{c['dimension']} {c['label']} {c['ratio']:.1f}x"
-                                                 for c in rem["where"][:5]))
+            lines.append("  where: " + "; ".join(f"{c['dimension']} {_label(c['label'], u)} "
+                                                 f"{c['ratio']:.1f}x" for c in rem["where"][:5]))
     if v.get("untestable"):
         lines.append(f"not testable on this trace: {', '.join(v['untestable'])}")
     return "\n".join(lines)
@@ -229,6 +283,92 @@ def write_rrd(result, path: Path) -> str:
     rec.send_columns("diagnose/equation_error_rad_s2",
                      indexes=[rr.TimeColumn("time", duration=maps["ee_time_s"])],
                      columns=rr.Scalars.columns(scalars=maps["equation_error"]))
+    rec.flush()
+    rec.disconnect()
+    return str(path)
+
+
+def _calibration(path: str) -> dict:
+    from ..analysis.diagnose.reducer import calibration
+
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text())
+    except FileNotFoundError:
+        raise TraceError(f"{p}: calibration file not found; give what 'gearbench calibrate "
+                         f"--json' printed") from None
+    except (OSError, json.JSONDecodeError) as exc:
+        raise TraceError(f"{p}: not valid JSON ({exc})") from None
+    return calibration(data, str(p))
+
+
+def _run_dir(args, folder: Path) -> int:
+    """``gearbench diagnose RUN_DIR``: every step of a finished run."""
+    from ..analysis.diagnose.runs import diagnose_run
+    from ..station.recorder import load_step_trace
+
+    res = folder / "result.json"
+    try:
+        result = json.loads(res.read_text())
+    except FileNotFoundError:
+        raise TraceError(f"{folder}: no result.json; give the output folder of a "
+                         f"'gearbench run' (or a trace file)") from None
+    except (OSError, json.JSONDecodeError) as exc:
+        raise TraceError(f"{res}: unreadable ({exc})") from None
+    files = {q.stem[len("trace-"):]: q for q in sorted(folder.glob("trace-*.arrows"))}
+    files.update({q.stem[len("trace-"):]: q for q in sorted(folder.glob("trace-*.parquet"))})
+    if not files:
+        raise TraceError(f"{folder}: no trace-*.parquet; record the run with traces")
+    steps = {}
+    for name, q in files.items():
+        try:
+            steps[name] = load_step_trace(q)
+        except Exception as exc:    # a damaged trace must not hide the rest of the run
+            print(f"{q}: unreadable ({exc}); skipped")
+    run = diagnose_run(steps, result, ratio=args.ratio)
+    out = _jsonable({"run_dir": str(folder), **run})
+    if args.rrd:
+        out["rrd"] = _run_rrd(run, Path(args.rrd))
+    if args.json:
+        print(json.dumps(out, indent=1))
+        return 0
+    lines = [f"{folder}: {len(run['steps'])} traces diagnosed"]
+    for e in run["steps"]:
+        state = ("at the noise floor" if e["at_noise_floor"] else
+                 "UNKNOWN EFFECT" if e["unknown_effect"] else "above the floor")
+        lines.append(f"  {e['step']:28s} {e['motor']:8s} {e['kind']:5s} nominal "
+                     f"{e['gap_ratio_nominal']:7.2f}x -> "
+                     + (", ".join(f"{c['effect']} {c['shrink_heldout']:.0%}"
+                                  + (f" [alike: {', '.join(c['confused_with'])}]"
+                                     if c["confused_with"] else "") for c in e["chain"])
+                        or "no effect")
+                     + f" -> {e['gap_ratio_after']:.2f}x ({state})")
+        phys = e.get("physical") or {}
+        for problem in phys.get("problems", []):
+            lines.append(f"      NOT PHYSICAL: {problem}")
+    for x in run["skipped"]:
+        lines.append(f"  skipped {x.get('step')} {x.get('motor', '')}: {x['why']}")
+    if run["worst_gap_ratio"] is not None:
+        lines.append(f"worst remainder {run['worst_gap_ratio']:.2f}x the noise floor; unknown "
+                     f"effects: {', '.join(run['unknown_effects']) or 'none'}")
+    print("\n".join(lines))
+    return 0
+
+
+def _run_rrd(run: dict, path: Path) -> str:
+    """Each diagnosed single-motor step's held-out error and floor in one recording."""
+    import rerun as rr
+
+    rec = rr.RecordingStream("gearbench_diagnose_run")
+    try:
+        rec.save(str(path))
+    except Exception as exc:  # rerun raises its own error types for bad paths
+        raise GearbenchError(f"{path}: cannot write Rerun file ({exc}); choose a writable --rrd FILE") from None
+    for e in run["steps"]:
+        base = f"diagnose/{e['step']}/{e['motor']}".replace(">", "")
+        rec.log(f"{base}/gap_ratio", rr.Scalars([e["gap_ratio_after"]]), static=True)
+        rec.log(f"{base}/summary", rr.TextDocument(
+            ", ".join(c["effect"] for c in e["chain"]) or "no effect"), static=True)
     rec.flush()
     rec.disconnect()
     return str(path)

@@ -330,7 +330,15 @@ def gate(ranked, tests):
     Effects that physically cannot act on the excitation (testability.PREREQUISITE: a
     gap is crossed only at torque reversals) stay gated."""
     shown = [sc for sc in ranked if sc.significant]
-    top = max(shown, key=lambda sc: sc.shrink).effect if shown else None
+    best = max(shown, key=lambda sc: sc.shrink) if shown else None
+    # ... and clearly better than every testable candidate: an untestable effect that a
+    # testable one matches is its look-alike on this excitation (position friction on
+    # one-way motion is cogging), and stays gated
+    top = best.effect if best is not None and all(
+        vd.paired_t(sc.mse_h, best.mse_h, best.overlap) > vd.T_CONFUSED
+        and best.shrink > sc.shrink + vd.SHRINK_CONFUSED
+        for sc in shown if sc is not best and tests.get(sc.effect) is not None
+        and tests[sc.effect].testable) else None
     out = []
     for sc in ranked:
         t = tests.get(sc.effect)

@@ -78,9 +78,11 @@ def _nominal(ctx: Context):
         c_folds = _refined(ctx, [fit_model(sig, spring_base.terms(), w)[0] for w in ctx.wins])
         mse_c = held_out(ctx, c_folds)
         s = vd.score("spring", {}, mse_nom, mse_c, 1, ctx.floor.mse, ctx.v_rms, overlap=ctx.ov)
-        if s.significant:
-            base, nom_folds, mse_nom = spring_base, c_folds, mse_c
-            nom, _ = fit_model(sig, base.terms(), ctx.win_all)
+        c_nom, _ = fit_model(sig, spring_base.terms(), ctx.win_all)
+        # a spring to ground pulls back (C > 0); a negative one stood in for something
+        # else on EMPS (C/J = -0.22 kept as "the paper's spring")
+        if s.significant and physical(c_nom)["c_over_j"] > 0:
+            base, nom_folds, mse_nom, nom = spring_base, c_folds, mse_c, c_nom
         # the current's hold fraction as simulation error chose it per fold (refine),
         # then held: candidates fitted by equation error with free taps misjudged it
         bases = [replace(base, hold=hold_fraction(m)) for m in nom_folds]
@@ -136,7 +138,7 @@ def nominal_sanity(params: dict, base: Base) -> dict:
 
 def diagnose(trace: Trace, model: GivenModel | None = None, *, chain: bool = True,
              max_chain: int = MAX_CHAIN, position_unit: str = "rad",
-             travel_per_rev: float | None = None) -> Diagnosis:
+             travel_per_rev: float | None = None, ratio: float | None = None) -> Diagnosis:
     """Diagnose one single-motor trace (columns position_rad, current_a).
 
     Parameters
@@ -155,6 +157,10 @@ def diagnose(trace: Trace, model: GivenModel | None = None, *, chain: bool = Tru
         Travel per motor revolution in that unit (a screw's lead): patterns per motor
         revolution (cogging, ripple, rotor-angle friction orders) are tested only where
         the motor angle is known from them.  Everything else is unit-free.
+    ratio : float, optional
+        Gear ratio, motor revolutions per load revolution: a position-dependent load
+        torque (gravity, unbalance) is order 1 of the load angle, cogging orders of the
+        motor angle.  Not given: the position is taken as the load's angle.
 
     Returns
     -------
@@ -180,7 +186,7 @@ def diagnose(trace: Trace, model: GivenModel | None = None, *, chain: bool = Tru
 
     A pure function of its inputs: every memo lives on this call's ``Signals``.
     """
-    sig = prepare(trace, angle_scale(position_unit, travel_per_rev))
+    sig = prepare(trace, angle_scale(position_unit, travel_per_rev), ratio)
     ctx, st = _nominal(_context(sig, model))
     nom, base, mse_nom, floor = st.model_all, st.base_all, st.mse, ctx.floor
     err_nom = simerror.simulate(sig, nom, ctx.starts, ctx.horizon)

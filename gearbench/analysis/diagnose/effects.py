@@ -20,11 +20,12 @@ from .friction import (CoulombFriction, CoulombTerm, DahlTerm, DirectionFriction
                        mean_abs_tanh, mean_tanh, speed_scale)
 from .mechanics import (Backlash, DiskTerm, RigidGapTerm, ShaftCompliance,
                         _disk_track, _gap_track, two_mass_step)
-from .periodic import Cogging, CoggingTerm, RippleTerm, TorqueRipple
+from .periodic import (Cogging, CoggingTerm, LoadTorque, LoadTorqueTerm, RippleTerm,
+                       TorqueRipple)
 
 LIBRARY: tuple[Effect, ...] = (
     CoulombFriction(), StribeckFriction(), DirectionFriction(), PositionFriction(),
-    PreslidingFriction(), Cogging(), TorqueRipple(), CurrentOffset(),
+    PreslidingFriction(), Cogging(), TorqueRipple(), LoadTorque(), CurrentOffset(),
     TimeDelay(), KtSaturation(), ShaftCompliance(), Backlash(), EncoderQuantization(),
     InertiaMismatch(),
 )
@@ -37,4 +38,5 @@ __all__ = ["LIBRARY", "NAMES", "MIN_SUPPORT", "Base", "Effect", "split_timing", 
            "PreslidingFriction", "StribeckFriction", "StribeckTerm", "_dahl_track",
            "mean_abs_tanh", "mean_tanh", "speed_scale", "Backlash", "DiskTerm",
            "RigidGapTerm", "ShaftCompliance", "_disk_track", "_gap_track", "two_mass_step",
-           "Cogging", "CoggingTerm", "RippleTerm", "TorqueRipple"]
+           "Cogging", "CoggingTerm", "RippleTerm", "TorqueRipple", "LoadTorque",
+           "LoadTorqueTerm"]

@@ -148,6 +148,16 @@ class CoulombFriction(Effect):
         v, h = _pm(model, "tc_over_j", 1.0 / base.kt_over_j(model))
         return {"Tc_a": v, "Tc_a_pm": h, **hp}
 
+    def inadmissible(self, sig, model, base, hp):
+        why = super().inadmissible(sig, model, base, hp)
+        d = self.describe(model, base, hp)
+        # a friction level within its own 95 % interval of zero is no friction: with a
+        # tiny width it only re-times the reversals (a cogging trace took one with
+        # Tc = 0.09 +- 0.26 mA as a second effect)
+        if why is None and np.isfinite(d["Tc_a_pm"]) and abs(d["Tc_a"]) <= d["Tc_a_pm"]:
+            why = f"Tc {d['Tc_a']:.3g} A within its 95 % interval of 0 (+-{d['Tc_a_pm']:.3g} A)"
+        return why
+
 
 class StribeckFriction(Effect):
     name = "stribeck_friction"

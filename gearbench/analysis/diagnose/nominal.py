@@ -15,11 +15,13 @@ fitted as two taps ``a0 i[k] + a1 i[k+1]`` (hold fraction ``a1/(a0+a1)``).
 from __future__ import annotations
 
 import json
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+import scipy.linalg
 from scipy.signal import savgol_filter
 
 from ...errors import ProfileError, TraceError
@@ -47,6 +49,9 @@ class Signals:
     #: was given, so nothing periodic in the rotor angle (cogging, ripple orders) can be
     #: tested — never assumed
     rad_per_unit: float | None = 1.0
+    #: motor revolutions per load revolution (the gear ratio between this motor and
+    #: its load); None: not given — the position is then taken as the load's angle
+    load_ratio: float | None = None
     # per-trace memo (current maps, window rows, disk tracks): tied to this object, so
     # nothing computed for one trace can leak into another's diagnosis
     cache: dict = field(default_factory=dict, compare=False, repr=False)
@@ -77,9 +82,14 @@ def angle_scale(unit: str = "rad", travel_per_rev: float | None = None) -> float
     return POSITION_UNITS[unit]
 
 
-def prepare(trace: Trace, rad_per_unit: float | None = 1.0) -> Signals:
+def prepare(trace: Trace, rad_per_unit: float | None = 1.0,
+            load_ratio: float | None = None) -> Signals:
     """Validate a single-motor trace and estimate velocity (SG derivative, order 2).
-    ``rad_per_unit``: see ``Signals`` (from the user's stated position unit)."""
+    ``rad_per_unit``, ``load_ratio``: see ``Signals`` (from the user's stated position
+    unit and gear ratio)."""
+    if load_ratio is not None and not (np.isfinite(load_ratio) and load_ratio > 0):
+        raise TraceError(f"gear ratio must be a positive number of motor revolutions per "
+                         f"load revolution (got {load_ratio!r})")
     trace.validate(("position_rad", "current_a"), min_samples=200)
     dt = trace.dt_s
     theta = np.asarray(trace["position_rad"], float)
@@ -91,7 +101,8 @@ def prepare(trace: Trace, rad_per_unit: float | None = 1.0) -> Signals:
         raise TraceError(f"{trace.source}: column 'current_a' is constant; check the current "
                          f"channel and its scaling")
     omega = savgol_filter(theta, VELOCITY_WINDOW, 2, deriv=1, delta=dt)
-    return Signals(trace.time_s, theta, omega, current, dt, trace.source, rad_per_unit)
+    return Signals(trace.time_s, theta, omega, current, dt, trace.source, rad_per_unit,
+                   None if load_ratio is None else float(load_ratio))
 
 
 # --------------------------------------------------------------------- model terms
@@ -358,15 +369,32 @@ def integrated_rows(sig: Signals, F: np.ndarray, win: Windows):
     return X, y
 
 
+#: Integrated rows of this many recent non-nominal terms kept per trace (the chain's
+#: chosen effects enter every later fit; scanned terms are many, so bounded).
+ROWS_LRU = 256
+
+
 def _term_rows(sig: Signals, term: Term, win: Windows):
     """Integrated rows of one term, memoised on the trace: grid scans reuse the
-    nominal's columns.  Only the nominal's terms are kept (scanned terms are many)."""
+    nominal's columns (kept), and the chain's chosen effects' (least recently used
+    dropped first: an EMPS diagnosis recomputed a friction term's interval means
+    ~10,000 times)."""
     key = ("rows", win.key, term)
     rows = sig.cache.get(key)
-    if rows is None:
-        rows = integrated_rows(sig, measured_features(sig, [term]), win)
-        if isinstance(term, (CurrentTaps, HeldCurrent, Viscous, Spring, GivenNominal)):
-            sig.cache[key] = rows
+    if rows is not None:
+        return rows
+    lru = sig.cache.setdefault("rows_lru", OrderedDict())
+    rows = lru.get(key)
+    if rows is not None:
+        lru.move_to_end(key)
+        return rows
+    rows = integrated_rows(sig, measured_features(sig, [term]), win)
+    if isinstance(term, (CurrentTaps, HeldCurrent, Viscous, Spring, GivenNominal)):
+        sig.cache[key] = rows
+    else:
+        lru[key] = rows
+        if len(lru) > ROWS_LRU:
+            lru.popitem(last=False)
     return rows
 
 
@@ -381,8 +409,8 @@ def solve(X: np.ndarray, y: np.ndarray, overlap: float = 4.0):
     G = Xs.T @ Xs
     if np.linalg.cond(G) < 1e8:
         coef = np.linalg.solve(G, Xs.T @ y)
-    else:
-        coef, *_ = np.linalg.lstsq(Xs, y, rcond=None)
+    else:   # complete orthogonal factorisation: minimum norm, cheaper than the SVD
+        coef = scipy.linalg.lstsq(Xs, y, lapack_driver="gelsy", check_finite=False)[0]
     coef = coef / scale
     r = y - X @ coef
     dof = max(len(y) - X.shape[1], 1)
@@ -478,18 +506,26 @@ def load_model(path: str | Path) -> GivenModel:
         raise ProfileError(f"{p}: expected a JSON object with Kt, J, D")
     try:
         if "kt_over_j" in data:
-            return GivenModel(float(data["kt_over_j"]), float(data.get("d_over_j", 0.0)),
-                              float(data.get("c_over_j", 0.0)), str(p))
-        J = float(data["J"])
-        if J <= 0:
-            raise ProfileError(f"{p}: field 'J' must be > 0 (kg m^2)")
-        return GivenModel(float(data["Kt"]) / J, float(data.get("D", 0.0)) / J,
-                          float(data.get("C", 0.0)) / J, str(p))
+            g = GivenModel(float(data["kt_over_j"]), float(data.get("d_over_j", 0.0)),
+                           float(data.get("c_over_j", 0.0)), str(p))
+        else:
+            J = float(data["J"])
+            if J <= 0:
+                raise ProfileError(f"{p}: field 'J' must be > 0 (kg m^2)")
+            g = GivenModel(float(data["Kt"]) / J, float(data.get("D", 0.0)) / J,
+                           float(data.get("C", 0.0)) / J, str(p))
     except KeyError as exc:
         raise ProfileError(f"{p}: missing field {exc}; give Kt (N m/A), J (kg m^2) and D "
                            f"(N m s/rad), or kt_over_j and d_over_j") from None
     except (TypeError, ValueError):
         raise ProfileError(f"{p}: Kt, J, D must be numbers") from None
+    # a non-physical model is refused, never used silently (issue 24)
+    if not g.kt_over_j > 0:
+        raise ProfileError(f"{p}: Kt/J = {g.kt_over_j:.4g} must be > 0 (Kt > 0, J > 0)")
+    if g.d_over_j < 0 or g.c_over_j < 0:
+        raise ProfileError(f"{p}: D and C must be >= 0 (got D/J = {g.d_over_j:.4g}, "
+                           f"C/J = {g.c_over_j:.4g})")
+    return g
 
 
 def kt_over_j(model: Model) -> float:
@@ -567,7 +603,10 @@ def _batched_rss(Xb: np.ndarray, y: np.ndarray, fixed: dict[int, float], E: np.n
     else:
         yr, Er = y0, Es
     Eg = Er.reshape(len(y), G, k).transpose(1, 0, 2)            # (G, m, k)
-    beta = np.einsum("gkm,m->gk", np.linalg.pinv(Eg), yr)        # (G, k)
+    # normal equations per candidate (k x k: a batched pinv of the (m, k) stacks took
+    # ~75 ms a scan), pseudo-inverted so a degenerate candidate stays finite
+    EtE = np.einsum("gmk,gml->gkl", Eg, Eg)
+    beta = np.einsum("gkl,gl->gk", np.linalg.pinv(EtE), np.einsum("gmk,m->gk", Eg, yr))
     resid = yr[None, :] - np.einsum("gmk,gk->gm", Eg, beta)
     rss = np.einsum("gm,gm->g", resid, resid)
     coef = np.zeros((G, Xb.shape[1]))

@@ -80,3 +80,62 @@ class TorqueRipple(Effect):
     def describe(self, model, base, hp):
         amp, h, ph = _amp_phase(model, "rip_sin", "rip_cos", 1.0 / base.kt_over_j(model))
         return {"ripple_amp": amp, "ripple_amp_pm": h, "ripple_phase_rad": ph, **hp}
+
+
+@dataclass(frozen=True)
+class LoadTorqueTerm(Term):
+    """Position-dependent load torque / J = s sin(th_L) + c cos(th_L), th_L the load's
+    angle = th * rad_per_unit / ratio: gravity on an arm (m g l sin), an unbalanced or
+    eccentric load — one period per load revolution, independent of current."""
+
+    names: tuple[str, ...] = ("load_sin", "load_cos")
+    #: radians of load angle per position unit
+    scale: float = 1.0
+
+    def simulate(self, sig, theta, omega, idx, state):
+        a = self.scale * theta
+        return [np.sin(a), np.cos(a)]
+
+    def fast(self, sig):
+        return [(None, [(fs.SIN, 1.0, 0.0, 0.0, self.scale)]),
+                (None, [(fs.COS, 1.0, 0.0, 0.0, self.scale)])]
+
+
+def load_angle_scale(sig) -> float | None:
+    """Radians of load angle per position unit: the motor angle over the gear ratio
+    (``Signals.load_ratio``; not given: the position is taken as the load's angle, as
+    on a robot joint's angle or a direct drive).  None when the position is not an
+    angle and no lead was given."""
+    if sig.rad_per_unit is None:
+        return None
+    return sig.rad_per_unit / (sig.load_ratio or 1.0)
+
+
+class LoadTorque(Effect):
+    """A load torque that varies with the load's angle, order 1 of it (gravity,
+    unbalance, an eccentric load).  Distinct from cogging, which has orders of the
+    *motor* angle: with the gear ratio known (``--ratio``) they are different columns;
+    without it, order 1 of the position is both, reported as alike (the simpler
+    load torque named, the experiment that separates them given).  A real robot
+    joint's gravity came out as "cogging order 1" of 102 N m before this candidate."""
+
+    name = "load_torque"
+
+    def grid(self, sig, base):
+        k = load_angle_scale(sig)
+        if k is None:
+            return []
+        # the load must turn far enough for sin and cos of its angle to differ from a
+        # constant and a ramp (a quarter of a load revolution)
+        if np.ptp(sig.position_rad) * k < 0.5 * np.pi:
+            return []
+        return [{"load_scale_rad_per_unit": float(k)}]
+
+    def extra(self, hp):
+        return [LoadTorqueTerm(scale=hp["load_scale_rad_per_unit"])]
+
+    def describe(self, model, base, hp):
+        amp, h, ph = _amp_phase(model, "load_sin", "load_cos", 1.0 / base.kt_over_j(model))
+        return {"load_amp_a": amp, "load_amp_a_pm": h, "load_phase_rad": ph,
+                "pattern": "order 1 of the load angle (position / gear ratio)",
+                "load_rad_per_position_unit": hp["load_scale_rad_per_unit"]}

@@ -76,7 +76,52 @@ def _smooth(x: np.ndarray, L: int) -> np.ndarray:
     return np.convolve(x, np.ones(L) / L, mode="same")
 
 
-def prepare_bench(trace: Trace) -> _Sig:
+#: Fields of a motor calibration (what ``gearbench calibrate --json`` prints, or a
+#: run's result.json ``motors.<name>``): SI units.
+CALIBRATION_FIELDS = ("Kt", "J", "D", "Tc")
+
+
+def calibration(data: dict, source: str = "<calibration>") -> dict:
+    """A motor calibration as {Kt, J, D, Tc} (N m/A, kg m^2, N m s/rad, N m), checked
+    physical: Kt > 0, J > 0, D >= 0, Tc >= 0.  Accepts ``calibrate --json``'s object
+    (optionally under ``params``) or a result.json ``motors.<name>`` entry."""
+    if isinstance(data, dict) and isinstance(data.get("params"), dict) and "Kt" not in data:
+        data = data["params"]
+    if not isinstance(data, dict):
+        raise TraceError(f"{source}: expected a JSON object with Kt, J, D, Tc")
+    try:
+        cal = {k: float(data.get(k, 0.0) if k in ("D", "Tc") else data[k])
+               for k in CALIBRATION_FIELDS}
+    except KeyError as exc:
+        raise TraceError(f"{source}: missing field {exc}; give the motor's calibration as "
+                         f"'gearbench calibrate --json' prints it (Kt, J, D, Tc)") from None
+    except (TypeError, ValueError):
+        raise TraceError(f"{source}: Kt, J, D, Tc must be numbers") from None
+    bad = [f"{k} = {cal[k]:.4g}" for k, ok in (("Kt", cal["Kt"] > 0), ("J", cal["J"] > 0),
+                                               ("D", cal["D"] >= 0), ("Tc", cal["Tc"] >= 0))
+           if not ok]
+    if bad:
+        raise TraceError(f"{source}: not physical ({', '.join(bad)}); Kt and J must be > 0, "
+                         f"D and Tc >= 0")
+    return cal
+
+
+def _shaft_torque(i, w, cal: dict, w_top: float) -> np.ndarray:
+    """Torque a calibrated motor puts on its shaft less its inertia's: Kt i - D w -
+    Tc sgn(w).  The inertia stays in the relation's fitted inertia column: taking
+    J a off with a twice-differentiated encoder angle added noise the floor does not
+    count (a clean control's torque relation went from 1.09x to 1.36x the floor)."""
+    sgn = np.tanh(w / (0.01 * w_top))
+    return cal["Kt"] * i - cal["D"] * w - cal["Tc"] * sgn
+
+
+def prepare_bench(trace: Trace, motor_in: dict | None = None,
+                  motor_out: dict | None = None) -> _Sig:
+    """Validate and smooth a bench trace.  With both motors' calibrations the currents
+    become the torques the motors put on the reducer's shafts (their own friction taken
+    off, Kt applied), so the relation is in N m and its drag is the reducer's; without
+    them they are in amps and the nominal absorbs the motors' losses (offset, drag of
+    motors and reducer together).  Inertia is fitted either way (motors + reducer)."""
     trace.validate(BENCH_COLUMNS, min_samples=400)
     dt = trace.dt_s
     th_in = np.asarray(trace["in_position_rad"], float)
@@ -95,6 +140,14 @@ def prepare_bench(trace: Trace) -> _Sig:
     w = np.gradient(_smooth(th_in, L), dt)
     a = np.gradient(_smooth(w, L), dt)
     cut = slice(2 * L, len(th_in) - 2 * L)       # the smoothing's edges
+    unit = "A"
+    if motor_in is not None and motor_out is not None:
+        w_o = np.gradient(_smooth(th_out, L), dt)
+        i_in = _shaft_torque(i_in, w, motor_in, float(np.percentile(np.abs(w), 99.5)) or 1.0)
+        i_out = _shaft_torque(i_out, w_o, motor_out,
+                              float(np.percentile(np.abs(w_o), 99.5)) or 1.0)
+        s_iin, s_iout = s_iin * motor_in["Kt"], s_iout * motor_out["Kt"]
+        unit = "N m"
     n_ratio = np.ptp(th_in) / np.ptp(th_out)
     # angles are not smoothed (a ratio ripple of order k at speed w would average out)
     floor = {KINEMATICS: s_th_out ** 2 + (s_th_in / n_ratio) ** 2,
@@ -104,7 +157,8 @@ def prepare_bench(trace: Trace) -> _Sig:
     return _Sig(trace.time_s[cut], th_in[cut], th_out[cut], w[cut],
                 a[cut], _smooth(i_in, L)[cut], _smooth(i_out, L)[cut], blocks, floor,
                 {"in_current_a": s_iin, "out_current_a": s_iout, "in_angle": s_th_in,
-                 "out_angle": s_th_out, "ratio_estimate": float(n_ratio)})
+                 "out_angle": s_th_out, "ratio_estimate": float(n_ratio),
+                 "torque_unit": unit})
 
 
 # ---------------------------------------------------------------- relations
@@ -137,6 +191,10 @@ class _Cand:
 
     def describe(self, coef: np.ndarray, s: _Sig, hp: dict) -> dict:
         return {**hp, "coef": [float(c) for c in coef]}
+
+    def inadmissible(self, coef: np.ndarray, s: _Sig, hp: dict) -> str | None:
+        """Why the fitted size is not physical (None: admissible)."""
+        return None
 
 
 class RatioRipple(_Cand):
@@ -191,6 +249,9 @@ class SpeedLosses(_Cand):
 
     def describe(self, coef, s, hp):
         return {"churning_a_per_speed2": float(coef[0])}
+
+    def inadmissible(self, coef, s, hp):
+        return "negative drag (churning < 0)" if coef[0] < 0 else None
 
 
 class LoadLosses(_Cand):
@@ -257,9 +318,90 @@ class BenchDiagnosis:
                 "verdict": {"effect": self.chain[0]["effect"] if self.chain else None}}
 
 
-def diagnose_bench(trace: Trace, max_chain: int = MAX_CHAIN) -> BenchDiagnosis:
-    """Forward selection over both relations; see the module docstring."""
-    s = prepare_bench(trace)
+def _physical_nominal(params: dict, s: _Sig, brake_share: float) -> dict:
+    """Efficiencies implied by the torque relation's load ratios (calibrated motors:
+    torques in N m) and what is not physical about them: an efficiency above 1, a
+    negative drag.  Forward (input drives): eta = 1 / (n p_braking); backward (output
+    drives): eta = n p_driving — each only where the trace has that power flow."""
+    n = s.noise["ratio_estimate"]
+    out, problems = {}, []
+    if brake_share > 0.02 and params["load_ratio_braking"] > 0:
+        out["efficiency_forward"] = 1.0 / (n * params["load_ratio_braking"])
+    if 1 - brake_share > 0.02:
+        out["efficiency_backward"] = n * params["load_ratio_driving"]
+    for k in ("efficiency_forward", "efficiency_backward"):
+        if k in out and not 0 < out[k] <= 1:
+            problems.append(f"{k} {out[k]:.3f} outside (0, 1]")
+    # only where the trace has that power flow (an unused column's coefficient is noise)
+    if (brake_share > 0.02 and params["load_ratio_braking"] <= 0) or (
+            1 - brake_share > 0.02 and params["load_ratio_driving"] < 0):
+        problems.append("a negative load ratio (the load would help the input)")
+    w_top = max(float(np.percentile(np.abs(s.w_in), 99.5)), 1e-300)
+    if abs(float(np.mean(np.tanh(s.w_in / (0.01 * w_top))))) > 0.99:
+        # the input never reverses: its Coulomb drag and a current offset are one
+        # column (the fit splits them evenly); only their sum is measured
+        out["drag_plus_offset"] = params["drag_a"] + params["offset_a"]
+        out["note"] = ("the input turns one way only: drag and offset are one column, "
+                       "their sum is the drag; reverse the input to separate them")
+        drag = out["drag_plus_offset"]
+    else:
+        drag = params["drag_a"]
+    if drag < 0:
+        problems.append("negative drag")
+    return {**out, "ok": not problems, "problems": problems}
+
+
+def _score(s: _Sig, state: dict, cand: _Cand):
+    """One candidate added to its relation's current model: its best grid setting by
+    held-out error, scored (significant only if testable and physical)."""
+    st, f = state[cand.relation], s.floor[cand.relation]
+    y = _nominal(s, cand.relation)[0]
+    best = None
+    for hp in cand.grid(s):
+        E = cand.cols(s, hp)
+        X = np.column_stack([st["X"], E])
+        r, c = _held_out(y, X, s.blocks)
+        mse = _block_mse(r, s.blocks)
+        if best is None or mse.mean() < best[0].mean():
+            best = (mse, hp, E, c)
+    mse, hp, E, c = best
+    why_not = cand.inadmissible(c[-E.shape[1]:], s, hp)
+    params = cand.describe(c[-E.shape[1]:], s, hp)
+    if why_not:
+        params["not_physical"] = why_not
+    sc = vd.score(cand.name, params, st["mse"], mse,
+                  E.shape[1] + (len(cand.grid(s)) > 1), f, 1.0)
+    u = _unique_share(st["X"], E)
+    testable = u >= U_MIN
+    sc = vd.Score(**{**sc.__dict__, "significant": bool(sc.significant and testable
+                                                        and not why_not),
+                     "testable": testable,
+                     "why": f"{u:.0%} of the candidate's columns unique against the "
+                            f"model's (needs {U_MIN:.0%})"})
+    return sc, E
+
+
+def diagnose_bench(trace: Trace, max_chain: int = MAX_CHAIN, motor_in: dict | None = None,
+                   motor_out: dict | None = None) -> BenchDiagnosis:
+    """Diagnose a two-motor reducer bench trace against the simulated reducer.
+
+    Parameters
+    ----------
+    trace : Trace
+        ``in_/out_ position_rad, current_a`` of both motors.
+    max_chain : int
+        Most effects the forward selection adds.
+    motor_in, motor_out : dict, optional
+        Both motors' calibrations (``calibration``): the relation is then in the
+        torques on the reducer's shafts, its parameters the reducer's alone, and the
+        efficiencies they imply are checked physical.
+
+    Returns
+    -------
+    BenchDiagnosis
+        Nominal per relation, candidates, chain and what remains (see module doc).
+    """
+    s = prepare_bench(trace, motor_in, motor_out)
     state = {}
     nominal = {}
     for rel in (KINEMATICS, TORQUE):
@@ -272,33 +414,12 @@ def diagnose_bench(trace: Trace, max_chain: int = MAX_CHAIN) -> BenchDiagnosis:
                         "rms": float(np.sqrt(np.mean(mse))), "noise_floor": float(np.sqrt(f)),
                         "gap_ratio": float(np.sqrt(np.mean(mse) / f))}
     nominal["noise"] = s.noise
+    brake_share = float(np.mean(s.i_out * s.w_in < 0))
+    nominal["physical"] = _physical_nominal(nominal[TORQUE]["params"], s, brake_share)
     chain, first = [], None
     chosen: set[str] = set()
     for step in range(max_chain):
-        scores = []
-        for cand in CANDIDATES:
-            if cand.name in chosen:
-                continue
-            st, f = state[cand.relation], s.floor[cand.relation]
-            y = _nominal(s, cand.relation)[0]
-            best = None
-            for hp in cand.grid(s):
-                E = cand.cols(s, hp)
-                X = np.column_stack([st["X"], E])
-                r, c = _held_out(y, X, s.blocks)
-                mse = _block_mse(r, s.blocks)
-                if best is None or mse.mean() < best[0].mean():
-                    best = (mse, hp, E, c)
-            mse, hp, E, c = best
-            sc = vd.score(cand.name, cand.describe(c[-E.shape[1]:], s, hp), st["mse"], mse,
-                          E.shape[1] + (len(cand.grid(s)) > 1), f, 1.0)
-            u = _unique_share(st["X"], E)
-            testable = u >= U_MIN
-            sc = vd.Score(**{**sc.__dict__, "significant": bool(sc.significant and testable),
-                             "testable": testable,
-                             "why": f"{u:.0%} of the candidate's columns unique against the "
-                                    f"model's (needs {U_MIN:.0%})"})
-            scores.append((sc, E))
+        scores = [_score(s, state, cand) for cand in CANDIDATES if cand.name not in chosen]
         ranked = sorted(scores, key=lambda p: (not p[0].significant, p[0].delta_bic))
         if first is None:
             first = [dict(p[0].as_dict(), relation=next(c.relation for c in CANDIDATES

@@ -67,6 +67,8 @@ MIN_TORQUE_REVERSALS = 4
 PREREQUISITE = ("backlash",)
 
 EXPERIMENTS = {
+    "load_torque": "move the load over at least a quarter of a revolution (state the "
+                   "position unit as an angle and the gear ratio, --ratio)",
     "presliding_friction": "add velocity reversals (slow ones show the friction build-up)",
     "coulomb_friction": "add velocity reversals or speed steps at different speeds "
                         "(Coulomb friction is a constant torque in one direction)",
@@ -173,7 +175,7 @@ def _bandwidth_hz(sig: Signals, noise_a: float) -> float:
 def assess(sig: Signals, floor: NoiseFloor, win: Windows, horizon: int,
            given_model: bool) -> dict[str, Testability]:
     """Testability of every effect in the library on this trace (see module doc)."""
-    n, dt = len(sig), sig.dt_s
+    n = len(sig)
     w, th = sig.velocity_rad_s, sig.position_rad
     s_i, s_w = floor.current_noise_a, floor.velocity_noise_rad_s
     # current noise and the loop's reaction to it smoothed away over a horizon (the
@@ -232,32 +234,7 @@ def assess(sig: Signals, floor: NoiseFloor, win: Windows, horizon: int,
         f"{n_rev} velocity reversals; friction varying along the travel "
         + unique(u_pos, p_pos))
 
-    # angle covered where the order-6 pattern is at most fs/20 (>= 20 samples/period);
-    # in radians of rotor angle: orders are per revolution, so the position unit must
-    # be known as an angle (or a lead given) — never assumed
-    k_ang = sig.rad_per_unit or 0.0
-    dth = np.abs(np.diff(th)) * k_ang
-    slow = ORDER_MIN * np.abs(w[1:]) * k_ang / (2 * np.pi) <= 0.05 / dt
-    revs = float(np.sum(dth[slow]) / (2 * np.pi))
-    strong = np.abs(i_s[1:]) >= RIPPLE_CURRENT_SNR * s_i
-    revs_i = float(np.sum(dth[slow & strong]) / (2 * np.pi))
-    w_slow = 0.05 / dt * 2 * np.pi / ORDER_MIN
-    top_order = int(0.05 / dt * 2 * np.pi / max(float(np.percentile(np.abs(w), 5)) * k_ang, 1e-9))
-    w_slow_u = w_slow / k_ang if k_ang else float("nan")   # in the trace's unit/s
-    if not k_ang:
-        why = ("the position unit is not an angle and no travel per motor revolution was "
-               "given: orders per revolution cannot be tested")
-        for name in ("cogging", "torque_ripple"):
-            out[name] = Testability(False, why, "state the position unit (e.g. "
-                                    "--position-unit deg) or, for a linear axis, the travel "
-                                    "per motor revolution (--travel-per-rev LEAD)")
-    else:
-        put("cogging", revs >= MIN_REVS,
-            f"{revs:.1f} revolutions at |w| <= {w_slow_u:.3g} units/s, where order-{ORDER_MIN} "
-            f"patterns stay below fs/20 (orders up to ~{min(top_order, 999)} at the slowest 5 %)")
-        put("torque_ripple", revs_i >= MIN_REVS,
-            f"{revs_i:.1f} revolutions at |w| <= {w_slow_u:.3g} units/s with |i| >= "
-            f"{RIPPLE_CURRENT_SNR:g}x the current noise ({RIPPLE_CURRENT_SNR * s_i * 1e3:.0f} mA)")
+    out.update(_angles(sig, i_s, s_i))
 
     di = float(np.sqrt(np.mean(np.diff(i_s) ** 2)))
     need = 2 * s_i / np.sqrt(horizon)
@@ -273,6 +250,16 @@ def assess(sig: Signals, floor: NoiseFloor, win: Windows, horizon: int,
         f"{SAT_CURRENT_SNR:g}x); a cubic term is {u_cub:.0%} unique against the nominal's "
         f"regressors")
 
+    out.update(_mechanical(sig, win, basis_c, floor, s_i, s_w))
+    out.update(_sensing(sig, floor, given_model))
+    return out
+
+
+def _mechanical(sig: Signals, win: Windows, basis_c: np.ndarray, floor: NoiseFloor,
+                s_i: float, s_w: float) -> dict[str, Testability]:
+    """Shaft compliance and backlash (see the module doc)."""
+    n, dt, th, w = len(sig), sig.dt_s, sig.position_rad, sig.velocity_rad_s
+    out: dict[str, Testability] = {}
     # A two-mass resonance shows well below its frequency: the disk lags the motor by
     # ~acc/w_d^2, so the coupling torque is the disk's inertia (absorbed by Kt/J) plus
     # r th^(4)/w_d^2 (r = J_disk/J), whose velocity error over a horizon is ~r jerk/w_d^2.
@@ -306,6 +293,17 @@ def assess(sig: Signals, floor: NoiseFloor, win: Windows, horizon: int,
         None if n_trev >= MIN_TORQUE_REVERSALS else EXPERIMENTS["backlash"],
         {"gap_rad": g_min})
 
+    return out
+
+
+def _sensing(sig: Signals, floor: NoiseFloor, given_model: bool) -> dict[str, Testability]:
+    """Encoder quantisation and inertia mismatch (see the module doc)."""
+    dt, th = sig.dt_s, sig.position_rad
+    out: dict[str, Testability] = {}
+
+    def put(name, ok, why):
+        out[name] = Testability(bool(ok), why, None if ok else EXPERIMENTS[name])
+
     q = lattice_step(th)
     if q:
         qn = np.sqrt(end_noise_var(q / np.sqrt(12), dt))
@@ -319,4 +317,51 @@ def assess(sig: Signals, floor: NoiseFloor, win: Windows, horizon: int,
     put("inertia_mismatch", given_model,
         "against the given model" if given_model else
         "no model given: the nominal identified on this trace absorbs any inertia")
+    return out
+
+
+def _angles(sig: Signals, i_s: np.ndarray, s_i: float) -> dict[str, Testability]:
+    """Cogging, torque ripple (motor-angle orders) and the load torque (load angle)."""
+    dt, th, w = sig.dt_s, sig.position_rad, sig.velocity_rad_s
+    out: dict[str, Testability] = {}
+
+    def put(name, ok, why):
+        out[name] = Testability(bool(ok), why, None if ok else EXPERIMENTS[name])
+
+    # angle covered where the order-6 pattern is at most fs/20 (>= 20 samples/period);
+    # in radians of rotor angle: orders are per revolution, so the position unit must
+    # be known as an angle (or a lead given) — never assumed
+    k_ang = sig.rad_per_unit or 0.0
+    dth = np.abs(np.diff(th)) * k_ang
+    slow = ORDER_MIN * np.abs(w[1:]) * k_ang / (2 * np.pi) <= 0.05 / dt
+    revs = float(np.sum(dth[slow]) / (2 * np.pi))
+    strong = np.abs(i_s[1:]) >= RIPPLE_CURRENT_SNR * s_i
+    revs_i = float(np.sum(dth[slow & strong]) / (2 * np.pi))
+    w_slow = 0.05 / dt * 2 * np.pi / ORDER_MIN
+    top_order = int(0.05 / dt * 2 * np.pi / max(float(np.percentile(np.abs(w), 5)) * k_ang, 1e-9))
+    w_slow_u = w_slow / k_ang if k_ang else float("nan")   # in the trace's unit/s
+    if not k_ang:
+        why = ("the position unit is not an angle and no travel per motor revolution was "
+               "given: orders per revolution cannot be tested")
+        for name in ("cogging", "torque_ripple"):
+            out[name] = Testability(False, why, "state the position unit (e.g. "
+                                    "--position-unit deg) or, for a linear axis, the travel "
+                                    "per motor revolution (--travel-per-rev LEAD)")
+    else:
+        put("cogging", revs >= MIN_REVS,
+            f"{revs:.1f} revolutions at |w| <= {w_slow_u:.3g} units/s, where order-{ORDER_MIN} "
+            f"patterns stay below fs/20 (orders up to ~{min(top_order, 999)} at the slowest 5 %)")
+        put("torque_ripple", revs_i >= MIN_REVS,
+            f"{revs_i:.1f} revolutions at |w| <= {w_slow_u:.3g} units/s with |i| >= "
+            f"{RIPPLE_CURRENT_SNR:g}x the current noise ({RIPPLE_CURRENT_SNR * s_i * 1e3:.0f} mA)")
+
+    # a load torque (gravity, unbalance): the load angle must sweep far enough that
+    # sin and cos of it are not a constant and a ramp (the candidate's own grid)
+    k_load = (sig.rad_per_unit / (sig.load_ratio or 1.0)) if sig.rad_per_unit else 0.0
+    sweep = float(np.ptp(th)) * k_load
+    put("load_torque", sweep >= 0.5 * np.pi,
+        f"the load angle sweeps {sweep:.2f} rad (needs a quarter revolution, "
+        f"{0.5 * np.pi:.2f} rad; position unit and gear ratio as stated)"
+        if k_load else "the position is not a known angle")
+
     return out

@@ -53,6 +53,19 @@ EXPERIMENTS: dict[frozenset, str] = {
     frozenset({"position_friction", "cogging"}):
         "repeat the slow sweep in both directions: position-dependent friction flips "
         "with the direction, cogging does not",
+    frozenset({"load_torque", "cogging"}):
+        "state the gear ratio (--ratio) and move over a whole load revolution: a load "
+        "torque (gravity, unbalance) repeats once per load revolution, cogging N times "
+        "per motor revolution",
+    frozenset({"load_torque", "current_offset"}):
+        "move over a wider range of the load angle: a gravity or unbalance torque "
+        "changes with it, a current-sensor offset does not",
+    frozenset({"load_torque", "position_friction"}):
+        "reverse at several positions: a load torque keeps its sign when the motion "
+        "reverses, position-dependent friction flips with the direction",
+    frozenset({"load_torque", "coulomb_friction"}):
+        "move at constant speed over the load's whole range in both directions: a load "
+        "torque follows the angle, Coulomb friction the direction",
     frozenset({"cogging", "torque_ripple"}):
         "repeat a slow sweep at two load or acceleration levels: ripple scales with "
         "current, cogging does not",

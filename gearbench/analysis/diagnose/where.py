@@ -76,7 +76,7 @@ def breakdown(sig: Signals, nom: Model, err_score, score_starts, floor: simerror
     if rest.sum() > 30:
         aw = np.abs(w[rest])
         for lab, m in _terciles(aw):
-            cells.append(_cell("speed", f"|w| {lab} ({aw[m].min():.3g}-{aw[m].max():.3g} rad/s)",
+            cells.append(_cell("speed", f"|w| {lab} ({aw[m].min():.3g}-{aw[m].max():.3g} units/s)",
                                e2[rest][m], f2[rest][m]))
 
     # current and acceleration level
