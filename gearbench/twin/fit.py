@@ -35,7 +35,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from ..errors import ProfileError
-from ..sim import PlantParams
+from ..sim import CvtParams, PlantParams
 from .gap import noise_floors, residuals
 from .replay import AXES, Quanta, Segment, replay
 
@@ -101,7 +101,6 @@ def get_value(block: dict, path: str):
             dd = dd.get(k) or {}
         v = dd.get(last)
         if v is None and path.startswith("cvt."):
-            from ..sim import CvtParams
             v = getattr(CvtParams(), last)
     return v
 
@@ -200,18 +199,14 @@ class Problem:
     block: dict
     quanta: Quanta = field(default_factory=Quanta)
     floors: dict = field(default_factory=dict)
-    period_s: float = 1e-3
     evaluations: int = 0
     smooth: bool = True     # fit on the unquantised replay (``residual_vector``)
 
     def __post_init__(self):
         if not self.floors:
             self.floors = noise_floors(self.segments)
-        # per (axis, signal) the misfit scale ≥ 1 in floors: each signal's weight in S is
-        # 1/(floor·scale)², re-estimated between fits (iteratively reweighted least squares,
-        # a Gaussian likelihood with one unknown variance per signal), so that position —
-        # whose floor is a fraction of an encoder count while a model error accumulates
-        # over a whole step — does not drown the currents that carry Kt, friction and η
+        # per (axis, signal) a factor on the floor: each signal weighs 1/(floor·scale)² in S
+        # (POSITION_SCALE for the angles, 1 for the rest)
         self.scales = {k: (POSITION_SCALE if k[1] == "position_rad" else 1.0) for k in self.floors}
         # time blocks of BLOCK_S for the sandwich and the folds, in residual order
         self._blocks = None
@@ -245,19 +240,6 @@ class Problem:
 
     def weighted_floors(self) -> dict:
         return {k: v * self.scales.get(k, 1.0) for k, v in self.floors.items()}
-
-    def reweight(self, block: dict) -> None:
-        """Each signal's scale = its rms misfit in floors at ``block`` (at least 1)."""
-        plant = self.plant(block)
-        rows = replay(plant, self.segments, quanta=self.quanta)
-        res = residuals(rows, self.segments, self.floors)
-        for k in self.floors:
-            if k[1] not in FIT_SIGNALS:
-                continue
-            parts = [v for (st, a, s), v in res.items() if (a, s) == k]
-            if parts:
-                x = np.concatenate(parts)
-                self.scales[k] = max(1.0, float(np.sqrt(np.mean(x * x))))
 
     def blocks(self) -> np.ndarray:
         """Time-block id of every stacked residual (same order as ``residual_vector``)."""
@@ -403,8 +385,7 @@ def folds(prob: Problem) -> tuple[np.ndarray, np.ndarray]:
 def residual_orders(prob: Problem, r: np.ndarray) -> dict:
     """Per axis the angle order k (1..36) whose sin(kθ)·i pattern best explains the current
     residual (torque ripple scales with the current; a pattern without i is cogging)."""
-    from .gap import residuals as _res  # same stacking order as residual_vector
-    keys = sorted(_res({s.name: np.zeros((s.last_sample - s.first_sample + 1, 16))
+    keys = sorted(residuals({s.name: np.zeros((s.last_sample - s.first_sample + 1, 16))
                         for s in prob.segments}, prob.segments, prob.floors))
     pos = 0
     by_axis: dict = {a: ([], [], []) for a in AXES}
