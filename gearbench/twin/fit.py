@@ -41,8 +41,9 @@ from .replay import AXES, Quanta, Segment, replay
 
 BLOCK_S = 0.1          # time block of the held-out folds
 INTERVAL_BLOCK_S = 0.5  # time block of the intervals' sandwich: a model's misfit is coloured
-#                         over tenths of a second, and 0.1 s blocks gave intervals that held
-#                         the independent simulator's Kt 4x too narrow
+#                         over tenths of a second (on the independent simulator's pair the
+#                         Kt interval is still 3x narrower than the error: the misfit of a
+#                         drive loop the simulation does not have is not noise)
 FD_REL = 0.005         # forward-difference step, fraction of the parameter's scale
 MIN_DROP = 25.0        # held-out S must fall by this many floors² ...
 MIN_SHRINK = 0.05      # ... and by this fraction of itself (a stalled fit leaves a few % to any candidate)
