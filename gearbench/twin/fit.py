@@ -442,10 +442,11 @@ def add_effects(prob: Problem, params: list[Param], *, max_effects: int = 4, ver
         Sh_base = min(Sh0, _gn_heldout(prob, params, u, jac, r, fit_fold, held, prob.block))
         orders = residual_orders(prob, r)
         results = []
+        have = {p.path for p in params}
         for name, extra, fixed in candidates(prob.block, orders):
             key = (name, tuple(p.path for p in extra), tuple(fixed.items()))
-            if key in tried_out:
-                continue
+            if key in tried_out or have & {p.path for p in extra}:
+                continue   # already in the chain (its parameters are fitted, not yet in the block)
             block = copy.deepcopy(prob.block)
             for k, v in fixed.items():
                 set_value(block, k, v)
