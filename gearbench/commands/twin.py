@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 import time
 from pathlib import Path
 
@@ -146,6 +145,7 @@ def run(args) -> int:
     if not args.no_proof:
         report["proof"] = proof(result, segments, plant1, run_prof, quanta)
         _print_proof(report["proof"])
+        report["proof"]["misses"] = _verdict(report["proof"], after)
     report["wall_s"] = time.monotonic() - t0
     _dump(args, report)
     return 0
@@ -206,6 +206,32 @@ def _print_proof(pr: dict) -> None:
         print(f"  {'limit ' + lim['name']:<34} {'PASS' if lim['passed'] else 'FAIL':>10} "
               f"{'PASS' if t.get('passed') else 'FAIL':>10}  {same}")
     print(f"  {'run':<34} {real['status']:>10} {twin['status']:>10}")
+
+
+def _verdict(pr: dict, after: list[dict], worst_floors: float = 3.0) -> list[str]:
+    """Say whether the twin reproduces the run within the results' intervals, and where not."""
+    real, twin = pr["real"], pr["twin"]
+    misses = []
+    for m, v in real["motors"].items():
+        if _within(v["Kt"], (twin["motors"].get(m) or {}).get("Kt"), v.get("Kt_ci95")) == "NO":
+            misses.append(f"Kt {m}")
+    for e, f in zip(real["efficiency"], twin["efficiency"]):
+        for q in ("eta_incremental", "eta_absolute"):
+            if _within(e[q], f[q], e.get(q + "_ci95")) == "NO":
+                misses.append(f"{q} at {e['speed_in_rad_s']:.0f} rad/s, {e['torque_out_nm']:.3f} N m")
+    if len(real["limits"]) == len(twin["limits"]):
+        misses += [f"limit {a['name']} verdict" for a, b in zip(real["limits"], twin["limits"])
+                   if a["passed"] != b["passed"]]
+    if misses:
+        print(f"\nthe twin does NOT reproduce the run within its intervals: {'; '.join(misses)}")
+        far = [f"{r['step']} {r['axis']}.{r['signal']} ({r['gap']:.1f})" for r in after
+               if r["gap"] > worst_floors and r["signal"] != "position_rad"]
+        if far:
+            print(f"  where the traces still part (> {worst_floors:g} noise floors): {', '.join(far)}")
+    else:
+        print("\nthe twin reproduces the run: every Kt and efficiency within the run's 95 % interval, "
+              "every limit's verdict the same")
+    return misses
 
 
 def _f(v) -> str:

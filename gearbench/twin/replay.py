@@ -18,7 +18,6 @@ input velocity, output torque) and the disks' inertias.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -235,7 +234,3 @@ def check_axes(profile) -> None:
     if bad:
         raise ProfileError(f"{profile.path}: motors {', '.join(bad)}: the simulated bench (and its "
                            f"twin) has the axes 'in' and 'out' only")
-
-
-def finite(x) -> bool:
-    return isinstance(x, (int, float)) and math.isfinite(x)
