@@ -298,7 +298,7 @@ def test_a_finished_recording_opens_on_its_final_results(tmp_path):
     rrd = tmp_path / "run.rrd"
     view = open_live_view(rrd=rrd)
     stream = RecordStream([view])
-    feed(stream, synthetic_steps())
+    feed(stream, synthetic_steps(), residuals=view)
     stream.close()
     static = [c.to_record_batch() for c in rr.chunk.RrdReader(rrd).stream().to_chunks()
               if c.is_static and c.entity_path == "/results/summary"]
