@@ -65,8 +65,20 @@ def load_plant(profile: str | None):
         doc = {}
     if not isinstance(doc, dict):
         raise ProfileError(f"{profile}: expected a mapping at the top level")
+    sim = dict(doc.get("simulation") or {})
+    motors, sim_motors = doc.get("motors"), sim.get("motors")
+    if isinstance(motors, dict) and isinstance(sim_motors or {}, dict):
+        # the simulated motors have the profile motors' ratings where they leave them out
+        # (as 'gearbench validate' reads it: gearbench.profile.parse.SIM_RATINGS)
+        from ..profile.parse import SIM_RATINGS
+
+        filled = dict(sim_motors or {})
+        for name, spec in motors.items():
+            if isinstance(spec, dict) and isinstance(filled.get(name, {}), dict) and name in ("in", "out"):
+                filled[name] = {**{k: spec[k] for k in SIM_RATINGS if k in spec}, **(filled.get(name) or {})}
+        sim["motors"] = filled
     try:
-        return PlantParams.from_dict(doc.get("simulation") or {}, where="simulation")
+        return PlantParams.from_dict(sim, where="simulation")
     except ProfileError as exc:
         raise ProfileError(f"{profile}: {exc}") from exc
 
