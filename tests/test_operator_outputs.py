@@ -285,3 +285,11 @@ def test_harmonic_profile_passes_on_the_simulated_bench_without_flags(tmp_path):
         assert abs(pt["torque_out_nm"] - pt["torque_setpoint_nm"]) < 0.03, pt
     names = [lim["name"] for lim in res["limits"]]
     assert "efficiency[100rad_s,5Nm]" in names and "efficiency[300rad_s,20Nm]" in names
+
+
+def test_validate_warns_when_calibration_does_not_cover_the_map():
+    from gearbench.profile.coverage import coverage_warnings
+
+    (w,) = coverage_warnings(load_profile("cvt"))       # the demo maps 300 rad/s, calibrates to 230
+    assert "motor in" in w and "300 rad/s" in w and "extrapolated motor loss" in w
+    assert coverage_warnings(load_profile("harmonic")) == []

@@ -17,6 +17,7 @@ def run(args) -> int:
     from ..profile import load_profile
 
     from ..drives.devicecheck import check_profile
+    from ..profile.coverage import coverage_warnings
 
     profile = load_profile(args.profile)
     devices = check_profile(profile)   # every device description: all problems at once
@@ -26,6 +27,7 @@ def run(args) -> int:
                    f"with the drives (nothing moved)"
     lines += [f"drives     {n}" for n in devices.notes]
     lines += [f"warning    {w}" for w in devices.warnings]
+    lines += [f"warning    {w}" for w in coverage_warnings(profile)]
     print("\n".join(lines))
     if devices.errors:
         print("\n".join(f"error      {e}" for e in devices.errors), file=sys.stderr)
@@ -83,7 +85,11 @@ def summary_lines(profile, shown: str | Path) -> list[str]:
             what = f"prompt: {s.prompt}"
         else:
             assert isinstance(s, EfficiencyStep)
-            what = (f"{len(s.speeds_in_rad_s)} speeds x {len(s.torques_out_nm)} torques = {s.operating_points} "
+            ratio = profile.reducer.ratio if profile.reducer else None
+            outs = f", output {', '.join(_fmt(w / ratio) for w in s.speeds_in_rad_s)} rad/s" if ratio else ""
+            what = (f"input {', '.join(_fmt(w) for w in s.speeds_in_rad_s)} rad/s{outs}; braking "
+                    f"{', '.join(_fmt(t) for t in s.torques_out_nm)} N m at the output: "
+                    f"{len(s.speeds_in_rad_s)} speeds x {len(s.torques_out_nm)} torques = {s.operating_points} "
                     + (f"operating points, staircase of {len(s.levels())} levels x {_fmt(s.min_s)}..{_fmt(s.max_s)} s "
                        f"until the efficiency slope is known to {_fmt(profile.targets.eta_pp)} pp" if s.adaptive else
                        f"operating points, {len(s.levels())} levels x ({_fmt(s.settle_s)} + {_fmt(s.measure_s)}) s"))
