@@ -108,3 +108,26 @@ def _check_page_furniture(pdf, res):
                     if x.strip().startswith(("Eﬃciency map", "Efficiency map", "Identiﬁcation ﬁt",
                                              "Identification fit", "Traces")))
         assert len(page.images) >= heads, (n, heads, len(page.images))
+
+
+def test_coinciding_speed_lines_stay_visible():
+    """A harmonic drive's efficiency hardly depends on speed: three identical lines must
+    still show three colours (markers, dashes and a small side-by-side offset), not one."""
+    import io
+
+    import matplotlib.image
+    import numpy as np
+
+    from gearbench.reports.plots import SPEED_COLOURS, efficiency_map_png
+
+    pts = [{"speed_setpoint_rad_s": s, "speed_in_rad_s": s, "torque_out_nm": t, "eta_incremental": 0.8,
+            "eta_incremental_ci95": [0.79, 0.81], "eta_absolute": 0.6, "eta_absolute_ci95": [0.59, 0.61]}
+           for s in (100.0, 200.0, 300.0) for t in (5.0, 10.0, 15.0, 20.0)]
+    img = (matplotlib.image.imread(io.BytesIO(efficiency_map_png(pts))) * 255).astype(int)
+    h = img.shape[0]
+    plot = img[:int(0.75 * h)]            # the axes, not the legend below them
+    counts = []
+    for c in SPEED_COLOURS[:3]:
+        rgb = np.array([int(c[i:i + 2], 16) for i in (1, 3, 5)])
+        counts.append(int(np.all(np.abs(plot[..., :3] - rgb) <= 25, axis=-1).sum()))
+    assert min(counts) > 0.25 * max(counts), counts
