@@ -93,11 +93,11 @@ def default_blueprint(motors: Sequence[str] = ("in", "out"), *, live: bool = Fal
         rows.append(rrb.Horizontal(*[
             rrb.TimeSeriesView(origin=f"{EFFICIENCY_SERIES}/{kind}", name=title,
                                axis_x=rrb.TimeAxis(link="LinkToGlobal"),
-                               plot_legend=rrb.PlotLegend(visible=True))
+                               plot_legend=rrb.PlotLegend(corner="RightBottom", visible=True))
             for kind, title in EFFICIENCY_TITLES.items()]))
         row_shares.append(2.4)
     rows.append(rrb.TextLogView(origin=LOG, name="Steps and operator"))
-    row_shares.append(1.8)
+    row_shares.append(2.2)     # a few lines of the step log, not one
     return rrb.Blueprint(
         rrb.Vertical(*rows, row_shares=row_shares),
         rrb.TimePanel(timeline=TIMELINE, state="collapsed", play_state="following"),
