@@ -305,3 +305,18 @@ def test_a_finished_recording_opens_on_its_final_results(tmp_path):
     text = column(static, "TextDocument:text")[-1][0]
     assert "finished: FAILED" in text and "RUNNING" not in text
     assert text.index("Limits: 1 of 2 passed: failed eta_min") < text.index("## Motors")
+
+
+def test_diagnosis_layout_puts_the_noise_floor_with_the_error_it_bounds(tmp_path):
+    """For ``gearbench diagnose --rrd`` (issue 24 wires it): one panel for the error and the
+    floor under /diagnosis/, as paths.py declares, another for the equation error."""
+    from gearbench.reports.live import paths as P
+    from gearbench.reports.live.blueprint import diagnosis_blueprint
+
+    assert P.DIAGNOSIS_ERROR.startswith(P.DIAGNOSIS + "/") and P.DIAGNOSIS_EQUATION.startswith(P.DIAGNOSIS + "/")
+    rec = rr.RecordingStream("t")
+    rec.save(str(tmp_path / "d.rrd"))
+    rec.send_blueprint(diagnosis_blueprint())
+    rec.flush()
+    rec.disconnect()
+    assert rr.chunk.RrdReader(tmp_path / "d.rrd").blueprints()

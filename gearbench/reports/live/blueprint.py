@@ -31,7 +31,8 @@ from typing import Mapping, Sequence
 
 import rerun.blueprint as rrb
 
-from .paths import DIAGNOSIS, EFFICIENCY_SERIES, LOG, SUMMARY, TIMELINE, motor_path, part
+from .paths import (DIAGNOSIS, DIAGNOSIS_EQUATION, DIAGNOSIS_ERROR, DIAGNOSIS_TIMELINE, EFFICIENCY_SERIES, LOG,
+                    SUMMARY, TIMELINE, motor_path, part)
 
 # (quantity column, panel title) per motor, top to bottom; the setpoint panels go after
 # the velocity, one per unit the motor is commanded in
@@ -101,6 +102,25 @@ def default_blueprint(motors: Sequence[str] = ("in", "out"), *, live: bool = Fal
     return rrb.Blueprint(
         rrb.Vertical(*rows, row_shares=row_shares),
         rrb.TimePanel(timeline=TIMELINE, state="collapsed", play_state="following"),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        auto_views=False,
+        collapse_panels=False,
+    )
+
+
+def diagnosis_blueprint() -> rrb.Blueprint:
+    """The layout of ``gearbench diagnose --rrd``: the simulation error with the noise floor
+    that bounds it on one axis (both rad/s, under ``paths.DIAGNOSIS_ERROR``), the equation
+    error on its own (rad/s², ``paths.DIAGNOSIS_EQUATION``); legends on, the time axes linked."""
+    return rrb.Blueprint(
+        rrb.Vertical(
+            rrb.TimeSeriesView(origin=DIAGNOSIS_ERROR, name="Simulation error and noise floor [rad/s]",
+                               axis_x=rrb.TimeAxis(link="LinkToGlobal"), plot_legend=rrb.PlotLegend(visible=True)),
+            rrb.TimeSeriesView(origin=DIAGNOSIS_EQUATION, name="Equation error [rad/s²]",
+                               axis_x=rrb.TimeAxis(link="LinkToGlobal"), plot_legend=rrb.PlotLegend(visible=True)),
+            row_shares=[3.0, 2.0]),
+        rrb.TimePanel(timeline=DIAGNOSIS_TIMELINE, state="collapsed"),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
         auto_views=False,

@@ -31,6 +31,11 @@ EFFICIENCY_POINTS = "/results/efficiency/points"
 LIMITS = "/results/limits"
 DIAGNOSIS = "/diagnosis"
 EFFICIENCY_SERIES = "/results/efficiency/series"
+# ``gearbench diagnose --rrd``: the simulation error and the noise floor that bounds it in one
+# panel (same unit, rad/s), the equation error (rad/s²) in its own
+DIAGNOSIS_ERROR = f"{DIAGNOSIS}/velocity"            # .../sim_error_rad_s, .../noise_floor_rad_s
+DIAGNOSIS_EQUATION = f"{DIAGNOSIS}/acceleration"     # .../equation_error_rad_s2
+DIAGNOSIS_TIMELINE = "time"
 
 
 def efficiency_series(kind: str, speed_rad_s: float) -> str:
