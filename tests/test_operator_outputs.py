@@ -293,3 +293,14 @@ def test_validate_warns_when_calibration_does_not_cover_the_map():
     (w,) = coverage_warnings(load_profile("cvt"))       # the demo maps 300 rad/s, calibrates to 230
     assert "motor in" in w and "300 rad/s" in w and "extrapolated motor loss" in w
     assert coverage_warnings(load_profile("harmonic")) == []
+
+
+def test_reanalysis_of_an_old_run_does_not_report_renamed_limits_as_changed():
+    from gearbench.fleet.reanalysis import _changed_limits
+
+    q = "efficiency.eta_incremental"
+    old = {"limits": [{"name": "efficiency[100rad_s,0.0601Nm]", "quantity": q, "passed": True},
+                      {"name": "efficiency[100rad_s,0.0799Nm]", "quantity": q, "passed": True}]}
+    new = {"limits": [{"name": "efficiency[100rad_s,0.06Nm]", "quantity": q, "passed": True},
+                      {"name": "efficiency[100rad_s,0.08Nm]", "quantity": q, "passed": False}]}
+    assert _changed_limits(old, new) == ["efficiency[100rad_s,0.08Nm] PASS->FAIL"]
