@@ -39,7 +39,7 @@ def test_calibrate_json_and_text(capsys, tmp_path):
     assert {"Kt", "Kt_ci95", "J_kgm2", "D_nm_s_per_rad", "Tc_nm", "method", "fit"} <= set(d)
     assert d["Kt_ci95"][0] < d["Kt"] < d["Kt_ci95"][1]
     assert abs(d["Kt"] / 0.0612 - 1) < 0.002
-    assert {"r2", "rmse", "n_samples", "condition", "b2_unloaded", "b2_loaded"} <= set(d["fit"])
+    assert {"r2_acceleration", "rmse", "n_samples", "condition", "b2_unloaded", "b2_loaded"} <= set(d["fit"])
     lo, hi = d["fit"]["speed_range_rad_s"]
     assert 0 < lo < hi
     code, out, _ = run(capsys, "calibrate", "--unloaded", UA, "--loaded", LA, "--inertia", DISK,

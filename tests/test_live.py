@@ -14,7 +14,7 @@ import rerun as rr
 
 from gearbench.cli import main
 from gearbench.reports.live import RerunView, open_live_view
-from gearbench.reports.live.blueprint import EFFICIENCY_TITLE
+from gearbench.reports.live.blueprint import EFFICIENCY_TITLE, EFFICIENCY_TITLES
 from gearbench.reports.live.replay import replay_records
 from gearbench.station.records import (Calibration, EfficiencyPoint, LimitResult, Message, Progress,
                                RecordStream, RunStart, RunStop, SampleBatch, StepStart, StepStop)
@@ -22,14 +22,24 @@ from gearbench.trace import Trace
 
 MOTORS = ("in", "out")
 QUANTITIES = ("position_rad", "velocity_rad_s", "current_a", "command")
-CAL = {"in": {"Kt": 0.1234, "Kt_ci95": 0.0004, "J": 2.1e-4, "D": 3e-5, "Tc": 0.012, "method": "x"},
-       "out": {"Kt": 0.2468, "Kt_ci95": [0.2460, 0.2476], "J": 4.2e-4, "D": 6e-5, "Tc": 0.02}}
+CAL = {"in": {"Kt": 0.1234, "Kt_ci95": [0.1230, 0.1238], "Kt_std": 0.0002, "J": 2.1e-4, "D": 3e-5,
+              "Tc": 0.012, "method": "x"},
+       "out": {"Kt": 0.2468, "Kt_ci95": [0.2460, 0.2476], "Kt_std": 0.0004, "J_kgm2": 4.2e-4,
+               "D_nm_s_per_rad": 6e-5, "Tc_nm": 0.02}}
 # Measured speeds and torques scatter around the grid (as on the bench).
 POINTS = [{"speed_in_rad_s": s * (1 + 3e-5 * (k % 3 - 1)), "torque_out_nm": t * (1 + 2e-3 * (k % 2)),
            "eta_incremental": 0.9 - 0.01 * k,
-           "eta_absolute": 0.85, "eta_incremental_ci95": [0.88, 0.92], "eta_absolute_ci95": 0.01}
+           "eta_absolute": 0.85, "eta_incremental_ci95": [0.88, 0.92], "eta_absolute_ci95": [0.84, 0.86],
+           "t_mid_s": 2.0 + 0.2 * k, "speed_setpoint_rad_s": s}
           for k, (s, t) in enumerate([(s, t) for s in (20.0, 40.0) for t in (0.5, 1.0, 1.5)])]
 LIMITS = [("Kt_in", 0.1234, 0.12, 0.13, True), ("eta_min", 0.86, 0.87, None, False)]
+
+
+class _AsDict(dict):
+    """Stands in for the analysis's typed results: the view reads their ``to_dict()``."""
+
+    def to_dict(self) -> dict:
+        return dict(self)
 
 
 def synthetic_steps(seed: int = 1):
@@ -63,11 +73,12 @@ def feed(view, steps, residuals=None) -> None:
             i, k = j, k + 1
         view(StepStop(name, "ok", len(sample), int(np.sum(np.diff(sample) - 1))))
     for motor, params in CAL.items():
-        view(Calibration(motor, params))
+        view(Calibration(motor, _AsDict(params)))
     for p in POINTS:
-        view(EfficiencyPoint(p))
+        view(EfficiencyPoint(_AsDict(p)))
     for name, value, low, high, passed in LIMITS:
-        view(LimitResult(name, value, low, high, passed))
+        view(LimitResult(name, value, low, high, passed,
+                         "efficiency.eta_incremental" if name.startswith("eta") else "motors.in.Kt"))
     (residuals or view).log_residuals("friction_model", np.arange(50) * 1e-2, np.linspace(0, 1, 50))
     view(RunStop("failed", 1, "eta_min"))
 
@@ -100,12 +111,22 @@ def check_every_sample(entities, steps):
     time_ns = np.rint(np.concatenate([t for _, t, _ in steps.values()]) * 1e9).astype(np.int64)
     for m in MOTORS:
         for q in QUANTITIES:
+            if q == "command":
+                continue
             got_s, got_t, got_v = series(entities[f"/bench/{m}/{q}"])
             want = np.concatenate([c[f"{m}.{q}"] for _, _, c in steps.values()])
             assert got_s.size == sample.size, f"{m}.{q}: {got_s.size} of {sample.size} samples"
             np.testing.assert_array_equal(got_s, sample)
             np.testing.assert_array_equal(got_t, time_ns)
             np.testing.assert_array_equal(got_v, want)
+    # setpoints by unit: the input always in speed; the output in speed while calibrating,
+    # in current (its braking staircase) in the efficiency step: never on one axis
+    for m, unit, names in (("in", "rad_s", list(steps)), ("out", "rad_s", ["calibrate-in-unloaded"]),
+                           ("out", "a", ["efficiency"])):
+        got_s, _, got_v = series(entities[f"/bench/{m}/command_{unit}"])
+        np.testing.assert_array_equal(got_s, np.concatenate([steps[n][0] for n in names]))
+        np.testing.assert_array_equal(got_v, np.concatenate([steps[n][2][f"{m}.command"] for n in names]))
+    assert f"/bench/in/command_a" not in entities and "/bench/out/command" not in entities
 
 
 def test_every_sample_and_result_reach_the_rrd(tmp_path):
@@ -126,16 +147,30 @@ def test_every_sample_and_result_reach_the_rrd(tmp_path):
     assert column(motors["in"], "Kt") == [[0.1234]]
     assert column(motors["in"], "Kt_ci95_high") == [[pytest.approx(0.1238)]]
     assert column(motors["out"], "Kt_ci95_low") == [[0.2460]]
-    assert column(motors["out"], "Tc") == [[0.02]]
+    assert column(motors["out"], "Tc_nm") == [[0.02]]
+    assert column(motors["in"], "J_kgm2") == [[2.1e-4]]                # an old result.json's "J"
 
     pts = entities["/results/efficiency/points"]
     assert sorted(v[0] for v in column(pts, "eta_incremental")) == \
         sorted(p["eta_incremental"] for p in POINTS)
-    # the map is a figure (efficiency vs output torque, a line per input speed): first
-    # point, then at most every MAP_REDRAW_S, and once more with the limits at the end
-    blobs = [bytes(r[0]) for r in column(entities["/results/efficiency/map"], "EncodedImage:blob")]
-    assert len(blobs) >= 2 and all(b[:8] == b"\x89PNG\r\n\x1a\n" for b in blobs)
-    assert view.panels[-4:] == ["Results", EFFICIENCY_TITLE, "Diagnosis residuals", "Steps and operator"]
+    # efficiency as Rerun's own series: per input speed, incremental and absolute, in %,
+    # with their 95 % intervals, and the efficiency limits as lines
+    for speed in (20, 40):
+        pts = [p for p in POINTS if round(p["speed_in_rad_s"]) == speed]
+        base = f"/results/efficiency/series/incremental/{speed:g}rad_s"
+        assert [v[0] for v in column(entities[base], "Scalars:scalars")] == \
+            pytest.approx([100 * p["eta_incremental"] for p in pts])
+        assert [v[0] for v in column(entities[base + "/ci95_low"], "Scalars:scalars")] == pytest.approx([88.0] * 3)
+        absolute = f"/results/efficiency/series/absolute/{speed:g}rad_s"
+        assert [v[0] for v in column(entities[absolute + "/ci95_high"], "Scalars:scalars")] == pytest.approx([86.0] * 3)
+    assert "/results/efficiency/map" not in entities            # no raster image any more
+    assert [v[0] for v in column(entities["/results/efficiency/series/incremental/limit_low"],
+                                 "Scalars:scalars")] == [pytest.approx(87.0)] * 2
+    assert view.panels[-5:] == ["Results", "Diagnosis residuals", EFFICIENCY_TITLES["incremental"],
+                                EFFICIENCY_TITLES["absolute"], "Steps and operator"]
+    assert [p for p in view.panels if p.startswith("motor out:")] == [
+        "motor out: current [A]", "motor out: velocity [rad/s]", "motor out: speed command [rad/s]",
+        "motor out: current command [A]", "motor out: position [rad]"]
 
     assert column(entities["/results/limits/Kt_in"], "passed") == [[True]]
     assert column(entities["/results/limits/eta_min"], "passed") == [[False]]
@@ -155,13 +190,13 @@ def test_panels_only_for_data_there_is(tmp_path):
     view = open_live_view(rrd=tmp_path / "r.rrd")
     view(RunStart("r2", "SN-43", "motors-only", "p.yaml", "abc", "2026-11-01T00:00:00Z",
                   True, MOTORS, 1e-3, str(tmp_path)))
-    view(Calibration("in", CAL["in"]))
+    view(Calibration("in", _AsDict(CAL["in"])))
     view(RunStop("passed", 0, ""))
     view.close()
     assert EFFICIENCY_TITLE not in view.panels and "Diagnosis residuals" not in view.panels
     for m in MOTORS:
         assert [p.split(": ")[1].split(" ")[0] for p in view.panels if p.startswith(f"motor {m}:")] == \
-            ["current", "velocity", "command", "position"]
+            ["current", "velocity", "speed", "position"]
 
 
 def write_result_folder(folder, steps):
@@ -255,3 +290,33 @@ def test_view_command_without_viewer_says_so_in_one_line(tmp_path, capsys, monke
     assert main(["view", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
     assert "no display" in err and "--rrd" in err and "\n" not in err
+
+
+def test_a_finished_recording_opens_on_its_final_results(tmp_path):
+    """The results panel's final state is also static: a viewer opening the .rrd shows the
+    verdict at once, at any time cursor, never "RUNNING" while the samples load."""
+    rrd = tmp_path / "run.rrd"
+    view = open_live_view(rrd=rrd)
+    stream = RecordStream([view])
+    feed(stream, synthetic_steps(), residuals=view)
+    stream.close()
+    static = [c.to_record_batch() for c in rr.chunk.RrdReader(rrd).stream().to_chunks()
+              if c.is_static and c.entity_path == "/results/summary"]
+    text = column(static, "TextDocument:text")[-1][0]
+    assert "finished: FAILED" in text and "RUNNING" not in text
+    assert text.index("Limits: 1 of 2 passed: failed eta_min") < text.index("## Motors")
+
+
+def test_diagnosis_layout_puts_the_noise_floor_with_the_error_it_bounds(tmp_path):
+    """For ``gearbench diagnose --rrd`` (issue 24 wires it): one panel for the error and the
+    floor under /diagnosis/, as paths.py declares, another for the equation error."""
+    from gearbench.reports.live import paths as P
+    from gearbench.reports.live.blueprint import diagnosis_blueprint
+
+    assert P.DIAGNOSIS_ERROR.startswith(P.DIAGNOSIS + "/") and P.DIAGNOSIS_EQUATION.startswith(P.DIAGNOSIS + "/")
+    rec = rr.RecordingStream("t")
+    rec.save(str(tmp_path / "d.rrd"))
+    rec.send_blueprint(diagnosis_blueprint())
+    rec.flush()
+    rec.disconnect()
+    assert rr.chunk.RrdReader(tmp_path / "d.rrd").blueprints()

@@ -2,8 +2,9 @@
 ``rerun --serve-web`` and rendered by Rerun's web viewer in headless Chromium
 (software WebGL, SwiftShader). The screenshot is kept and checked by its pixels:
 the motor current is drawn on its own axis (its trace spans the panel, not a flat
-line at zero under a 300 rad/s velocity), and the efficiency map (lines per input
-speed in the report's colours) is on screen.
+line at zero under a 300 rad/s velocity), so is the output motor's current setpoint (its
+braking staircase, apart from its speed setpoints), and the efficiency series (Rerun's own,
+one per input speed in the report's colours) are on screen.
 
 WebAssembly start-up and software rendering take about a minute on 2 idle cores
 and much longer on a loaded host; the test waits up to ``LIVE_VIEW_TIMEOUT_S``.
@@ -29,6 +30,7 @@ from gearbench.reports.plots import SPEED_COLOURS
 
 LIVE_VIEW_TIMEOUT_S = float(os.environ.get("GEARBENCH_LIVE_VIEW_TIMEOUT_S", 900))
 CURRENT_RGB = (228, 26, 28)          # gearbench.reports.live.rerun_view: current series colour
+COMMAND_A_RGB = (152, 78, 163)       # ... and the current setpoint's
 WIDTH, HEIGHT = 1280, 800
 
 
@@ -47,19 +49,29 @@ def _mask(img: np.ndarray, rgb, tol: int = 40) -> np.ndarray:
 
 
 def what_is_drawn(png: Path) -> dict:
-    """Pixel facts of a screenshot of the default layout (see gearbench.reports.live.blueprint:
-    two motor columns of 2/6.4 of the width each, results + map on the right)."""
+    """Pixel facts of a screenshot of the default layout (gearbench.reports.live.blueprint:
+    two motor columns of 2/6.4 of the width each and the results on the right in the top
+    5/9.2 of the height; the efficiency series below them, across the width; the log last)."""
     import matplotlib.image
 
     img = (matplotlib.image.imread(png) * 255).astype(np.uint8)
     h, w = img.shape[:2]
-    # motor 'in', current panel: first column, first quarter of the panels' height
-    panel = img[int(0.05 * h):int(0.22 * h), :int(0.30 * w)]
+    top = int(0.05 * h), int(0.58 * h)            # the motor panels
+    per_panel = (top[1] - top[0]) / 5             # motor out has five (two setpoint panels)
+    # motor 'in', current panel: first column, its first panel
+    panel = img[top[0]:top[0] + int(1.15 * (top[1] - top[0]) / 4), :int(0.30 * w)]
     rows = np.flatnonzero(_mask(panel, CURRENT_RGB).any(axis=1))
     spread = (rows.max() - rows.min()) / panel.shape[0] if rows.size else 0.0
-    right = img[int(0.40 * h):int(0.80 * h), int(0.70 * w):]
-    speeds = [int(_mask(right, _rgb(c), tol=30).sum()) for c in SPEED_COLOURS[:3]]
-    return {"current_spread": float(spread), "map_line_pixels": speeds}
+    # motor 'out', current setpoint (its braking staircase in A): a panel of its own, where
+    # the staircase spans the height (on a rad/s axis it would be a flat line)
+    out_col = img[top[0]:top[1], int(0.32 * w):int(0.61 * w)]
+    rows = np.flatnonzero(_mask(out_col, COMMAND_A_RGB, tol=30).any(axis=1))
+    command_a = (rows.max() - rows.min()) / per_panel if rows.size else 0.0
+    # the efficiency series (Rerun's own plot): a series per input speed, report colours
+    below = img[int(0.58 * h):int(0.84 * h), :]
+    speeds = [int(_mask(below, _rgb(c), tol=30).sum()) for c in SPEED_COLOURS[:3]]
+    return {"current_spread": float(spread), "command_a_spread": float(command_a),
+            "efficiency_series_pixels": speeds}
 
 
 def _wait_port(port: int, server, t0: float) -> None:
@@ -104,7 +116,8 @@ def test_live_view_in_rerun_web_viewer(cvt_sim_run, browser_factory, tmp_path): 
             b.screenshot(shot)
             facts = what_is_drawn(shot)
             data = shot.read_bytes()
-            done = facts["current_spread"] > 0.3 and min(facts["map_line_pixels"]) > 30
+            done = (facts["current_spread"] > 0.3 and facts["command_a_spread"] > 0.3
+                    and min(facts["efficiency_series_pixels"]) > 30)
             same = same + 1 if data == previous else 0
             if done and same:                 # everything loaded and the picture settled
                 break
@@ -125,5 +138,7 @@ def test_live_view_in_rerun_web_viewer(cvt_sim_run, browser_factory, tmp_path): 
             os.killpg(server.pid, signal.SIGKILL)
     # the current spans its own panel (a flat line would be a few pixels high)
     assert facts["current_spread"] > 0.3, (facts, shot)
-    # the efficiency map shows a line per input speed (the report's colours)
-    assert min(facts["map_line_pixels"]) > 30, (facts, shot)
+    # the output motor's current setpoint has its own axis: the staircase spans its panel
+    assert facts["command_a_spread"] > 0.3, (facts, shot)
+    # the efficiency is Rerun's own series, one per input speed (the report's colours)
+    assert min(facts["efficiency_series_pixels"]) > 30, (facts, shot)

@@ -175,10 +175,11 @@ def test_ctrl_c_aborts_with_exit_3_and_keeps_samples(tmp_path):
     t0 = time.monotonic()
     proc.send_signal(signal.SIGINT)
     rest = proc.stderr.read()
+    summary = proc.stdout.read()          # the table and the verdict line go to stdout
     rc = proc.wait(30)
     assert rc == 3, rest
     assert time.monotonic() - t0 < 10
-    assert "ABORTED" in rest and "Traceback" not in rest
+    assert "ABORTED" in summary and str(out) in summary and "Traceback" not in rest
     res = json.loads((out / "result.json").read_text())
     assert res["status"] == "aborted" and res["exit_code"] == 3
     tr = load_step_trace(out / "trace-calibrate-in-disk_a.parquet")
@@ -218,11 +219,29 @@ def test_run_with_rrd_records_every_acquired_sample(tmp_path):
     traces = [load_step_trace(f) for f in sorted(out.glob("trace-*.parquet"), key=lambda f: f.stat().st_mtime)]
     samples = np.sort(np.concatenate([t["sample"] for t in traces]))
     for m in ("in", "out"):
-        for q in ("current_a", "position_rad", "velocity_rad_s", "command"):
+        for q in ("current_a", "position_rad", "velocity_rad_s"):
             got_s, _, got_v = series(entities[f"/bench/{m}/{q}"])
             np.testing.assert_array_equal(got_s, samples)
             want = np.concatenate([t[f"{m}.{q}"] for t in traces])[np.argsort(np.concatenate([t["sample"] for t in traces]), kind="stable")]
             np.testing.assert_array_equal(got_v, want)
+    # setpoints: every sample of the steps that drive the motor, on the axis of its unit
+    from gearbench.profile import load_profile
+    from gearbench.station.plan import command_units
+
+    units = command_units(load_profile(MOTORS_ONLY))
+    for m in ("in", "out"):
+        for unit in ("rad_s", "a"):
+            driven = [t for f, t in zip(sorted(out.glob("trace-*.parquet"), key=lambda f: f.stat().st_mtime), traces)
+                      if units.get(f.stem.removeprefix("trace-"), {}).get(m) == unit]
+            path = f"/bench/{m}/command_{unit}"
+            if not driven:
+                assert path not in entities
+                continue
+            want_s = np.concatenate([t["sample"] for t in driven])
+            got_s, _, got_v = series(entities[path])
+            np.testing.assert_array_equal(got_s, np.sort(want_s))
+            np.testing.assert_array_equal(got_v, np.concatenate([t[f"{m}.command"] for t in driven])[
+                np.argsort(want_s, kind="stable")])
     assert "/results/motors/in" in entities and "/results/motors/out" in entities
     assert any(e.startswith("/results/limits/") for e in entities)
 

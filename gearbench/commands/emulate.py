@@ -79,6 +79,17 @@ def load_plant(profile: str | None):
             raise ProfileError(f"{profile}: simulation.period_s {sim['period_s']} differs from bench.period_s "
                                f"{bench_period}; the emulated drives sample at the bench's period: remove "
                                f"simulation.period_s or make them equal")
+    motors, sim_motors = doc.get("motors"), sim.get("motors")
+    if isinstance(motors, dict) and isinstance(sim_motors or {}, dict):
+        # the simulated motors have the profile motors' ratings where they leave them out
+        # (as 'gearbench validate' reads it: gearbench.profile.parse.SIM_RATINGS)
+        from ..profile.parse import SIM_RATINGS
+
+        filled = dict(sim_motors or {})
+        for name, spec in motors.items():
+            if isinstance(spec, dict) and isinstance(filled.get(name, {}), dict) and name in ("in", "out"):
+                filled[name] = {**{k: spec[k] for k in SIM_RATINGS if k in spec}, **(filled.get(name) or {})}
+        sim["motors"] = filled
     try:
         return PlantParams.from_dict(sim, where="simulation")
     except ProfileError as exc:

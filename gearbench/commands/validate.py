@@ -112,7 +112,11 @@ def summary_lines(profile, shown: str | Path) -> list[str]:
             what = f"prompt: {s.prompt}"
         else:
             assert isinstance(s, EfficiencyStep)
-            what = (f"{len(s.speeds_in_rad_s)} speeds x {len(s.torques_out_nm)} torques = {s.operating_points} "
+            ratio = profile.reducer.ratio if profile.reducer else None
+            outs = f", output {', '.join(_fmt(w / ratio) for w in s.speeds_in_rad_s)} rad/s" if ratio else ""
+            what = (f"input {', '.join(_fmt(w) for w in s.speeds_in_rad_s)} rad/s{outs}; braking "
+                    f"{', '.join(_fmt(t) for t in s.torques_out_nm)} N m at the output: "
+                    f"{len(s.speeds_in_rad_s)} speeds x {len(s.torques_out_nm)} torques = {s.operating_points} "
                     + (f"operating points, staircase of {len(s.levels())} levels x {_fmt(s.min_s)}..{_fmt(s.max_s)} s "
                        f"until the efficiency slope is known to {_fmt(profile.targets.eta_pp)} pp" if s.adaptive else
                        f"operating points, {len(s.levels())} levels x ({_fmt(s.settle_s)} + {_fmt(s.measure_s)}) s"))

@@ -139,10 +139,17 @@ def reanalyse_result(result: dict, traces: Callable[[str], "object"], profile, m
 
 
 def _changed_limits(old: dict, new: dict) -> list[str]:
-    before = {lim["name"]: lim.get("passed") for lim in old.get("limits") or []}
-    return [f"{lim['name']} {'PASS' if before.get(lim['name']) else 'FAIL'}->"
-            f"{'PASS' if lim['passed'] else 'FAIL'}"
-            for lim in new.get("limits") or [] if before.get(lim["name"]) != lim["passed"]]
+    olds = old.get("limits") or []
+    before = {lim["name"]: lim.get("passed") for lim in olds}
+    out = []
+    for k, lim in enumerate(new.get("limits") or []):
+        was = before.get(lim["name"])
+        if was is None and k < len(olds) and olds[k].get("quantity") == lim.get("quantity"):
+            # an older run named its points by the measured torque (0.0601Nm): same place, same limit
+            was = olds[k].get("passed")
+        if was != lim["passed"]:
+            out.append(f"{lim['name']} {'PASS' if was else 'FAIL'}->{'PASS' if lim['passed'] else 'FAIL'}")
+    return out
 
 
 def reanalyse_run(run_dir: str, method: str = "default", profile: str | None = None) -> dict:

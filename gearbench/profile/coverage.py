@@ -76,6 +76,8 @@ def uncovered(profile) -> list[str]:
                     at = (f"{need[0]:.4g}" if need[0] == need[1] else f"{need[0]:.4g}..{need[1]:.4g}")
                     out.append(f"map point {s.name} at input {speed:g} rad/s: motor {motor} runs at "
                                f"{at} rad/s, outside its calibration's speeds {cal[0]:.4g}..{cal[1]:.4g} "
-                               f"rad/s; its loss would be extrapolated (widen the calibration "
-                               f"waveform's speed range to cover it)")
+                               f"rad/s; its friction would be extrapolated and the point flagged 'extrapolated "
+                               f"motor loss' (absolute efficiency only): widen the calibration waveform's "
+                               f"speed range to cover it (docs/profile-authoring.md, \"Calibration "
+                               f"covering the map\")")
     return out

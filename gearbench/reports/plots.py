@@ -139,9 +139,10 @@ def trace_thumbnail_png(time_s, columns: dict[str, np.ndarray], *, title: str,
         ax.tick_params(labelsize=8)
         ax.grid(alpha=0.3)
     # the legend above the plot, full size: readable on a printed thumbnail
-    axes[0].legend(fontsize=9, loc="lower center", bbox_to_anchor=(0.5, 1.12), ncol=2, frameon=False)
+    axes[0].legend(fontsize=9, loc="lower right", bbox_to_anchor=(1.0, 1.0), ncol=2, frameon=False,
+                   borderaxespad=0.1, handlelength=1.2, columnspacing=0.8)
     axes[1].set_xlabel("time [s]", fontsize=9)
-    axes[0].set_title(title, fontsize=9, pad=22)
+    axes[0].set_title(title, fontsize=9, loc="left")
     fig.tight_layout()
     return _png(fig)
 

@@ -37,7 +37,8 @@ img{max-width:100%;border:1px solid #ddd} .thumbs{display:flex;flex-wrap:wrap;ga
 @media print{
  body{margin:0;max-width:none;font-size:11px} h1{font-size:18px} h2{font-size:14px;margin-top:16px}
  h2,h3{break-after:avoid-page;page-break-after:avoid}
- img,figure,table,.keep{break-inside:avoid;page-break-inside:avoid}
+ img,figure,.keep{break-inside:avoid;page-break-inside:avoid} tr{break-inside:avoid}
+ .keep img{display:block;max-height:230mm;width:auto;max-width:100%}
  section{break-inside:auto} .keep-with-next{break-after:avoid-page}
  .thumbs figure{width:48%} figcaption{break-before:avoid}
 }
@@ -157,9 +158,10 @@ def _motor_section(result: dict, traces: dict) -> str:
                 continue
             runs.append((f"with disk ({disk:.3g} kg·m²)" if loaded else "alone", b))
         if runs:
-            parts.append(f"<h3>Identification fit, motor {_e(m)}: measured vs model</h3>")
-            parts.append(_img(torque_fit_png(runs, motor=m, kt=p["Kt"], kt_ci95=p.get("Kt_ci95")),
-                              f"identification fit motor {m}"))
+            # heading and figure one block: a printed page never ends on the heading alone
+            parts.append(f"<div class='keep'><h3>Identification fit, motor {_e(m)}: measured vs model</h3>"
+                         + _img(torque_fit_png(runs, motor=m, kt=p["Kt"], kt_ci95=p.get("Kt_ci95")),
+                                f"identification fit motor {m}") + "</div>")
     return "\n".join(parts)
 
 
@@ -171,8 +173,8 @@ def _efficiency_section(result: dict) -> str:
              f"<p>Measured reduction ratio n = <b>{_f(ratio, '.6g')}</b></p>"]
     if not pts:
         return "\n".join(parts)
-    parts.append("<h2>Efficiency map</h2>")
-    parts.append(_img(efficiency_map_png(pts, result.get("limits") or []), "efficiency map"))
+    parts.append("<div class='keep'><h2>Efficiency map</h2>"
+                 + _img(efficiency_map_png(pts, result.get("limits") or []), "efficiency map") + "</div>")
     rows = []
     for p in pts:
         flag = "extrapolated motor loss *" if p.get("loss_extrapolated") else ""
@@ -235,7 +237,8 @@ def _samples_section(result: dict, traces: dict) -> str:
             thumbs.append(f"<figure>{_img(trace_thumbnail_png(tr.time_s, cols, title=step), f'trace {step}')}"
                           f"<figcaption>trace-{_e(step)}.parquet, {len(tr)} samples</figcaption></figure>")
     if thumbs:
-        parts += ["<h2>Traces</h2>", f"<div class='thumbs'>{''.join(thumbs)}</div>"]
+        # the heading stays with the first row of thumbnails
+        parts += [f"<div class='thumbs'><h2 style='width:100%;margin-bottom:0'>Traces</h2>{''.join(thumbs)}</div>"]
     return "\n".join(parts)
 
 
@@ -297,10 +300,18 @@ def _header(result: dict, run_dir: Path) -> str:
                "TerminalOperator": "confirmed at the terminal"}
         head += "<h2>Operator prompts</h2>" + _table(
             ["prompt", "shown (UTC)", "confirmed (UTC)", "by"],
-            [[_e(p.get("prompt")), f"<span class='nowrap'>{_e(p.get('shown_utc'))}</span>",
-              f"<span class='nowrap'>{_e(p.get('confirmed_utc'))}</span>",
+            [[_e(p.get("prompt")), _when(p.get("shown_utc")), _when(p.get("confirmed_utc")),
               _e(who.get(p.get("operator"), p.get("operator")))] for p in prompts])
     return head
+
+
+def _when(ts) -> str:
+    """A UTC timestamp that may wrap between date and time, never inside either."""
+    text = _e(ts)
+    date, sep, time = text.partition("T")
+    if not sep:
+        return f"<span class='nowrap'>{text}</span>"
+    return f"<span class='nowrap'>{date}</span> <span class='nowrap'>{time}</span>"
 
 
 def _simulated(result: dict) -> bool:

@@ -14,7 +14,7 @@ from ..analysis.calibration import motor_value
 from ..errors import GearbenchError
 from .limits import point_name
 from .records import RunStop, Subscriber
-from .results import as_written
+from .results import round_floats
 from .config import default_station, station_config
 
 SCHEMA = """
@@ -105,7 +105,7 @@ def measurements_of(result: dict) -> list[tuple]:
 
 
 def store_run(path: str | Path, result: dict) -> None:
-    result = as_written(result)   # the numbers result.json and the central database hold
+    result = round_floats(result)   # the numbers result.json and the central database hold
     con = connect(path)
     try:
         # a station database knows its station before its first run

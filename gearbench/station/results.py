@@ -24,19 +24,30 @@ def finite_or_none(v) -> float | None:
     return f if math.isfinite(f) else None
 
 
-SIGNIFICANT_DIGITS = 12     # far below any measured quantity's uncertainty, above float noise
 NOISE_REL = 1e-12           # in a list of numbers, |x| below this x the largest is rounding noise
 
 
-def _round(f: float) -> float:
-    """``f`` to ``SIGNIFICANT_DIGITS``: 0.9500000000000001 -> 0.95 (float noise from sums)."""
-    return float(f"{f:.{SIGNIFICANT_DIGITS}g}")
+def round_floats(o):
+    """``o`` with rounding noise in lists of numbers set to 0 (as ``_clean``), the rest
+    unchanged: the result a run returns is then exactly what result.json, the station and
+    the central database hold. (Digits are not rounded: results are compared exactly
+    between the typed records, result.json and the databases.)"""
+    if isinstance(o, dict):
+        return {k: round_floats(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        out = [round_floats(v) for v in o]
+        nums = [abs(v) for v in out if isinstance(v, float) and math.isfinite(v)]
+        if len(nums) > 1:
+            floor = NOISE_REL * max(nums)
+            out = [0.0 if isinstance(v, float) and abs(v) < floor else v for v in out]
+        return out if isinstance(o, list) else type(o)(out) if not hasattr(o, "_fields") else out
+    return o
 
 
 def _clean(o):
-    """JSON-safe: numpy scalars to Python, NaN/inf to null (strict JSON), floats without
-    noise digits; in a list of numbers (a range, an interval) a value that is rounding
-    noise beside the others (a speed range's -2.8e-14 beside 241) is 0."""
+    """JSON-safe: numpy scalars to Python, NaN/inf to null (strict JSON); in a list of
+    numbers (a range, an interval) a value that is rounding noise beside the others (a
+    speed range's -2.8e-14 beside 241) is 0."""
     if isinstance(o, dict):
         return {str(k): _clean(v) for k, v in o.items()}
     if isinstance(o, (list, tuple)):
@@ -51,13 +62,13 @@ def _clean(o):
             o = o.item()
         except (ValueError, AttributeError):
             o = o.tolist()
-    if isinstance(o, float):
-        return _round(o) if math.isfinite(o) else None
+    if isinstance(o, float) and not math.isfinite(o):
+        return None
     return o
 
 
 def as_written(result: dict) -> dict:
-    """The result exactly as result.json holds it (JSON-safe, float noise rounded)."""
+    """The result exactly as result.json holds it (JSON-safe: NaN as null, list noise 0)."""
     return _clean(result)
 
 

@@ -28,9 +28,10 @@ import rerun as rr
 from ...station.results import finite_or_none
 from ...station.records import (Calibration, EfficiencyPoint, LimitResult, Message, Progress,
                        RunStart, RunStop, SampleBatch, StepStart, StepStop, Subscriber)
+from ..plots import SPEED_COLOURS
 from . import paths as P
 from .blueprint import default_blueprint, panel_names
-from ...analysis.calibration import motor_value
+from ...analysis.calibration import SUFFIXED, motor_value
 from ...errors import GearbenchError
 
 DEFAULT_VIEWER_URL = "rerun+http://127.0.0.1:9876/proxy"
@@ -40,9 +41,10 @@ _QUANTITY_STYLE = {
     "current_a": ("current [A]", (228, 26, 28), True),
     "velocity_rad_s": ("velocity [rad/s]", (55, 126, 184), True),
     "command": ("command", (120, 120, 120), True),
+    "command_rad_s": ("speed command [rad/s]", (120, 120, 120), True),
+    "command_a": ("current command [A]", (152, 78, 163), True),
     "position_rad": ("position [rad]", (77, 175, 74), True),
 }
-MAP_REDRAW_S = 5.0   # wall seconds between efficiency-map redraws (a matplotlib figure each)
 _LEVEL = {"info": rr.TextLogLevel.INFO, "prompt": rr.TextLogLevel.WARN,
           "warning": rr.TextLogLevel.WARN, "error": rr.TextLogLevel.ERROR}
 
@@ -74,14 +76,19 @@ class RerunView(Subscriber):
         self._last_sample = 0
         self._closed = False
         self.panels: list[str] = []          # the layout's panels as last sent
-        self._raw_points: dict[int, dict] = {}
         self._has_map = self._has_residuals = False
-        self._map_drawn_at: float | None = None
+        # the unit of each motor's setpoint per step (velocity mode rad/s, current mode A)
+        self._command_units: dict[str, dict[str, str]] = {}
+        self._step_units: dict[str, str] = {}
+        self._speed_colours: dict[float, tuple] = {}
+        self._series: set[str] = set()          # efficiency series styled so far
+        self._commands: dict[str, list[str]] = {}   # per motor the setpoint units seen
 
     # ---------------------------------------------------------------- records
     def on_run_start(self, r: RunStart) -> None:
         self.run = r
         self.motors = tuple(r.motors)
+        self._command_units = _command_units_of(r)
         self._layout()
         self._at_last_sample()
         self._text(f"run {r.run_id}: serial {r.serial}, profile {r.profile_name}"
@@ -90,6 +97,7 @@ class RerunView(Subscriber):
 
     def on_step_start(self, r: StepStart) -> None:
         self.step = r.name
+        self._step_units = self._command_units.get(r.name) or _units_by_kind(r.step_kind)
         self._point = r.description   # a point named like its step is not news
         self._at_last_sample()
         extra = f": {r.description}" if r.description else ""
@@ -103,6 +111,15 @@ class RerunView(Subscriber):
         indexes = [rr.TimeColumn(P.TIMELINE, duration=time_ns.astype("timedelta64[ns]")),
                    rr.TimeColumn(P.SAMPLE_TIMELINE, sequence=np.asarray(r.sample, dtype=np.int64))]
         for column, values in r.columns.items():
+            motor, _, quantity = column.partition(".")
+            if quantity == "command":     # rad/s and A never share an axis
+                unit = self._step_units.get(motor)
+                if unit is None:
+                    continue              # a motor this step does not drive: nothing commanded
+                column = f"{motor}.command_{unit}"
+                if unit not in self._commands.setdefault(motor, []):
+                    self._commands[motor].append(unit)
+                    self._layout()            # a panel per setpoint unit, once it has data
             path = self._paths[column] if column in self._paths else self._new_series(column)
             if path is not None:
                 rr.send_columns(path, indexes=indexes,
@@ -135,7 +152,7 @@ class RerunView(Subscriber):
         kt = _num(params.get("Kt"))
         lo, hi = _interval(kt, params.get("Kt_ci95"))
         values = {"Kt": kt, "Kt_ci95_low": lo, "Kt_ci95_high": hi,
-                  **{k: _num(params.get(k)) for k in ("J", "D", "Tc")}}
+                  **{new: _num(motor_value(params, k)) for k, new in SUFFIXED.items()}}
         self.rec.log(f"{P.MOTORS}/{P.part(r.motor)}",
                      rr.AnyValues(**{k: v for k, v in values.items() if v is not None}))
         self._text(f"calibration {r.motor}: {_param_line(params)}")
@@ -145,7 +162,6 @@ class RerunView(Subscriber):
         self._at_last_sample()
         point = {k: _num(v) for k, v in r.point.items() if _num(v) is not None}
         self.points.append(point)
-        self._raw_points[id(point)] = dict(r.point)     # with its intervals, for the map
         flat = {}
         for key, value in r.point.items():
             if key.endswith("_ci95"):
@@ -155,13 +171,14 @@ class RerunView(Subscriber):
                 flat[key] = _num(value)
         self.rec.log(P.EFFICIENCY_POINTS,
                      rr.AnyValues(**{k: v for k, v in flat.items() if v is not None}))
-        self._map(final=False)
+        self._series_point(r.point)
         self._text("efficiency " + _point_line(point))
         self._summary()
 
     def on_limit(self, r: LimitResult) -> None:
         self._at_last_sample()
         self.limits.append(r)
+        self._series_limit(r)
         values = {"value": _num(r.value), "low": _num(r.low), "high": _num(r.high),
                   "passed": bool(r.passed)}
         self.rec.log(f"{P.LIMITS}/{P.part(r.name)}",
@@ -175,11 +192,13 @@ class RerunView(Subscriber):
         self.ratio = _num(r.result.get("ratio")) if isinstance(r.result, dict) else None
         self.bench_time_s = _num(r.result.get("bench_time_s")) if isinstance(r.result, dict) else None
         self._at_last_sample()
-        self._map(final=True)   # with the limits, which are known only now
         reason = f": {r.reason}" if r.reason else ""
         self._text(f"run {r.status.upper()} (exit {r.exit_code}){reason}",
                    "info" if r.status == "passed" else "error")
         self._summary()
+        # the final results also as static data: a finished recording opens on them at any
+        # time cursor, never on the "RUNNING" of the first sample while the rest loads
+        self._summary(static=True)
 
     # ------------------------------------------------------------------ hooks
     def log_residuals(self, name: str, time_s, values) -> None:
@@ -242,36 +261,83 @@ class RerunView(Subscriber):
 
     def _layout(self) -> None:
         """(Re)send the layout: panels only for what has data so far."""
-        flags = dict(efficiency=self._has_map, diagnosis=self._has_residuals)
+        flags = dict(efficiency=self._has_map, diagnosis=self._has_residuals, commands=self._planned_commands())
         self.rec.send_blueprint(default_blueprint(self.motors or ("in", "out"), live=self.live, **flags))
         self.panels = panel_names(self.motors or ("in", "out"), **flags)
 
-    def _map(self, *, final: bool) -> None:
-        """The efficiency map as the report draws it: efficiency versus output torque,
-        one line per input speed, 95 % intervals, the limits (once checked). A
-        matplotlib figure logged as an image: a Rerun plot's x axis is a timeline."""
-        import time
+    def _planned_commands(self) -> dict[str, list[str]]:
+        """Per motor the setpoint units of its panels: those the profile's steps use (known
+        at the start, so the layout does not jump), and any seen since."""
+        out: dict[str, list[str]] = {}
+        for units in self._command_units.values():
+            for m, u in units.items():
+                if u not in out.setdefault(m, []):
+                    out[m].append(u)
+        for m, us in self._commands.items():
+            for u in us:
+                if u not in out.setdefault(m, []):
+                    out[m].append(u)
+        return {m: sorted(us, key=["rad_s", "a"].index) for m, us in out.items()}
 
-        pts = [p for p in self.points if p.get("torque_out_nm") is not None]
-        if not pts:
-            return
-        now = time.monotonic()
-        if not final and self._map_drawn_at is not None and now - self._map_drawn_at < MAP_REDRAW_S:
-            return
-        from ..plots import efficiency_map_png
+    def _summary(self, static: bool = False) -> None:
+        self.rec.log(P.SUMMARY, rr.TextDocument(self.summary_markdown(),
+                                                media_type=rr.MediaType.MARKDOWN), static=static)
 
-        limits = [{"quantity": lim.quantity, "low": lim.low, "high": lim.high} for lim in self.limits]
-        # the incremental map alone: one readable plot in a screen panel (the report has both)
-        png = efficiency_map_png([self._raw_points[id(p)] for p in pts], limits, keys=("eta_incremental",))
-        self._map_drawn_at = now
-        self.rec.log(P.EFFICIENCY_MAP, rr.EncodedImage(contents=png, media_type="image/png"))
+    # efficiency as Rerun's own series (live, zoomable): each point at its bench time, one
+    # series per input speed, its 95 % interval as two thin series, the limits as lines
+    def _series_point(self, point: dict) -> None:
+        speed = _num(point.get("speed_setpoint_rad_s")) or _num(point.get("speed_in_rad_s"))
+        if speed is None:
+            return
+        t = _num(point.get("t_mid_s"))
+        if t is not None:
+            self.rec.set_time(P.TIMELINE, duration=t)
+        colour = self._speed_colours.setdefault(
+            round(speed, 6), _hex_rgb(SPEED_COLOURS[len(self._speed_colours) % len(SPEED_COLOURS)]))
+        label = f"{speed:g} rad/s"
+        for kind, key in (("incremental", "eta_incremental"), ("absolute", "eta_absolute")):
+            eta = _num(point.get(key))
+            if eta is None:
+                continue
+            base = P.efficiency_series(kind, speed)
+            if base not in self._series:
+                self._series.add(base)
+                self.rec.log(base, rr.SeriesLines(names=f"η {kind[:3]} {label}", colors=colour, widths=1.5),
+                             rr.SeriesPoints(names=f"η {kind[:3]} {label}", colors=colour,
+                                             markers="circle", marker_sizes=4.0), static=True)
+                for side, marker in (("ci95_low", "down"), ("ci95_high", "up")):
+                    self.rec.log(f"{base}/{side}",
+                                 rr.SeriesPoints(names=f"{label} 95 % {side[-4:].strip('_')}",
+                                                 colors=colour, markers=marker, marker_sizes=3.0),
+                                 static=True)
+            self.rec.log(base, rr.Scalars(100 * eta))
+            lo, hi = _interval(eta, point.get(f"{key}_ci95"))
+            for side, v in (("ci95_low", lo), ("ci95_high", hi)):
+                if v is not None:
+                    self.rec.log(f"{base}/{side}", rr.Scalars(100 * v))
         if not self._has_map:
             self._has_map = True
             self._layout()
+        self._at_last_sample()
 
-    def _summary(self) -> None:
-        self.rec.log(P.SUMMARY, rr.TextDocument(self.summary_markdown(),
-                                                media_type=rr.MediaType.MARKDOWN))
+    def _series_limit(self, lim: LimitResult) -> None:
+        """An efficiency limit as a horizontal line over the points' bench times."""
+        kind = {"efficiency.eta_incremental": "incremental",
+                "efficiency.eta_absolute": "absolute"}.get(lim.quantity)
+        times = [t for t in (_num(p.get("t_mid_s")) for p in self.points) if t is not None]
+        if kind is None or not times:
+            return
+        for side, v in (("low", _num(lim.low)), ("high", _num(lim.high))):
+            path = P.efficiency_limit(kind, side)
+            if v is None or path in self._series:
+                continue
+            self._series.add(path)
+            self.rec.log(path, rr.SeriesLines(names=f"limit {side} {100 * v:.4g} %", colors=(178, 24, 43),
+                                              widths=1.0), static=True)
+            for t in (min(times), max(times)):
+                self.rec.set_time(P.TIMELINE, duration=t)
+                self.rec.log(path, rr.Scalars(100 * v))
+        self._at_last_sample()
 
     def summary_markdown(self) -> str:
         """The results panel: verdict, motor parameters, efficiency map, limits."""
@@ -279,8 +345,14 @@ class RerunView(Subscriber):
         head = "# Run"
         if self.run:
             head = f"# {self.run.serial} · {self.run.profile_name}"
-        lines += [head, "", f"**Status: {self.status.upper()}**"
-                  + (f" · step {self.step}" if self.step and self.status == "running" else ""), ""]
+        sim = " · SIMULATED bench" if self.run and self.run.sim else ""
+        status = (f"RUNNING · step {self.step}" if self.status == "running" and self.step else
+                  "RUNNING" if self.status == "running" else f"finished: {self.status.upper()}")
+        lines += [head, "", f"**{status}**{sim}", ""]
+        if self.limits:     # the verdict's reasons first: a short panel shows them
+            failed = [lim for lim in self.limits if not lim.passed]
+            lines += [f"Limits: {len(self.limits) - len(failed)} of {len(self.limits)} passed"
+                      + (": failed " + ", ".join(lim.name for lim in failed) if failed else ""), ""]
         if self.ratio is not None or self.bench_time_s is not None:
             lines += [f"Reduction ratio n = {_fmt(self.ratio)} · bench time {_fmt(self.bench_time_s)} s", ""]
         if self.calibrations:
@@ -311,6 +383,32 @@ class RerunView(Subscriber):
                              f"{'✅ pass' if lim.passed else '❌ FAIL'} |")
             lines.append("")
         return "\n".join(lines)
+
+
+def _hex_rgb(colour: str) -> tuple[int, int, int]:
+    return tuple(int(colour[i:i + 2], 16) for i in (1, 3, 5))
+
+
+def _units_by_kind(step_kind: str) -> dict[str, str]:
+    """Without the profile: an efficiency step drives the input in speed and brakes the
+    output in current; other steps run the motors in speed."""
+    return {"in": "rad_s", "out": "a"} if step_kind == "efficiency" else {"in": "rad_s", "out": "rad_s"}
+
+
+def _command_units_of(r: RunStart) -> dict[str, dict[str, str]]:
+    """Per step per motor the setpoint's unit, from the run's profile (the copy in the run
+    folder, else the path it ran); empty when neither loads."""
+    from ...profile import load_profile
+    from ...station.plan import command_units
+
+    for path in (Path(r.out_dir) / "profile.yaml" if r.out_dir else None, r.profile_path):
+        if not path or not Path(path).is_file():
+            continue
+        try:
+            return command_units(load_profile(path))
+        except Exception:       # a profile that no longer loads: fall back to the step kinds
+            continue
+    return {}
 
 
 # ------------------------------------------------------------------- factory
