@@ -147,7 +147,7 @@ def test_calibration_combines_losses_and_round_trips_through_json():
     assert cal.Kt == pytest.approx(KT) and cal.J == pytest.approx(J)
     assert cal.D == pytest.approx(2e-6) and cal.Tc == pytest.approx(0.008)
     d = cal.to_dict()
-    assert {"Kt", "Kt_std", "Kt_dof", "Kt_ci95", "J", "D", "Tc", "method", "fit"} <= set(d)
+    assert {"Kt", "Kt_std", "Kt_dof", "Kt_ci95", "J_kgm2", "D_nm_s_per_rad", "Tc_nm", "method", "fit"} <= set(d)
     back = MotorCalibration.from_dict(d)
     assert back.Kt == cal.Kt and back.Kt_ci95 == cal.Kt_ci95 and back.Tc == cal.Tc
     assert (back.Kt_std, back.Kt_dof) == (cal.Kt_std, cal.Kt_dof) and cal.Kt_std > 0

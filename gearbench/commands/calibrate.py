@@ -30,7 +30,8 @@ def add_arguments(p) -> None:
                    help="datasheet: the tolerance is ± limits (u = tol/√3); measured: it is a 95 %% "
                         "expanded uncertainty (u = tol/2). Default datasheet")
     p.add_argument("--method", choices=METHODS, default="default",
-                   help="identification method: default (bias-reduced), paper (as published, at the data rate), "
+                   help="identification method: default (bias-reduced), the torque-side form; accel, torque, iv: "
+                        "the default's formulations alone; paper (as published, at the data rate); "
                         "paper-15ms (as published, resampled to the paper's 15 ms)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
 

@@ -20,8 +20,9 @@ def add_arguments(p) -> None:
     p.add_argument("--motor", choices=["in", "out"],
                    help="in a gearbench run trace (in.position_rad, out.position_rad ...): the motor to fit")
     p.add_argument("--method", choices=METHODS, default="default",
-                   help="identification method (default: bias-reduced, torque-side form; accel, torque, "
-                        "iv: the default's formulations; paper: as published)")
+                   help="identification method: default (bias-reduced), the torque-side form; accel, torque, iv: "
+                        "the default's formulations alone; paper (as published, at the data rate); "
+                        "paper-15ms (as published, resampled to the paper's 15 ms)")
     p.add_argument("--spring", action="store_true",
                    help="default method: also fit C/J (spring to ground, the paper's C)")
     p.add_argument("--load-angle", type=float, default=None, metavar="RAD_PER_UNIT",
