@@ -1,0 +1,40 @@
+"""CPU time by thread, from Linux's per-thread schedstat (load-insensitive figures).
+
+``/proc/PID/task/TID/schedstat`` field 1 is the time the thread ran, in ns; field 2
+the time it waited runnable for a CPU. A busy host lengthens the second, not the
+first, so CPU per sample is the figure that does not depend on who else runs.
+"""
+from __future__ import annotations
+
+import os
+import threading
+
+
+def threads(pid: int | str = "self") -> dict[str, tuple[str, float, float]]:
+    """{tid: (thread name, run s, run-queue wait s)} of every live thread of ``pid``."""
+    out = {}
+    base = f"/proc/{pid}/task"
+    try:
+        tids = os.listdir(base)
+    except OSError:
+        return out
+    named = {str(t.native_id): t.name for t in threading.enumerate()} if pid == "self" else {}
+    for tid in tids:
+        try:
+            with open(f"{base}/{tid}/comm") as f:
+                name = named.get(tid) or f.read().strip()
+            with open(f"{base}/{tid}/schedstat") as f:
+                run_ns, wait_ns = (int(v) for v in f.read().split()[:2])
+        except (OSError, ValueError):
+            continue
+        out[tid] = (name, run_ns / 1e9, wait_ns / 1e9)
+    return out
+
+
+def delta(before: dict, after: dict) -> dict[str, float]:
+    """CPU seconds used between two ``threads()`` snapshots, summed by thread name
+    (threads born in between count from zero; threads that ended are not seen)."""
+    out: dict[str, float] = {}
+    for tid, (name, run_s, _) in after.items():
+        out[name] = out.get(name, 0.0) + run_s - (before[tid][1] if tid in before else 0.0)
+    return out
