@@ -590,7 +590,7 @@ class CiA402Network(DriveNetwork):
     def acquisition_threads(self) -> list[int]:
         notifier = getattr(self.network, "notifier", None)
         readers = getattr(notifier, "_readers", []) if notifier is not None else []
-        threads = [r for r in readers if hasattr(r, "native_id")]
+        threads = [r for r in readers if hasattr(r, "native_id") and r.is_alive()]   # not once the producer receives
         ids = self.sync_producer.native_ids() if self.sync_producer is not None else []
         if self.stalls._thread is not None:
             threads.append(self.stalls._thread)

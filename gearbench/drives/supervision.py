@@ -32,7 +32,7 @@ class HostStallMonitor:
     """Measures host stalls: a thread that asks to wake every ``tick_s`` and records
     any wake-up later than ``threshold_s`` as a stall (start, duration)."""
 
-    def __init__(self, tick_s: float = 0.005, threshold_s: float = 0.01, keep: int = 20000):
+    def __init__(self, tick_s: float = 0.01, threshold_s: float = 0.01, keep: int = 20000):
         self.tick_s, self.threshold_s, self.keep = tick_s, threshold_s, keep
         self._ends: list[float] = []          # end time of each recorded stall (increasing)
         self._cumulative: list[float] = []    # total stall seconds up to and including it
