@@ -38,3 +38,24 @@ def delta(before: dict, after: dict) -> dict[str, float]:
     for tid, (name, run_s, _) in after.items():
         out[name] = out.get(name, 0.0) + run_s - (before[tid][1] if tid in before else 0.0)
     return out
+
+
+STAND_IN_FIFO = 20          # above the master's acquisition (drives.realtime.FIFO_PRIORITY = 10)
+
+
+def realtime_stand_in(pid: int, priority: int = STAND_IN_FIFO) -> str:
+    """Every thread of process ``pid`` (the drives' stand-in) to SCHED_FIFO ``priority``, above
+    the master's: drive hardware answers whatever the PC does. Returns what was granted."""
+    granted = 0
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(priority))
+            granted += 1
+        except (OSError, AttributeError):
+            pass
+    return f"SCHED_FIFO {priority}" if granted else "normal (SCHED_FIFO refused)"
+
+
+def load_average() -> str:
+    """The host's 1/5/15-minute load average (the host is shared: every figure says it)."""
+    return "/".join(f"{v:.1f}" for v in os.getloadavg())

@@ -41,8 +41,8 @@ from ..drives.cia402 import CiA402Network
 from ..drives.realtime import acquisition_priority
 from ..emulate.launch import _child_setup
 from . import _cpu
+from ._cpu import load_average, realtime_stand_in
 
-STAND_IN_FIFO = 20          # above the master's acquisition (drives.realtime.FIFO_PRIORITY = 10)
 HOG = [sys.executable, "-c", "while 1: pass"]
 
 
@@ -75,26 +75,10 @@ def _start_listener(bus: str, path: str) -> subprocess.Popen:
     return proc
 
 
-def realtime_stand_in(pid: int, priority: int = STAND_IN_FIFO) -> str:
-    """Every thread of process ``pid`` to SCHED_FIFO ``priority``; what was granted."""
-    granted = 0
-    for tid in os.listdir(f"/proc/{pid}/task"):
-        try:
-            os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(priority))
-            granted += 1
-        except (OSError, AttributeError):
-            pass
-    return f"SCHED_FIFO {priority}" if granted else "nice -10 (SCHED_FIFO refused)"
-
-
 def _status(proc: subprocess.Popen) -> dict:
     proc.stdin.write(json.dumps({"cmd": "status"}) + "\n")
     proc.stdin.flush()
     return json.loads(proc.stdout.readline())
-
-
-def load_average() -> str:
-    return "/".join(f"{v:.1f}" for v in os.getloadavg())
 
 
 def run_once(interface: str, duration_s: float, period_s: float, paced: bool, hog: int = 0) -> dict:
