@@ -59,3 +59,40 @@ def realtime_stand_in(pid: int, priority: int = STAND_IN_FIFO) -> str:
 def load_average() -> str:
     """The host's 1/5/15-minute load average (the host is shared: every figure says it)."""
     return "/".join(f"{v:.1f}" for v in os.getloadavg())
+
+
+_PROBE = """
+import json, os, sys, time
+try:
+    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param({priority}))
+except (OSError, AttributeError):
+    pass
+period, n, late = {period_s}, {n}, []
+due = time.perf_counter()
+for _ in range(n):
+    due += period
+    time.sleep(max(0.0, due - time.perf_counter()))
+    late.append(time.perf_counter() - due)
+late.sort()
+print(json.dumps(dict(n=n, over_half=sum(v > period / 2 for v in late), p99_s=late[int(0.99 * (n - 1))],
+                      max_s=late[-1])))
+"""
+
+
+def timer_floor(period_s: float = 1e-3, seconds: float = 2.0, priority: int = 10) -> dict:
+    """What this host allows at best: a process that does nothing but sleep to absolute
+    deadlines every ``period_s`` at SCHED_FIFO ``priority`` (the master's), how often it
+    wakes more than half a period late (a SYNC slot any user-space producer would miss)
+    and its p99/max lateness. On a virtual machine this is the hypervisor's floor."""
+    import json
+    import subprocess
+    import sys
+    code = _PROBE.format(priority=priority, period_s=period_s, n=max(1, round(seconds / period_s)))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=seconds + 30)
+    return json.loads(out.stdout)
+
+
+def floor_text(f: dict, period_s: float) -> str:
+    return (f"host timer floor (a SCHED_FIFO process only sleeping to {period_s * 1e3:g} ms deadlines): "
+            f"{f['over_half']} of {f['n']} wake-ups later than half a period, p99 {f['p99_s'] * 1e6:.0f} us, "
+            f"max {f['max_s'] * 1e6:.0f} us")

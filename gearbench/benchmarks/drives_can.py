@@ -12,14 +12,19 @@ emulate``); virtual runs it in this one.
 The master is measured, not the drives' stand-in: paced, the emulator's threads run at
 real-time priority above the master's (SCHED_FIFO 20 against 10) where the OS grants
 it, as drive hardware answers whatever the PC does, and its own counters (SYNCs heard,
-SYNCs it never heard, answers later than one period) are printed. CPU is measured per
+SYNCs it never heard, answers later than one period) are printed, and the lost samples
+are split into the master's (SYNC slots its producer skipped, answers in time it did not
+take) and the stand-in's (SYNCs sent but never heard, answers later than a period). CPU is measured per
 thread from Linux's schedstat (time on a CPU, which a busy host does not inflate) and
 given per SYNC period: the master's whole process (receive, decode, supervision, SYNC
 production) and the stand-in's. Paced, the SYNC interval jitter is taken by an
 independent listener in its own process (bus receive timestamps, |dT - T| p50 / p99 /
 max). ``--hog N`` starts N ``python3 -c "while 1: pass"`` at normal priority during
 each run (a busy tester PC: N = 2 loads both cores). The host's load average is
-printed with every run: the host is shared.
+printed with every run: the host is shared. Paced, the host's own floor is measured first
+(``_cpu.timer_floor``): how often a real-time process that only sleeps to 1 ms deadlines
+wakes more than half a period late, i.e. the SYNC slots no user-space producer could
+keep on this host.
 """
 from __future__ import annotations
 
@@ -40,8 +45,9 @@ from ..drives.buses import BusSpec, free_udp_port, open_bus
 from ..drives.cia402 import CiA402Network
 from ..drives.realtime import acquisition_priority
 from ..emulate.launch import _child_setup
+from ..errors import BenchFault
 from . import _cpu
-from ._cpu import load_average, realtime_stand_in
+from ._cpu import floor_text, load_average, realtime_stand_in, timer_floor
 
 HOG = [sys.executable, "-c", "while 1: pass"]
 
@@ -121,7 +127,7 @@ def run_once(interface: str, duration_s: float, period_s: float, paced: bool, ho
                 net.sample()                       # the producer's thread started (paced), first answer in
                 if proc is not None:
                     counters0 = _status(proc)["counters"]
-                got, lost0 = 1, net.lost_samples
+                got, lost0, skipped0 = 1, net.lost_samples, net.late_syncs
                 cpu0, emu0, t0 = _cpu.threads(), _cpu.threads(proc.pid) if proc else {}, time.perf_counter()
                 while got + net.lost_samples - lost0 < n + 1:
                     net.sample()
@@ -132,6 +138,7 @@ def run_once(interface: str, duration_s: float, period_s: float, paced: bool, ho
                     counters1 = _status(proc)["counters"]
             load1 = load_average()
             lost = net.lost_samples - lost0
+            skipped = net.late_syncs - skipped0
             sup = net.supervision()
             producer = getattr(net.sync_producer, "kind", "loop" if paced else "lockstep")
     finally:
@@ -152,7 +159,13 @@ def run_once(interface: str, duration_s: float, period_s: float, paced: bool, ho
     emulator = sum(_cpu.delta(emu0, emu1).values()) if proc is not None else None
     syncs = got - 1 + lost
     heard = {k: counters1.get(k, 0) - counters0.get(k, 0) for k in ("syncs_heard", "syncs_missed", "late_answers")}
+    # who lost what: SYNC slots the producer skipped (the master's: its thread was not run in
+    # time), SYNCs sent that the stand-in never heard or answered later than a period (not
+    # the master's), and the rest (the master's: answers in time that it did not take)
+    stand_in_lost = max(0, heard["syncs_missed"] - skipped) + heard["late_answers"] if proc is not None else 0
     return {"bus": interface, "syncs": syncs, "samples": got - 1, "lost": lost, "wall_s": wall,
+            "skipped": skipped, "stand_in_lost": stand_in_lost,
+            "master_lost": max(0, lost - skipped - stand_in_lost) + skipped,
             "samples_per_s": (got - 1) / wall, "producer": producer,
             "master_cpu_us": sum(master.values()) / syncs * 1e6, "master_threads_us":
                 {k: v / syncs * 1e6 for k, v in sorted(master.items(), key=lambda kv: -kv[1])},
@@ -175,11 +188,12 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     print(f"two CiA 402 drives, SYNC period {args.period_s * 1e3:g} ms, {args.duration_s:g} s of drive time, "
           f"{'paced' if args.paced else 'lockstep'}, {args.hog} CPU hog(s); CPU in us per SYNC period")
-    print(f"{'bus':<14}{'SYNCs':>8}{'lost':>6}{'samples/s':>10}{'master CPU':>11}{'stand-in CPU':>13}"
+    if args.paced:
+        print(f"load {load_average()}; " + floor_text(timer_floor(args.period_s), args.period_s))
+    print(f"{'bus':<14}{'SYNCs':>8}{'lost':>6}{'master/stand-in':>16}{'samples/s':>10}{'master CPU':>11}{'stand-in CPU':>13}"
           f"{'SYNC |dT-T| p50/p99/max us':>28}  stand-in: heard/missed/late, max delay   producer, priority,"
           f" load 1/5/15 min before -> after")
     for interface in args.bus:
-        from ..errors import BenchFault
         try:
             r = run_once(interface, args.duration_s, args.period_s, args.paced, args.hog)
         except BenchFault as exc:
@@ -190,10 +204,12 @@ def main(argv: list[str] | None = None) -> int:
         c = r["stand_in_counters"]
         own = "-" if c is None else (f"{c['syncs_heard']}/{c['syncs_missed']}/{c['late_answers']}, "
                                      f"{r['answer_delay_max_ms']:.2f} ms")
-        print(f"{r['bus']:<14}{r['syncs']:>8}{r['lost']:>6}{r['samples_per_s']:>10.0f}{r['master_cpu_us']:>11.0f}"
+        who = f"{r['master_lost']}/{r['stand_in_lost']}" if r["stand_in_counters"] is not None else "-"
+        print(f"{r['bus']:<14}{r['syncs']:>8}{r['lost']:>6}{who:>16}{r['samples_per_s']:>10.0f}{r['master_cpu_us']:>11.0f}"
               f"{emu:>13}{jit:>28}  {r['stand_in']}: {own}   {r['producer']}, {r['priority']}, {r['load']}")
         if args.threads:
-            print("    master by thread (us/SYNC): " + ", ".join(f"{k} {v:.0f}" for k, v in r["master_threads_us"].items()))
+            print("    master by thread (us/SYNC): " + ", ".join(f"{k} {v:.0f}" for k, v in r["master_threads_us"].items())
+                  + f"; SYNC slots skipped by the producer: {r['skipped']}")
     return 0
 
 
