@@ -31,6 +31,15 @@ def threads(pid: int | str = "self") -> dict[str, tuple[str, float, float]]:
     return out
 
 
+def user_system(pid: int | str = "self") -> tuple[float, float]:
+    """(user s, system s) of the whole process from /proc/PID/stat (clock-tick resolution):
+    the system share is the kernel's work for it (socket calls, wake-ups)."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    tick = os.sysconf("SC_CLK_TCK")
+    return int(fields[11]) / tick, int(fields[12]) / tick
+
+
 def delta(before: dict, after: dict) -> dict[str, float]:
     """CPU seconds used between two ``threads()`` snapshots, summed by thread name
     (threads born in between count from zero; threads that ended are not seen)."""

@@ -114,7 +114,7 @@ def run_once(interface: str, duration_s: float, period_s: float, paced: bool, ho
         with CiA402Network(bus=str(bus), lockstep=not paced) as net:
             din = net.add_drive(AxisConfig("in", 1, ""))
             dout = net.add_drive(AxisConfig("out", 2, ""))
-            if proc is not None:
+            if proc is not None and not paced:   # paced, the stand-in runs above the master: never starved
                 net.watch_process(proc.pid)
             net.start(period_s)
             din.enable(Mode.VELOCITY)
@@ -128,12 +128,14 @@ def run_once(interface: str, duration_s: float, period_s: float, paced: bool, ho
                 if proc is not None:
                     counters0 = _status(proc)["counters"]
                 got, lost0, skipped0 = 1, net.lost_samples, net.late_syncs
+                us0 = _cpu.user_system()
                 cpu0, emu0, t0 = _cpu.threads(), _cpu.threads(proc.pid) if proc else {}, time.perf_counter()
                 while got + net.lost_samples - lost0 < n + 1:
                     net.sample()
                     got += 1
                 wall = time.perf_counter() - t0
                 cpu1, emu1 = _cpu.threads(), _cpu.threads(proc.pid) if proc else {}
+                us1 = _cpu.user_system()
                 if proc is not None:
                     counters1 = _status(proc)["counters"]
             load1 = load_average()
@@ -167,7 +169,9 @@ def run_once(interface: str, duration_s: float, period_s: float, paced: bool, ho
             "skipped": skipped, "stand_in_lost": stand_in_lost,
             "master_lost": max(0, lost - skipped - stand_in_lost) + skipped,
             "samples_per_s": (got - 1) / wall, "producer": producer,
-            "master_cpu_us": sum(master.values()) / syncs * 1e6, "master_threads_us":
+            "master_cpu_us": sum(master.values()) / syncs * 1e6,
+            "master_user_us": (us1[0] - us0[0]) / syncs * 1e6, "master_system_us": (us1[1] - us0[1]) / syncs * 1e6,
+            "master_threads_us":
                 {k: v / syncs * 1e6 for k, v in sorted(master.items(), key=lambda kv: -kv[1])},
             "stand_in_cpu_us": None if emulator is None else emulator / syncs * 1e6,
             "stand_in": stand_in, "stand_in_counters": heard if proc is not None else None,
@@ -209,6 +213,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{emu:>13}{jit:>28}  {r['stand_in']}: {own}   {r['producer']}, {r['priority']}, {r['load']}")
         if args.threads:
             print("    master by thread (us/SYNC): " + ", ".join(f"{k} {v:.0f}" for k, v in r["master_threads_us"].items())
+                  + f"; user {r['master_user_us']:.0f} / kernel {r['master_system_us']:.0f}"
                   + f"; SYNC slots skipped by the producer: {r['skipped']}")
     return 0
 

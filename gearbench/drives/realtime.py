@@ -116,3 +116,16 @@ def _own_threads() -> list[int]:
 
 def _self_tid() -> int:
     return getattr(os, "gettid", lambda: 0)()
+
+
+def raise_this_thread(above: int = 1) -> str | None:
+    """The calling thread to SCHED_FIFO ``FIFO_PRIORITY + above`` where the OS allows it (the
+    SYNC producer: above the sample loop, so that the loop, which holds the interpreter lock
+    for ~60 us per sample, never makes a SYNC late). None when not granted or not wanted."""
+    if os.environ.get("GEARBENCH_NO_RT") or not hasattr(os, "sched_setscheduler"):
+        return None
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(FIFO_PRIORITY + above))
+        return f"SCHED_FIFO {FIFO_PRIORITY + above}"
+    except OSError:
+        return None

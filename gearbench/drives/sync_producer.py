@@ -37,6 +37,8 @@ from typing import Callable
 
 import can
 
+from .realtime import raise_this_thread
+
 SYNC_COB_ID = 0x80
 Begin = Callable[[int, "int | None", float], None]
 
@@ -51,6 +53,8 @@ class _Producer:
         self.receive = False                     # this producer's thread receives (see module doc)
         self.exception: BaseException | None = None   # first error of a receive callback (kept going)
         self.frames = 0                          # frames received by the thread
+        self.priority = "not started"            # what the thread's scheduling became
+        self.skipped = 0                         # slots the thread producer skipped (late beyond half a period)
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self.period_s = period_s
@@ -200,6 +204,7 @@ class KernelSyncProducer(_Producer):
         return self
 
     def _run(self) -> None:
+        self.priority = raise_this_thread() or "inherited"
         recv, notify = _reader(self.network.bus), self.network.notify
         due = time.perf_counter()
         while not self._sleep_until(due):
@@ -244,6 +249,7 @@ class ThreadSyncProducer(_Producer):
         return self
 
     def _run(self) -> None:
+        self.priority = raise_this_thread() or "inherited"
         send = _senders(self.network.bus, _sync_frames(self.overflow))
         recv, notify = _reader(self.network.bus), self.network.notify
         number = 0
@@ -254,16 +260,23 @@ class ThreadSyncProducer(_Producer):
             if late > self.period_s / 2:          # host stalled: skip the missed slots, keep the grid
                 missed = int(late / self.period_s + 0.5)
                 number += missed
+                self.skipped += missed
                 self.late += 0 if self.observe else missed   # observed: the counter jump counts it
                 due = self.t0 + number * self.period_s
             if self._sleep_until(due):
                 break
-            if self.receive:    # the answers to the SYNCs before this one, in bus order
-                self._drain(recv, notify)
             counter = self.counter_of(number)
-            if not self.observe:
+            if self.observe:
+                # the SYNC first, on time; its slot begins where it is seen on the bus, in order,
+                # so the answers to the SYNCs before it may be taken after it is sent
+                send[counter - 1 if counter else 0]()
+                if self.receive:
+                    self._drain(recv, notify)
+            else:
+                if self.receive:    # the answers to the SYNCs before this one
+                    self._drain(recv, notify)
                 self._begun(number, counter, time.time())    # before sending: no answer can precede it
-            send[counter - 1 if counter else 0]()
+                send[counter - 1 if counter else 0]()
 
     def stop(self) -> None:
         self._stop.set()
