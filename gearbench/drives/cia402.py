@@ -826,6 +826,10 @@ class CiA402Network(DriveNetwork):
             while len(self._ready) > keep:       # a sample loop that far behind loses the oldest
                 self._ready.popleft()
 
+    def _discard_backlog(self) -> None:
+        with self._cv:
+            self._ready.clear()
+
     def _wait_produced(self) -> dict | None:
         """The next SYNC whose answers were all in before the SYNC after it (the bus's order
         decides, not how late this loop is); SYNCs without them are gaps: counted lost.
