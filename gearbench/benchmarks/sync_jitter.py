@@ -21,6 +21,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 
@@ -29,7 +30,10 @@ import numpy as np
 from ..drives.base import AxisConfig, Mode
 from ..drives.buses import open_bus, parse_bus
 from ..drives.cia402 import CiA402Network
+from ..drives.realtime import acquisition_priority
 from ..errors import BenchFault
+from ._cpu import floor_text, load_average, realtime_stand_in, timer_floor
+from .drives_can import _start_listener
 
 NET = dict(heartbeat_ms=500, timeout_s=3.0, sdo_timeout_s=1.0, state_timeout_s=3.0)
 if os.environ.get("GEARBENCH_VCAN_EMULATED"):   # .ci/vcan's TCG guest: Python 20-100x slower, bounds to match
@@ -72,17 +76,23 @@ def _drives(net: CiA402Network, period_s: float) -> None:
 
 
 def paced(bus: str, producer: str, period_s: float, duration_s: float) -> dict:
+    path = os.path.join(tempfile.mkdtemp(prefix="gearbench-sync-"), "stamps.npy")
     with CiA402Network(bus=bus, lockstep=False, sync=producer, **NET) as net:
         _drives(net, period_s)
-        net.sample()                                   # producer started, first answer in
-        with SyncListener(bus) as listener:
-            got, t_end = 0, time.perf_counter() + duration_s
-            first_index = net.sync_count
-            while time.perf_counter() < t_end:
-                net.sample()
-                got += 1
-            syncs = net.sync_count - first_index
-        stamps = np.array(listener.stamps)
+        with acquisition_priority(net.acquisition_threads(), realtime=True):
+            net.sample()                               # producer started, first answer in
+            listener = _start_listener(bus, path)      # its own process: its work is not the master's
+            try:
+                got, t_end = 0, time.perf_counter() + duration_s
+                first_index = net.sync_count
+                while time.perf_counter() < t_end:
+                    net.sample()
+                    got += 1
+                syncs = net.sync_count - first_index
+            finally:
+                listener.stdin.close()
+                listener.wait(30)
+        stamps = np.load(path) if os.path.exists(path) else np.array([])
     dev_us = np.abs(np.diff(stamps) - period_s) * 1e6 if len(stamps) > 2 else np.array([np.nan])
     span = stamps[-1] - stamps[0] if len(stamps) > 1 else np.nan
     return {"producer": producer, "syncs_seen": len(stamps), "rate_hz": (len(stamps) - 1) / span,
@@ -118,8 +128,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if proc.stdout.readline().strip() != "ready":
             raise SystemExit("gearbench emulate did not start")
+        stand_in = realtime_stand_in(proc.pid)
         print(f"SYNC producers on {bus}: period {args.period_s * 1e3:g} ms, {args.duration_s:g} s each, "
-              f"two drives answering (paced)")
+              f"two drives answering (paced; the master at SCHED_FIFO 10, the emulated drives {stand_in}); "
+              f"load {load_average()}")
+        print(floor_text(timer_floor(args.period_s), args.period_s))
         print(f"{'producer':<10}{'SYNCs':>7}{'rate Hz':>9}{'|dT-T| p50 us':>15}{'p99 us':>9}{'max us':>9}"
               f"{'samples':>9}{'lost':>7}")
         for producer in producers:

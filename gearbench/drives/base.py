@@ -156,6 +156,16 @@ class DriveNetwork(ABC):
         """True where the family overrides ``mount`` (then it is the run's fixture)."""
         return type(self).mount is not DriveNetwork.mount
 
+    def discard_backlog(self) -> None:
+        """Samples taken before now are not the next acquisition's: a paced network keeps
+        sampling between segments (SYNC never stops), so the next ``sample()`` starts from
+        the first sample after this call, and the SYNCs in between are not counted lost."""
+        self._last_index = None
+        self._discard_backlog()
+
+    def _discard_backlog(self) -> None:
+        """Family hook: drop samples queued but not yet taken."""
+
     def supervision(self) -> dict:
         """What supervision saw (host stalls tolerated, frames dropped...); families extend it."""
         return {}

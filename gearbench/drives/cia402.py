@@ -54,6 +54,7 @@ drive that left NMT OPERATIONAL or one silent for ``timeout_s`` -> drives stoppe
 """
 from __future__ import annotations
 
+import collections
 import struct
 import threading
 import time
@@ -72,6 +73,9 @@ from .sync_producer import start_sync_producer
 
 NMT_OPERATIONAL_STATE = 0x05          # the heartbeat byte of a node in OPERATIONAL (CiA 301)
 STARVED_LIMIT_FACTOR = 10    # an emulated drive starved of CPU may be silent this many limits, not more
+HEALTH_PERIOD_S = 0.01       # supervision verdicts at most this often, not per sample: EMCY, NMT and
+                             # silence limits are tens of ms or more, and per sample it cost ~20 us
+READY_KEEP_S = 2.0           # complete samples kept for a sample loop that fell behind (beyond: lost)
 
 __all__ = ["ABORT_CONNECTION_QUICK_STOP", "CW_DISABLE_VOLTAGE", "CW_ENABLE", "CW_FAULT_RESET", "CW_QUICK_STOP",
            "CW_SHUTDOWN", "CW_SWITCH_ON", "CiA402Drive", "CiA402Network", "DEFAULT_EDS", "STATES",
@@ -132,7 +136,11 @@ class CiA402Network(DriveNetwork):
         self.heartbeat_gaps = 0         # heartbeats overdue while the drive was otherwise heard
         self.starved_deferrals = 0      # silence verdicts deferred: the emulating process was runnable
         self._sync_sent_wall = 0.0
-        self._ready: dict = {}          # SYNC number -> its complete answers, not yet taken by the sample loop
+        # (SYNC number, its complete answers) in SYNC order, put by the receive thread the moment the
+        # last answer is in, taken by the sample loop: it wakes once per sample, or not at all when behind
+        self._ready: collections.deque = collections.deque()
+        self._produced = False          # paced by a SYNC producer: answers go to _ready
+        self._health_due = 0.0
         self._started = False
 
     # ----------------------------------------------------------------- lifecycle
@@ -217,7 +225,8 @@ class CiA402Network(DriveNetwork):
     def acquisition_threads(self) -> list[int]:
         notifier = getattr(self.network, "notifier", None)
         readers = getattr(notifier, "_readers", []) if notifier is not None else []
-        threads = [r for r in readers if hasattr(r, "native_id")]
+        threads = [r for r in readers if hasattr(r, "native_id") and r.is_alive()]   # not once the producer receives
+        ids = self.sync_producer.native_ids() if self.sync_producer is not None else []
         if self.stalls._thread is not None:
             threads.append(self.stalls._thread)
         # the master's heartbeat, where a Python thread sends it (not the kernel's BCM): a
@@ -225,7 +234,7 @@ class CiA402Network(DriveNetwork):
         sender = getattr(getattr(self._master_heartbeat, "_task", None), "thread", None)
         if sender is not None and hasattr(sender, "native_id"):
             threads.append(sender)
-        return [t.native_id for t in threads]
+        return ids + [t.native_id for t in threads]
 
     def supervision(self) -> dict:
         """What supervision saw: host stalls tolerated, probes, dropped/late frames."""
@@ -259,8 +268,13 @@ class CiA402Network(DriveNetwork):
             if late:
                 self.late_frames += 1
                 return
-            self._got[cob_id] = values
-            self._cv.notify()
+            got = self._got
+            got[cob_id] = values
+            if len(got) == len(self._formats):
+                if self._produced:
+                    self._ready.append((self._sync_number, got))
+                    self._got = {}      # complete: a repeated frame before the next SYNC is not a new sample
+                self._cv.notify()       # the sample loop wakes once, when the sample is complete
 
     def _on_any_of(self, node_id: int):
         def on_frame(can_id, data, timestamp):
@@ -350,7 +364,10 @@ class CiA402Network(DriveNetwork):
             raise DriveError("CiA402Network.sample before start(period_s)")
         since = time.monotonic()
         while True:
-            self._check_health()
+            now = time.monotonic()
+            if self._faults or now >= self._health_due:     # a reported fault at once, the rest every 10 ms
+                self._health_due = now + HEALTH_PERIOD_S
+                self._check_health()
             if self._paced_by_producer():   # SYNC from the kernel's broadcast manager or a SYNC thread
                 got = self._wait_produced()
             else:
@@ -423,44 +440,44 @@ class CiA402Network(DriveNetwork):
         if self.lockstep or kind == "loop":
             return False
         if self.sync_producer is None:
+            self._produced = True
             try:
                 self.sync_producer = start_sync_producer(self.network, self.period_s, SYNC_OVERFLOW
-                                                         if self.sync_counter_byte else None, self._begin_sync, kind)
+                                                         if self.sync_counter_byte else None, self._begin_sync, kind,
+                                                         receive=self.options.get("receive", "cyclic") == "cyclic")
             except (ValueError, OSError) as exc:
                 raise DriveError(f"bus {self.bus_spec}: cannot start the SYNC producer ({exc})") from exc
         return True
 
     def _begin_sync(self, number: int, counter: int | None, wall_s: float) -> None:
-        """Producer callback, before any answer to SYNC ``number`` can arrive."""
+        """Producer callback, before any answer to SYNC ``number`` can arrive. A SYNC whose
+        answers were not all in before this one is lost (its complete answers went to
+        ``_ready`` as the last one arrived)."""
         with self._cv:
-            if self._sync_number and self._complete():   # all answers in before the next SYNC: keep them
-                self._ready = {n: g for n, g in self._ready.items() if n > number - 256}
-                self._ready[self._sync_number] = dict(self._got)
+            if self._sync_number and self._got:
+                self.dropped_frames += len(self._formats) - len(self._got)
             self._sync_number, self._expect, self._got, self._sync_sent_wall = number, counter, {}, wall_s
-            self._cv.notify_all()
+            keep = max(256, round(READY_KEEP_S / self.period_s))
+            while len(self._ready) > keep:       # a sample loop that far behind loses the oldest
+                self._ready.popleft()
+
+    def _discard_backlog(self) -> None:
+        with self._cv:
+            self._ready.clear()
 
     def _wait_produced(self) -> dict | None:
-        """The next produced SYNC whose answers were all in before the SYNC after it (the bus's
-        order decides, not how late this loop is); SYNCs without them are gaps: counted lost."""
+        """The next SYNC whose answers were all in before the SYNC after it (the bus's order
+        decides, not how late this loop is); SYNCs without them are gaps: counted lost.
+        None when none completed within a supervision period (the caller judges that)."""
         p = self.sync_producer
-        number = p.wait_next(self.sync_count, self.silence_limit_s)
-        if number == self.sync_count:
-            self._fault(f"no SYNC seen on {self.bus_spec} for {self.silence_limit_s:g} s ({p.kind} producer)")
-        with self._cv:   # an earlier SYNC answered in full while this loop was busy comes first
-            waiting = sorted(n for n in self._ready if self.sync_count < n < number)
-            if waiting:
-                self.sync_count, self.late_syncs = waiting[0], p.late
-                return self._ready.pop(waiting[0])
-        self.sync_count, self.late_syncs = number, p.late
         with self._cv:
-            self._cv.wait_for(lambda: self._sync_number != number or self._complete(),
-                              max(0.0, p.slot_end(number) - time.perf_counter()))
-            if self._sync_number != number:
-                return self._ready.pop(number, None)
-            if self._complete():
-                return dict(self._got)
-            self.dropped_frames += len(self._formats) - len(self._got)
-            return None
+            if self._ready or self._cv.wait_for(lambda: self._ready, HEALTH_PERIOD_S):
+                number, got = self._ready.popleft()
+                self.sync_count, self.late_syncs = number, p.late
+                return got
+        if p.idle_s() > self.silence_limit_s:     # outside the lock: stopping the drives needs the receiver
+            self._fault(f"no SYNC seen on {self.bus_spec} for {self.silence_limit_s:g} s ({p.kind} producer)")
+        return None
 
     def _pace(self) -> None:
         """Wait for this SYNC's slot on the wall clock. A host that fell more than half

@@ -78,6 +78,7 @@ class EmulatedBench:
         self._scheduled: list[tuple[float, dict]] = []
         self._rng = random.Random(seed)
         self.journal = None                       # text file: one JSON line per event
+        self.counters: dict = {}                  # the front-ends' own counters (e.g. SYNCs heard/missed), in status
         for axis in self.drives.values():
             axis.state_listeners.append(
                 lambda a, old, new: self.log("state", axis=a.name, old=old, new=new))
@@ -194,7 +195,8 @@ class EmulatedBench:
         if kind == "status":
             return {"sample_index": self.sample_index,
                     "time_s": self.sample_index * self.world.period_s,
-                    "drives": {n: a.snapshot() for n, a in self.drives.items()}}
+                    "drives": {n: a.snapshot() for n, a in self.drives.items()},
+                    "counters": dict(self.counters)}
         raise ValueError(f"unknown cmd {kind!r}; known: mount, fault, drop, mute, heartbeat, "
                          f"refuse_disable, modbus, mark, status")
 

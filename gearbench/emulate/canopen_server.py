@@ -387,6 +387,12 @@ class CanopenServer:
             self.nodes.append(node)
         self.sync_count = 0
         self._last_counter: int | None = None
+        # the stand-in's own account, so a benchmark can show that what was lost was the master's:
+        # SYNCs heard, SYNCs never heard (counter jumps), TPDO frames sent, answers sent later
+        # than one period after the SYNC was received, and the largest such delay
+        self.counters = bench.counters
+        self.counters.update(syncs_heard=0, syncs_missed=0, frames_sent=0, late_answers=0,
+                             answer_delay_max_s=0.0)
         self.network.subscribe(0x80, self.on_sync)
         self.network.NOTIFIER_CYCLE = 0.1    # stop() waits for one notifier cycle
         self.network.connect()
@@ -432,6 +438,14 @@ class CanopenServer:
         for cob_id, payload in frames:
             if not self.bench.drop_frame():
                 self.network.send_message(cob_id, payload)
+        c = self.counters
+        c["syncs_heard"] += 1
+        c["syncs_missed"] += steps - 1
+        c["frames_sent"] += len(frames)
+        if timestamp:    # receive time of the SYNC (wall clock on udp_multicast and socketcan)
+            delay = time.time() - timestamp
+            c["answer_delay_max_s"] = max(c["answer_delay_max_s"], delay)
+            c["late_answers"] += delay > self.bench.period_s
 
     # ------------------------------------------------------------ heartbeat consumer
     def _on_producer_heartbeat(self, can_id, data, timestamp):

@@ -50,6 +50,7 @@ class ModbusServerHandle:
         self.port = port
         self.lockstep = lockstep
         self.overruns = 0          # free-running pacer resyncs (host too slow)
+        self.lag_max_s = 0.0       # free-running: the furthest the world fell behind the wall clock
         self.watchdog_s: dict[int, float] = {}      # unit -> armed comm_timeout
         self.last_request: dict[int, float] = {}    # unit -> monotonic time of its last request
         self.watchdog_trips = 0
@@ -129,6 +130,7 @@ class ModbusServerHandle:
                 next_t = now
             elif now - next_t < WATCHDOG_STALL_S:      # judge the master only while we keep up
                 self._watchdog(now)
+            self.lag_max_s = max(self.lag_max_s, now - next_t)
             while next_t <= now:
                 self.bench.advance()
                 next_t += period

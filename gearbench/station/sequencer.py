@@ -295,6 +295,7 @@ class Sequencer:
         last_sp = dict.fromkeys(motors, None)
         flushed = done = 0
         status = "ok"
+        net.discard_backlog()      # paced, SYNC ran on while the drives were enabled: not this segment's
         lost0 = net.lost_samples
         end_fault: BenchFault | None = None
         try:
