@@ -142,6 +142,15 @@ def test_cli_json_keys_report_and_rrd(tmp_path, capsys):
     pngs = sorted((tmp_path / "rep").glob("*.png"))
     assert len(pngs) == 3 and all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in pngs)
     assert (tmp_path / "d.rrd").stat().st_size > 1000
+    # the diagnosis layout: the error and the floor that bounds it under one path (one axis)
+    import rerun as rr
+
+    reader = rr.chunk.RrdReader(tmp_path / "d.rrd")
+    paths = {str(c.entity_path) for c in reader.stream().to_chunks()}
+    assert {"/diagnosis/velocity/sim_error_rad_s", "/diagnosis/velocity/noise_floor_rad_s",
+            "/diagnosis/acceleration/equation_error_rad_s2"} <= paths, paths
+    assert not any(p.startswith("/diagnose/") for p in paths)
+    assert reader.blueprints(), "no blueprint: the viewer would open in its generic layout"
 
 
 def test_heatmap_is_a_figure_with_axes_and_colour_bar():

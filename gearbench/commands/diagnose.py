@@ -266,8 +266,13 @@ def write_report(result, folder: Path) -> list[str]:
 
 
 def write_rrd(result, path: Path) -> str:
-    """Log the residuals as time series to a Rerun recording saved at ``path``."""
+    """Log the residuals as time series to a Rerun recording saved at ``path``, in the
+    diagnosis layout (``reports.live.blueprint.diagnosis_blueprint``): the simulation error
+    and the noise floor that bounds it on one axis, the equation error below."""
     import rerun as rr
+
+    from ..reports.live.blueprint import diagnosis_blueprint
+    from ..reports.live.paths import DIAGNOSIS_EQUATION, DIAGNOSIS_ERROR, DIAGNOSIS_TIMELINE
 
     maps = result.residuals
     rec = rr.RecordingStream("gearbench_diagnose")
@@ -275,13 +280,14 @@ def write_rrd(result, path: Path) -> str:
         rec.save(str(path))
     except Exception as exc:  # rerun raises its own error types for bad paths
         raise GearbenchError(f"{path}: cannot write Rerun file ({exc}); choose a writable --rrd FILE") from None
+    rec.send_blueprint(diagnosis_blueprint())
     t = maps["time_s"]
-    rec.send_columns("diagnose/sim_error_rad_s", indexes=[rr.TimeColumn("time", duration=t)],
+    rec.send_columns(f"{DIAGNOSIS_ERROR}/sim_error_rad_s", indexes=[rr.TimeColumn(DIAGNOSIS_TIMELINE, duration=t)],
                      columns=rr.Scalars.columns(scalars=maps["error_flat"]))
-    rec.send_columns("diagnose/noise_floor_rad_s", indexes=[rr.TimeColumn("time", duration=t)],
+    rec.send_columns(f"{DIAGNOSIS_ERROR}/noise_floor_rad_s", indexes=[rr.TimeColumn(DIAGNOSIS_TIMELINE, duration=t)],
                      columns=rr.Scalars.columns(scalars=np.full(t.shape, float(maps["floor_rad_s"]))))
-    rec.send_columns("diagnose/equation_error_rad_s2",
-                     indexes=[rr.TimeColumn("time", duration=maps["ee_time_s"])],
+    rec.send_columns(f"{DIAGNOSIS_EQUATION}/equation_error_rad_s2",
+                     indexes=[rr.TimeColumn(DIAGNOSIS_TIMELINE, duration=maps["ee_time_s"])],
                      columns=rr.Scalars.columns(scalars=maps["equation_error"]))
     rec.flush()
     rec.disconnect()
