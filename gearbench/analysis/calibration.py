@@ -25,10 +25,19 @@ SUFFIXED = {"J": "J_kgm2", "D": "D_nm_s_per_rad", "Tc": "Tc_nm"}
 FIT_R2 = "r2_acceleration"
 
 
+def with_short_keys(d: dict) -> dict:
+    """A written-out motor entry with ``J``, ``D``, ``Tc`` also under their short names
+    (result.json and calibrate --json write ``J_kgm2``, ``D_nm_s_per_rad``, ``Tc_nm``;
+    files from before 0.2 the short ones)."""
+    return {**d, **{k: d[new] for k, new in SUFFIXED.items() if new in d}}
+
+
 def motor_value(d: dict, key: str):
     """``key`` ("J", "D", "Tc", ...) of a written-out motor entry, new or old spelling."""
     new = SUFFIXED.get(key)
     return d[new] if new is not None and new in d else d.get(key)
+
+
 # Model error of the losses: the two runs' (D, Tc) differ by far more than their
 # covariances allow (robustness seed 0: the loss at the bench speed was off by > 2 sigma
 # on 31 % of motors), so LOSS_RUN_SPREAD x (difference)(difference)^T is added to the
@@ -102,7 +111,7 @@ class MotorCalibration:
         if not isinstance(d, dict):
             raise GearbenchError(f"{where}: expected a JSON object from 'gearbench calibrate "
                                  f"--json', got {type(d).__name__}")
-        d = {**d, **{k: d[new] for k, new in SUFFIXED.items() if new in d}}
+        d = with_short_keys(d)
         missing = [k for k in REQUIRED_KEYS if k not in d]
         if missing:
             raise GearbenchError(f"{where}: missing key(s) {', '.join(missing)}; use the output of "

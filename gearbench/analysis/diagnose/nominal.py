@@ -24,7 +24,7 @@ import numpy as np
 import scipy.linalg
 from scipy.signal import savgol_filter
 
-from ..calibration import SUFFIXED
+from ..calibration import with_short_keys
 from ...errors import ProfileError, TraceError
 from ...trace import Trace
 from .fastsim import SPRING, VISC
@@ -506,7 +506,7 @@ def load_model(path: str | Path) -> GivenModel:
     if not isinstance(data, dict):
         raise ProfileError(f"{p}: expected a JSON object with Kt, J, D")
     # calibrate --json writes J_kgm2, D_nm_s_per_rad (older files J, D)
-    data = {**data, **{k: data[new] for k, new in SUFFIXED.items() if new in data}}
+    data = with_short_keys(data)
     try:
         if "kt_over_j" in data:
             g = GivenModel(float(data["kt_over_j"]), float(data.get("d_over_j", 0.0)),

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..calibration import SUFFIXED
+from ..calibration import with_short_keys
 from ...errors import TraceError
 from ...trace import Trace
 from . import verdict as vd
@@ -91,7 +91,7 @@ def calibration(data: dict, source: str = "<calibration>") -> dict:
     if not isinstance(data, dict):
         raise TraceError(f"{source}: expected a JSON object with Kt, J, D, Tc")
     # result.json and calibrate --json write J_kgm2, D_nm_s_per_rad, Tc_nm; older files J, D, Tc
-    data = {**data, **{k: data[new] for k, new in SUFFIXED.items() if new in data}}
+    data = with_short_keys(data)
     try:
         cal = {k: float(data.get(k, 0.0) if k in ("D", "Tc") else data[k])
                for k in CALIBRATION_FIELDS}
