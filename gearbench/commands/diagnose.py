@@ -298,14 +298,18 @@ def _calibration(path: str) -> dict:
     from ..analysis.diagnose.reducer import calibration
 
     p = Path(path)
-    try:
-        data = json.loads(p.read_text())
-    except FileNotFoundError:
-        raise TraceError(f"{p}: calibration file not found; give what 'gearbench calibrate "
-                         f"--json' printed") from None
-    except (OSError, json.JSONDecodeError) as exc:
-        raise TraceError(f"{p}: not valid JSON ({exc})") from None
+    data = _read_json(p, f"{p}: calibration file not found; give what 'gearbench calibrate --json' printed")
     return calibration(data, str(p))
+
+
+def _read_json(path: Path, missing: str):
+    """A JSON file, or one TraceError: ``missing`` when it is absent, else what is wrong."""
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise TraceError(missing) from None
+    except (OSError, json.JSONDecodeError) as exc:
+        raise TraceError(f"{path}: not valid JSON ({exc})") from None
 
 
 def _run_dir(args, folder: Path) -> int:
@@ -313,14 +317,8 @@ def _run_dir(args, folder: Path) -> int:
     from ..analysis.diagnose.runs import diagnose_run
     from ..station.recorder import load_step_trace
 
-    res = folder / "result.json"
-    try:
-        result = json.loads(res.read_text())
-    except FileNotFoundError:
-        raise TraceError(f"{folder}: no result.json; give the output folder of a "
-                         f"'gearbench run' (or a trace file)") from None
-    except (OSError, json.JSONDecodeError) as exc:
-        raise TraceError(f"{res}: unreadable ({exc})") from None
+    result = _read_json(folder / "result.json", f"{folder}: no result.json; give the output folder of "
+                                                 f"a 'gearbench run' (or a trace file)")
     files = {q.stem[len("trace-"):]: q for q in sorted(folder.glob("trace-*.arrows"))}
     files.update({q.stem[len("trace-"):]: q for q in sorted(folder.glob("trace-*.parquet"))})
     if not files:
