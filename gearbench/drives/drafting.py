@@ -62,6 +62,23 @@ def candidates(m: DriveModel, kind: str) -> list[ObjRef]:
     return out
 
 
+def rank_current_actual(m: DriveModel, refs: list[ObjRef]) -> list[ObjRef]:
+    """Current-actual candidates, the likeliest first: by the object's own name, an 'actual
+    current' before the q-axis (torque-forming) current before the rest, and a d-axis /
+    flux / phase current last. Nanotec's 0x2039 'Motor Currents' lists Id first: proposing
+    0x2039:01 would sample the field-forming current, zero in a running servo."""
+    def rank(ref: ObjRef) -> int:
+        name = (m.var(ref).name or "").lower()
+        if re.search(r"current.*actual|actual.*current", name):
+            return 0
+        if re.search(r"\biq\b|i_q\b|torque", name):
+            return 1
+        if re.search(r"\bid\b|i_d\b|flux|field|phase|\bi_?[ab]\b", name):
+            return 3
+        return 2
+    return sorted(refs, key=rank)      # stable: EDS order within a rank
+
+
 def object_line(m: DriveModel, ref: ObjRef, probed: dict | None = None) -> str:
     v = m.var(ref)
     if v is None:
@@ -186,7 +203,8 @@ def _current_actual(m: DriveModel, probed: dict) -> list[str]:
               "#   TODO check in the manual whether it is the q-axis current, peak or rms (scale: 0.7071 for "
               "peak against an rms datasheet)"]
     else:
-        cands = [r for r in candidates(m, "current") if m.mappable(r)] or candidates(m, "current")
+        cands = rank_current_actual(m, [r for r in candidates(m, "current") if m.mappable(r)]
+                                    or candidates(m, "current"))
         L += ["# current actual: no mappable 0x6078. Candidates by name:"] + \
              [f"#   {object_line(m, r, probed)}" for r in cands] + \
              ["current:", f"  object: {_q(cands[0]) if cands else 'TODO'}   # TODO confirm in the manual",
@@ -223,8 +241,13 @@ def _torque(m: DriveModel, probed: dict) -> list[str]:
     bits = probed.get(ObjRef(0x6502), od[0x6502].default if 0x6502 in od else None)
     tq_modes = [x for x in modes_from_bits(bits)] if isinstance(bits, int) else []
     if 0x6071 in od and any(x in (4, 10) for x in tq_modes):
-        L += [f"# target torque: {object_line(m, ObjRef(0x6071), probed)}; rated torque 0x6076 "
-              + (f"reads {probed[ObjRef(0x6076)]}" if ObjRef(0x6076) in probed else "(read it: --probe)"),
+        if 0x6076 not in od:      # nothing to probe: the manual says what 0x6071 = 1000 is
+            rated = "no rated torque 0x6076 in the EDS (per mille of what? manual: 6071h)"
+        elif ObjRef(0x6076) in probed:
+            rated = f"rated torque 0x6076 reads {probed[ObjRef(0x6076)]}"
+        else:
+            rated = "rated torque 0x6076 (read it: --probe)"
+        L += [f"# target torque: {object_line(m, ObjRef(0x6071), probed)}; {rated}",
               "torque:", "  relation: TODO   # permille_rated_current if 0x6071 = 1000 commands the rated CURRENT "
                          "(manual: 'target torque', 'torque constant'); else describe a current mode below",
               "  source: manual"]
@@ -250,4 +273,4 @@ def _missing(m: DriveModel) -> list[str]:
                                                f" (EDS default {m.exponent_default()})")]
 
 
-__all__ = ["PROBE_OBJECTS", "candidates", "draft", "object_line", "MODE_BIT"]
+__all__ = ["PROBE_OBJECTS", "candidates", "draft", "object_line", "rank_current_actual", "MODE_BIT"]
