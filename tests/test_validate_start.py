@@ -4,7 +4,8 @@ serving that EDS, and any it refuses does not start - over every vendor EDS in
 synthetic variants of them (0x6060 not mappable, 0x6071 missing on one drive of two,
 a 1 s interpolation unit with a writable or read-only exponent, vendor current
 objects and a manufacturer current mode, wrong device type, no 0x1017, broken
-descriptions)."""
+descriptions, an encoder resolution no object reports, fixed by the description, and
+Nanotec's dictionary before the firmware that added 0x2039:05)."""
 from __future__ import annotations
 
 import re
@@ -132,6 +133,17 @@ def variants(tmp: Path) -> dict[str, tuple[str, str, str]]:
     out["wrong device type (0x0191)"] = (wrong, wrong, "")
     no1017 = write("ref-no-1017.eds", drop(ref, "1017"))
     out["no 0x1017 heartbeat"] = (no1017, no1017, "")
+    zeroerr_desc = (REPO / "drivers" / "zeroerr-edriver.yaml").read_text()
+    zeroerr = str(HELD_OUT / "zeroerr-edriver-v1.5.eds")
+    out["encoder resolution fixed by the description, profile differs (ZeroErr)"] = (zeroerr, zeroerr, zeroerr_desc.replace(
+        "counts_per_rev: profile ", "counts_per_rev: 524288 "))
+    out["encoder resolution fixed by the description, profile agrees (ZeroErr)"] = (zeroerr, zeroerr, zeroerr_desc.replace(
+        "counts_per_rev: profile ", "counts_per_rev: 10000 "))
+    nanotec = (HELD_OUT / "nanotec-cl4-e-1-12.eds").read_text()
+    old_fw = write("nanotec-before-fir-v2213.eds", drop(nanotec, "2039sub5").replace(
+        "[2039sub0]\nParameterName=Number of entries\nObjectType=0x7\nDataType=0x0005\nAccessType=ro\nDefaultValue=0x05",
+        "[2039sub0]\nParameterName=Number of entries\nObjectType=0x7\nDataType=0x0005\nAccessType=ro\nDefaultValue=0x04"))
+    out["Nanotec firmware before FIR-v2213: no 0x2039:05 'Actual current'"] = (old_fw, old_fw, "")
     if epos is not None:
         no6071 = write("epos4-no-6071.eds", drop(epos, "6071"))
         out["0x6071 missing on the input drive only (EPOS4)"] = (no6071, str(SHARED / "maxon-epos4.eds"), "")
@@ -221,6 +233,9 @@ VARIANT_EXPECTED = {      # the verdict itself (validate == start-up is checked 
     "0x6071 missing on the input drive only (EPOS4)": True,
     "0x6071 missing on the output drive (EPOS4)": False,
     "0x6060 not mappable (EPOS4)": True,
+    "encoder resolution fixed by the description, profile differs (ZeroErr)": False,
+    "encoder resolution fixed by the description, profile agrees (ZeroErr)": True,
+    "Nanotec firmware before FIR-v2213: no 0x2039:05 'Actual current'": False,
 }
 
 

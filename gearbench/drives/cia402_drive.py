@@ -126,7 +126,7 @@ class CiA402Drive(Drive):
         if m.velocity_set is not None and isinstance(m.velocity_unit, ObjRef):
             self.sdo_write(m.velocity_unit.index, m.velocity_unit.subindex, m.velocity_set)
         values = {ref: self.sdo_read(ref.index, ref.subindex) for ref in unit_objects(m)}
-        units, rated_a = axis_units(m, values, self.where)
+        units, rated_a = axis_units(m, values, self.where, c.counts_per_rev)
         if m.velocity_set is not None and values[m.velocity_unit] != m.velocity_set:
             raise DriveError(f"{self.where}: velocity unit {m.velocity_unit} reads "
                              f"{describe_velocity_code(values[m.velocity_unit])} after writing "
@@ -138,7 +138,8 @@ class CiA402Drive(Drive):
             if got != want:
                 raise DriveError(f"{self.where}: {ref} reads {got}, expected {want} ({m.name}); gearbench reads "
                                  f"positions in encoder increments: set the factor group to 1:1")
-        cpr_ref = "0x608F" if m.counts_per_rev.index == 0x608F else str(m.counts_per_rev)
+        cpr_ref = (f"fixed, {m.description.where('position.counts_per_rev')}" if m.counts_per_rev_fixed is not None
+                   else "0x608F" if m.counts_per_rev.index == 0x608F else str(m.counts_per_rev))
         if abs(units.counts_per_rev - c.counts_per_rev) > 1e-9:
             raise DriveError(f"{self.where}: drive reports {units.counts_per_rev:g} counts/rev ({cpr_ref}) but the "
                              f"profile says counts_per_rev: {c.counts_per_rev}; fix the profile or the drive")

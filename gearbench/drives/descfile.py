@@ -239,6 +239,13 @@ def _check_section(c: _Checker, section: str, value: dict) -> None:
             c.fail("torque.unit", f"the setpoint's unit: one of {', '.join(CURRENT_UNITS)}")
         if rel is None and value.get("setpoint") is None:
             c.fail("torque", "give relation (how 0x6071 maps to current) or setpoint + unit (a current setpoint)")
+    if section == "position" and "counts_per_rev" in value and not isinstance(value["counts_per_rev"], ObjRef):
+        cpr = value["counts_per_rev"]
+        if cpr != "profile" and (isinstance(cpr, bool) or not isinstance(cpr, int) or cpr <= 0):
+            c.fail("position.counts_per_rev", "an object holding increments per revolution (\"0x608F\", "
+                                              "\"0xIIII:SS\"), a positive integer (a fixed resolution no object "
+                                              "reports, from the encoder's datasheet) or 'profile' (the profile's "
+                                              f"counts_per_rev, unchecked), got {cpr!r}")
     if section == "supported_modes":
         modes = value.get("modes")
         if not isinstance(modes, list) or any(isinstance(m, bool) or not isinstance(m, int) or

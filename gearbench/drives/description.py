@@ -58,6 +58,9 @@ class DriveModel:
     device_type: int | None = None
     supported_modes: tuple[int, ...] | None = None      # None: read 0x6502 at start-up
     counts_per_rev: ObjRef | None = None                 # 0x608F (ratio) or an object holding inc/rev
+    # no object reports the resolution: the datasheet's increments/rev, or "profile" (the profile's
+    # counts_per_rev is used as given; nothing on the drive can confirm it)
+    counts_per_rev_fixed: int | str | None = None
     velocity_unit: object = None                         # ObjRef (read at start-up), int code, "inc/s"
     velocity_set: int | None = None                      # 0x60A9 value gearbench writes before reading
     velocity_allowed: tuple[int, ...] = ()
@@ -296,6 +299,8 @@ def _resolve_position(c: _Ctx) -> None:
     cpr = c.fact("position", "counts_per_rev")
     if isinstance(cpr, ObjRef):
         m.counts_per_rev = cpr
+    elif cpr is not None:        # a datasheet value or "profile": no object holds the resolution
+        m.counts_per_rev_fixed = cpr
     elif 0x608F in od:
         m.counts_per_rev = ObjRef(0x608F)
     else:
@@ -499,13 +504,21 @@ def unit_objects(m: DriveModel) -> list[ObjRef]:
     return refs
 
 
-def axis_units(m: DriveModel, values: dict[ObjRef, int], where: str):
-    """``AxisUnits`` from the values of ``unit_objects(m)``; DriveError when one is unusable."""
+def axis_units(m: DriveModel, values: dict[ObjRef, int], where: str, profile_counts_per_rev: float | None = None):
+    """``AxisUnits`` from the values of ``unit_objects(m)``; DriveError when one is unusable.
+    ``profile_counts_per_rev`` is the resolution used for a drive described with
+    ``counts_per_rev: profile`` (no object reports it)."""
     from .scaling import AxisUnits
 
-    if m.counts_per_rev is None:
+    if m.counts_per_rev_fixed == "profile":
+        if not profile_counts_per_rev:
+            raise DriveError(f"{where}: encoder resolution comes from the profile's counts_per_rev, which is not set")
+        cpr = profile_counts_per_rev
+    elif m.counts_per_rev_fixed is not None:
+        cpr = m.counts_per_rev_fixed
+    elif m.counts_per_rev is None:
         raise DriveError(f"{where}: encoder resolution unknown")
-    if m.counts_per_rev.index == 0x608F:
+    elif m.counts_per_rev.index == 0x608F:
         inc, revs = values[ObjRef(0x608F, 1)], values[ObjRef(0x608F, 2)]
         if not inc or not revs:
             raise DriveError(f"{where}: 0x608F encoder resolution reads {inc}/{revs}; configure the encoder")

@@ -133,6 +133,21 @@ def start_problems(m, kinds, period_s: float, cyclic, motor=None) -> list[Proble
             out.append(Problem(where, m.label(ref), f"EDS default {got}, but gearbench reads positions in encoder "
                                f"increments and needs {want} (factor group 1:1)",
                                "set the factor group to 1:1 in the drive (and its EDS/DCF)"))
+    if motor is not None and m.counts_per_rev_fixed is not None:     # the start-up uses/compares this value
+        said = m.description.where("position.counts_per_rev")
+        if m.counts_per_rev_fixed == "profile":
+            out.append(Problem(where, "encoder resolution", f"no object reports it ({said}: profile); the profile's "
+                               f"counts_per_rev {motor.counts_per_rev:g} is used as given",
+                               "check it against the encoder's datasheet: Kt and J scale with it", fatal=False))
+        elif abs(m.counts_per_rev_fixed - motor.counts_per_rev) > 1e-9:
+            out.append(Problem(where, "encoder resolution", f"{said} fixes {m.counts_per_rev_fixed} increments per "
+                               f"revolution but the profile says counts_per_rev: {motor.counts_per_rev:g}",
+                               "fix the profile or the description"))
+    if motor is not None and 0x6080 in m.od and m.od[0x6080].default is None:
+        out.append(Problem(where, m.label("0x6080"), "no EDS default: the start-up reads the drive's max motor speed "
+                           f"and refuses one below the profile's speed_limit_rad_s {motor.speed_limit_rad_s:g}",
+                           "check it in the drive's commissioning tool (or with describe-drive --probe)",
+                           fatal=False))
     if motor is not None and 0x6080 in m.od and m.od[0x6080].default is not None:
         per = _velocity_per_count(m, motor.counts_per_rev)
         top = m.od[0x6080].default

@@ -168,7 +168,9 @@ def _position(m: DriveModel, probed: dict) -> list[str]:
                  + "; ".join(object_line(m, r, probed) for r in (ObjRef(0x608F, 1), ObjRef(0x608F, 2))))
     else:
         cands = candidates(m, "encoder")
-        L += ["# encoder resolution: no 0x608F. Candidates by name:"] + \
+        L += ["# encoder resolution: no 0x608F. " + ("Candidates by name:" if cands else
+              "No candidate object: give the encoder's fixed increments per revolution (an integer, from its "
+              "datasheet) or 'profile' (the profile's counts_per_rev, which no object can confirm)")] + \
              [f"#   {object_line(m, r, probed)}" for r in cands] + \
              ["position:", f"  counts_per_rev: {_q(cands[0]) if cands else 'TODO'}   # TODO confirm: increments "
                            "per MOTOR revolution (manual, object dictionary chapter)",

@@ -31,6 +31,7 @@ Built on canopen's ``LocalNode`` (SDO server, NMT slave) plus what it lacks
 """
 from __future__ import annotations
 
+import math
 import struct
 import threading
 import time
@@ -138,6 +139,13 @@ class DriveNode(canopen.LocalNode):
             self.set_raw(0x605A, 0, axis.quick_stop_option)
         self._loading = False
         self._rescale()
+        if 0x6080 in od and od[0x6080].default is None and self.units is not None:
+            # no EDS default (ZeroErr: only LowLimit=10): the drive holds what commissioning set; played as
+            # the motor's speed limit, the value validate tells the engineer to check (not the LowLimit)
+            self._loading = True
+            self.set_raw(0x6080, 0, min(0xFFFFFFFF, math.ceil(axis.speed_limit_rad_s
+                                                              / self.units.velocity_rad_s_per_unit)))
+            self._loading = False
         self.add_read_callback(self._on_read)
         self.add_write_callback(self._on_write)
         self._write_callbacks.remove(self.nmt.on_write)   # our own heartbeat producer
@@ -208,7 +216,7 @@ class DriveNode(canopen.LocalNode):
     def _rescale(self) -> None:
         try:
             values = {ref: self.raw(ref.index, ref.subindex) for ref in unit_objects(self.model)}
-            self.units, _ = axis_units(self.model, values, f"emulated node {self.id}")
+            self.units, _ = axis_units(self.model, values, f"emulated node {self.id}", self.axis.counts_per_rev)
         except (DriveError, KeyError, ValueError):
             self.units = None      # a drive without usable units cannot move; the master refuses it
         self._apply_ramps()
