@@ -295,21 +295,46 @@ def test_nanotec_drive_runs_on_the_emulator_in_its_units():
         server.stop()
 
 
+ZEROERR_EDS = REPO / "tests" / "data" / "vendor-eds" / "zeroerr-edriver-v1.5.eds"
+ZEROERR_DESC = REPO / "drivers" / "zeroerr-edriver.yaml"
+
+
+def test_zeroerr_draft_has_no_encoder_object_and_the_description_states_it(tmp_path):
+    """ZeroErr's dictionary has no 0x608F and no object holding the resolution: the draft
+    says so and offers a datasheet integer or 'profile'; the shipped description takes
+    'profile', which validate warns about (and a bad value is refused at its line)."""
+    text = draft(resolve(str(ZEROERR_EDS), descriptions=[]))
+    assert "No candidate object: give the encoder's fixed increments per revolution" in text
+    assert "exponent 0x60C2:02 writable (no EDS default: gearbench writes it)" in text
+    r = gearbench("validate", REPO / "profiles" / "cvt-zeroerr.yaml")
+    assert r.returncode == 0, r.stderr
+    assert f"in: ZeroErr eDriver - {ZEROERR_DESC} (matched by vendor id 0x5A65726F + product code 0x26483052)" \
+        in r.stdout
+    assert re.search(r"warning .*encoder resolution: no object reports it \(.*zeroerr-edriver\.yaml:\d+: profile\); "
+                     r"the profile's counts_per_rev 10000 is used as given", r.stdout), r.stdout
+    assert "0x6080 'Max motor speed': no EDS default: the start-up reads the drive's max motor speed" in r.stdout
+    bad = ZEROERR_DESC.read_text().replace("counts_per_rev: profile ", "counts_per_rev: -5 ")
+    r = gearbench("validate", profile_with(tmp_path, str(ZEROERR_EDS), str(ZEROERR_EDS), bad))
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert len(re.findall(r"drive-description\.yaml:\d+: position\.counts_per_rev: .*got -5", r.stderr)) == 1, r.stderr
+
+
 @pytest.mark.slow
-def test_nanotec_profile_runs_on_sim_with_kt_within_0_1_pct(tmp_path):
-    """Done-when: a third vendor's drive from a public repository (Nanotec CL4-E, described
-    from describe-drive's draft with sourced facts) passes `run --sim` with Kt within 0.1 %."""
+@pytest.mark.parametrize("name,model", [("cvt-nanotec", "Nanotec CL4-E"), ("cvt-zeroerr", "ZeroErr eDriver")])
+def test_third_vendor_profile_runs_on_sim_with_kt_within_0_1_pct(tmp_path, name, model):
+    """Done-when: more vendors' drives from public repositories (Nanotec CL4-E, ZeroErr
+    eDriver; each described from describe-drive's draft) pass `run --sim` with Kt within 0.1 %."""
     from conftest import assert_claimed_accuracy
     from gearbench.api import run_profile
     from gearbench.profile import load_profile
     from gearbench.sim.truth import simulation_truth
 
-    text = (REPO / "profiles" / "cvt-nanotec.yaml").read_text().replace(
+    text = (REPO / "profiles" / f"{name}.yaml").read_text().replace(
         "drive: ../tests/data/vendor-eds/", f"drive: {NANOTEC_EDS.parent}/")
     # supervision made tolerant of a loaded test host (heartbeat/silence are not what is tested here)
     text = text.replace("    channel: 239.74.163.2\n",
                         "    channel: 239.74.163.2\n    options: {heartbeat_ms: 500, timeout_s: 3.0}\n", 1)
-    path = tmp_path / "cvt-nanotec.yaml"
+    path = tmp_path / f"{name}.yaml"
     path.write_text(text)
     profile = load_profile(path)
     result = run_profile(str(path), sim=True, out_dir=tmp_path / "run", serial="N1", yes=True,
@@ -319,7 +344,7 @@ def test_nanotec_profile_runs_on_sim_with_kt_within_0_1_pct(tmp_path):
     truth = simulation_truth(profile.simulation, result["efficiency"])
     for m in ("in", "out"):
         err = 100 * (result["motors"][m]["Kt"] / truth["motors"][m]["Kt"] - 1)
-        print(f"Nanotec CL4-E, motor {m}: Kt {result['motors'][m]['Kt']:.6f} N m/A, "
+        print(f"{model}, motor {m}: Kt {result['motors'][m]['Kt']:.6f} N m/A, "
               f"truth {truth['motors'][m]['Kt']:.6f}, error {err:+.4f} %")
         assert abs(err) <= 0.1
     assert_claimed_accuracy(result, profile.simulation)

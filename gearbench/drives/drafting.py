@@ -269,10 +269,19 @@ def _missing(m: DriveModel) -> list[str]:
     od = m.od
     missing = [f"0x{i:04X}" for i in (0x1017, 0x6040, 0x6041, 0x6060, 0x6061, 0x6064, 0x606C, 0x60FF) if i not in od]
     return ["# missing CiA 301/402 objects gearbench needs: " + (", ".join(missing) if missing else "none"),
-          f"# 0x1019 SYNC counter: {'present' if 0x1019 in od else 'absent (SYNC without counter byte)'}; "
-          f"0x60C2 interpolation period: " + ("absent" if 0x60C2 not in od else
-                                               f"exponent 0x60C2:02 {'writable' if m.exponent_writable else 'read-only'}"
-                                               f" (EDS default {m.exponent_default()})")]
+            f"# 0x1019 SYNC counter: {'present' if 0x1019 in od else 'absent (SYNC without counter byte)'}; "
+            f"0x60C2 interpolation period: {_interpolation(m)}"]
+
+
+def _interpolation(m: DriveModel) -> str:
+    """0x60C2:02 as the start-up meets it (ZeroErr's has no default: it is not 0, it is unknown)."""
+    if 0x60C2 not in m.od:
+        return "absent"
+    v = m.var(ObjRef(0x60C2, 2))
+    text = f"exponent 0x60C2:02 {'writable' if m.exponent_writable else 'read-only'}"
+    if v is not None and v.default is not None:
+        return f"{text} (EDS default {m.exponent_default()})"
+    return f"{text} (no EDS default" + (": gearbench writes it)" if m.exponent_writable else ")")
 
 
 __all__ = ["PROBE_OBJECTS", "candidates", "draft", "object_line", "rank_current_actual", "MODE_BIT"]
