@@ -104,6 +104,9 @@ def draft(m: DriveModel, probed: dict | None = None, probe_source: str = "") -> 
     L = _header(m, probed, probe_source)
     for section in (_modes, _position, _velocity, _current_actual, _ratings, _torque):
         L += [""] + section(m, probed)
+    if 0x6080 in m.od:     # no EDS default (ZeroErr): only the drive knows it, and the start-up checks it
+        L += ["", f"# max motor speed: {object_line(m, ObjRef(0x6080), probed)} - the start-up refuses one below the "
+                  "profile's speed_limit_rad_s"]
     return "\n".join(L + [""] + _missing(m)) + "\n"
 
 
