@@ -135,14 +135,12 @@ def variants(tmp: Path) -> dict[str, tuple[str, str, str]]:
     out["no 0x1017 heartbeat"] = (no1017, no1017, "")
     zeroerr_desc = (REPO / "drivers" / "zeroerr-edriver.yaml").read_text()
     zeroerr = str(HELD_OUT / "zeroerr-edriver-v1.5.eds")
-    out["encoder resolution fixed by the description, profile differs (ZeroErr)"] = (zeroerr, zeroerr, zeroerr_desc.replace(
-        "counts_per_rev: profile ", "counts_per_rev: 524288 "))
-    out["encoder resolution fixed by the description, profile agrees (ZeroErr)"] = (zeroerr, zeroerr, zeroerr_desc.replace(
-        "counts_per_rev: profile ", "counts_per_rev: 10000 "))
+    for cpr, agrees in (("524288", "differs"), ("10000", "agrees")):     # the profile says 10000
+        out[f"encoder resolution fixed by the description, profile {agrees} (ZeroErr)"] = (
+            zeroerr, zeroerr, zeroerr_desc.replace("counts_per_rev: profile ", f"counts_per_rev: {cpr} "))
     nanotec = (HELD_OUT / "nanotec-cl4-e-1-12.eds").read_text()
-    old_fw = write("nanotec-before-fir-v2213.eds", drop(nanotec, "2039sub5").replace(
-        "[2039sub0]\nParameterName=Number of entries\nObjectType=0x7\nDataType=0x0005\nAccessType=ro\nDefaultValue=0x05",
-        "[2039sub0]\nParameterName=Number of entries\nObjectType=0x7\nDataType=0x0005\nAccessType=ro\nDefaultValue=0x04"))
+    old_fw = write("nanotec-before-fir-v2213.eds",     # 0x2039 with subindices 1-4 only
+                   set_key(drop(nanotec, "2039sub5"), "2039sub0", "DefaultValue", "0x04"))
     out["Nanotec firmware before FIR-v2213: no 0x2039:05 'Actual current'"] = (old_fw, old_fw, "")
     if epos is not None:
         no6071 = write("epos4-no-6071.eds", drop(epos, "6071"))
