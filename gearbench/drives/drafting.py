@@ -247,7 +247,7 @@ def _torque(m: DriveModel, probed: dict) -> list[str]:
     tq_modes = [x for x in modes_from_bits(bits)] if isinstance(bits, int) else []
     if 0x6071 in od and any(x in (4, 10) for x in tq_modes):
         if 0x6076 not in od:      # nothing to probe: the manual says what 0x6071 = 1000 is
-            rated = "no rated torque 0x6076 in the EDS (per mille of what? manual: 6071h)"
+            rated = "no rated torque 0x6076 in the EDS (per mille of what? manual: object 0x6071 'target torque')"
         elif ObjRef(0x6076) in probed:
             rated = f"rated torque 0x6076 reads {probed[ObjRef(0x6076)]}"
         else:
