@@ -121,3 +121,38 @@ def test_slope_fit_recovers_a_line():
     y = 0.3 - 0.16 * x
     _, b, sb = slope_fit(x, y + np.array([1e-4, -1e-4, 0, 1e-4, -1e-4]), np.full(5, 1e-4))
     assert b == pytest.approx(-0.16, abs=3 * sb) and sb < 1e-3
+
+
+def test_cycle_time_bound_is_every_measurement_at_max_s():
+    """Issue 23: the bench-time bound the random plants are judged against, from the plan."""
+    from gearbench.benchmarks.cycle_time import bench_time_bound_s
+
+    p = load_profile(ROOT / "profiles" / "cvt.yaml")
+    # by hand: 3 calibration segments (both motors alone, then the one disk on each) of 2.0 s
+    # + a 0.16 s stop ramp from the multisine's 320 rad/s peak at 2000 rad/s^2; per speed
+    # (100, 200, 300 rad/s) run-up and stop ramps of max(speed/2000, 0.05) s + 5 levels x 0.95 s
+    hand = 3 * (2.0 + 0.16) + sum(2 * max(v / 2000, 0.05) + 5 * 0.95 for v in (100, 200, 300))
+    assert bench_time_bound_s(p) == pytest.approx(hand, abs=0.005)
+
+
+def test_cycle_time_says_why_a_target_was_missed():
+    from gearbench.benchmarks.cycle_time import score
+
+    point = {"eta_incremental": 0.8, "eta_incremental_std": 0.001, "eta_absolute": 0.7,
+             "eta_absolute_std": 0.001, "loss_extrapolated": False}
+    last = {**point, "eta_incremental": 0.803, "eta_incremental_std": 0.002, "eta_absolute": 0.71,
+            "eta_absolute_std": 0.01, "loss_extrapolated": True}
+    res = {"status": "passed", "bench_time_s": 18.0,
+           "simulation_truth": {"motors": {"in": {"Kt": 1.0}, "out": {"Kt": 1.0}},
+                                "efficiency": [{"eta_incremental": 0.8, "eta_absolute": 0.7}] * 12},
+           "motors": {"in": {"Kt": 1.005, "Kt_std": 0.001}, "out": {"Kt": 1.003, "Kt_std": 0.002}},
+           "efficiency": [point] * 11 + [last],
+           "measurements": [{"kind": "calibrate", "stopped_by": "max", "interval_reached": 0.002, "target": 7e-4},
+                            {"kind": "efficiency", "stopped_by": "target", "interval_reached": 0.1, "target": 0.15}]}
+    s = score(res)
+    assert not s["meets"] and not s["meets_all"]
+    assert s["why_missed"] == ["Kt in 0.50% biased (5.0 sd)", "Kt out 0.30% noise at the bound (1 runs at max)",
+                               "incr 0.30pp noise at the bound (0 levels at max)", "abs 1.00pp extrapolated loss"]
+    good = {**res, "motors": {m: {"Kt": 1.0, "Kt_std": 0.001} for m in ("in", "out")}, "efficiency": [point] * 12}
+    s = score(good)
+    assert s["meets"] and s["meets_all"] and s["why_missed"] == []

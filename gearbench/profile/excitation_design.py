@@ -301,7 +301,8 @@ def _place(shape: _Shape, cases, w_lo: float, w_hi: float, cover):
     amp, why = _amplitude(shape, cases, offset, half)
     if cover is None or amp <= 0:
         return amp, why, offset
-    u_lo, u_hi = float(np.min(shape.u)), float(np.max(shape.u))
+    # extremes of the unit shape, 0.5 % wide: the rendered command peaks a little past the grid's
+    u_lo, u_hi = 1.005 * float(np.min(shape.u)), 1.005 * float(np.max(shape.u))
     # the swept range counts as covered COVER_MARGIN of its span inside its ends (coverage.MARGIN)
     c_lo, c_hi = u_lo + COVER_MARGIN * (u_hi - u_lo), u_hi - COVER_MARGIN * (u_hi - u_lo)
     # offset o with cover[1] <= o + A c_hi, o + A c_lo <= cover[0], w_lo <= o + A u_lo, o + A u_hi <= w_hi
