@@ -156,3 +156,21 @@ def test_cycle_time_says_why_a_target_was_missed():
     good = {**res, "motors": {m: {"Kt": 1.0, "Kt_std": 0.001} for m in ("in", "out")}, "efficiency": [point] * 12}
     s = score(good)
     assert s["meets"] and s["meets_all"] and s["why_missed"] == []
+
+
+def test_output_friction_above_a_braking_torque_is_not_compensated():
+    """Issue 23 (random plant 2/10): an output motor whose own friction brakes more than the
+    lightest level asks would have every level compensated to zero current (no slope; it
+    raised ZeroDivisionError); its levels stay as commanded instead."""
+    from gearbench.station.adaptive import Staircase
+
+    def stairs(loss_nm):
+        st = Staircase(speed=100.0, currents_out_a=[-0.2, -0.4], torques_out_nm=[0.01, 0.02], period_s=1e-3,
+                       min_s=0.25, max_s=0.95, eta_pp=0.15, kt_in=0.05, kt_out=0.05, eta_prior=0.8,
+                       ratio_prior=None, ramp_rad_s2=2000.0, segment="e", loss_out=lambda w: loss_nm)
+        st._compensate_friction({"start": 0, "settled": 100, "stop": 1100, "dth_out": 10.0})
+        return st
+    low, high = stairs(0.004), stairs(0.019)
+    assert low.compensated_nm == pytest.approx(0.004)
+    assert low.levels[1:] == [pytest.approx(-0.12), pytest.approx(-0.32)]
+    assert high.compensated_nm is None and high.levels[1:] == [-0.2, -0.4]
