@@ -121,3 +121,56 @@ def test_slope_fit_recovers_a_line():
     y = 0.3 - 0.16 * x
     _, b, sb = slope_fit(x, y + np.array([1e-4, -1e-4, 0, 1e-4, -1e-4]), np.full(5, 1e-4))
     assert b == pytest.approx(-0.16, abs=3 * sb) and sb < 1e-3
+
+
+def test_cycle_time_bound_is_every_measurement_at_max_s():
+    """Issue 23: the bench-time bound the random plants are judged against, from the plan."""
+    from gearbench.benchmarks.cycle_time import bench_time_bound_s
+
+    p = load_profile(ROOT / "profiles" / "cvt.yaml")
+    # by hand: 3 calibration segments (both motors alone, then the one disk on each) of 2.0 s
+    # + a 0.16 s stop ramp from the multisine's 320 rad/s peak at 2000 rad/s^2; per speed
+    # (100, 200, 300 rad/s) run-up and stop ramps of max(speed/2000, 0.05) s + 5 levels x 0.95 s
+    hand = 3 * (2.0 + 0.16) + sum(2 * max(v / 2000, 0.05) + 5 * 0.95 for v in (100, 200, 300))
+    assert bench_time_bound_s(p) == pytest.approx(hand, abs=0.005)
+
+
+def test_cycle_time_says_why_a_target_was_missed():
+    from gearbench.benchmarks.cycle_time import score
+
+    point = {"eta_incremental": 0.8, "eta_incremental_std": 0.001, "eta_absolute": 0.7,
+             "eta_absolute_std": 0.001, "loss_extrapolated": False}
+    last = {**point, "eta_incremental": 0.803, "eta_incremental_std": 0.002, "eta_absolute": 0.71,
+            "eta_absolute_std": 0.01, "loss_extrapolated": True}
+    res = {"status": "passed", "bench_time_s": 18.0,
+           "simulation_truth": {"motors": {"in": {"Kt": 1.0}, "out": {"Kt": 1.0}},
+                                "efficiency": [{"eta_incremental": 0.8, "eta_absolute": 0.7}] * 12},
+           "motors": {"in": {"Kt": 1.005, "Kt_std": 0.001}, "out": {"Kt": 1.003, "Kt_std": 0.002}},
+           "efficiency": [point] * 11 + [last],
+           "measurements": [{"kind": "calibrate", "stopped_by": "max", "interval_reached": 0.002, "target": 7e-4},
+                            {"kind": "efficiency", "stopped_by": "target", "interval_reached": 0.1, "target": 0.15}]}
+    s = score(res)
+    assert not s["meets"] and not s["meets_all"]
+    assert s["why_missed"] == ["Kt in 0.50% biased (5.0 sd)", "Kt out 0.30% noise at the bound (1 runs at max)",
+                               "incr 0.30pp noise at the bound (0 levels at max)", "abs 1.00pp extrapolated loss"]
+    good = {**res, "motors": {m: {"Kt": 1.0, "Kt_std": 0.001} for m in ("in", "out")}, "efficiency": [point] * 12}
+    s = score(good)
+    assert s["meets"] and s["meets_all"] and s["why_missed"] == []
+
+
+def test_output_friction_above_a_braking_torque_is_not_compensated():
+    """Issue 23 (random plant 2/10): an output motor whose own friction brakes more than the
+    lightest level asks would have every level compensated to zero current (no slope; it
+    raised ZeroDivisionError); its levels stay as commanded instead."""
+    from gearbench.station.adaptive import Staircase
+
+    def stairs(loss_nm):
+        st = Staircase(speed=100.0, currents_out_a=[-0.2, -0.4], torques_out_nm=[0.01, 0.02], period_s=1e-3,
+                       min_s=0.25, max_s=0.95, eta_pp=0.15, kt_in=0.05, kt_out=0.05, eta_prior=0.8,
+                       ratio_prior=None, ramp_rad_s2=2000.0, segment="e", loss_out=lambda w: loss_nm)
+        st._compensate_friction({"start": 0, "settled": 100, "stop": 1100, "dth_out": 10.0})
+        return st
+    low, high = stairs(0.004), stairs(0.019)
+    assert low.compensated_nm == pytest.approx(0.004)
+    assert low.levels[1:] == [pytest.approx(-0.12), pytest.approx(-0.32)]
+    assert high.compensated_nm is None and high.levels[1:] == [-0.2, -0.4]

@@ -115,6 +115,30 @@ def test_one_waveform_for_two_motors_keeps_both_inside():
         ed.design_multisine([CASE, replace(light, max_speed_rad_s=40.0)], duration_s=2.0, period_s=PERIOD)
 
 
+def test_design_sweeps_the_speeds_it_must_cover():
+    """Issue 23: a calibration the efficiency map's speeds lie inside (no motor loss
+    extrapolated); the offset moves and the amplitude shrinks as the cover needs."""
+    plain = ed.design_multisine([CASE], duration_s=2.0, period_s=PERIOD)
+    w = wf.render("multisine", plain.params, np.arange(2000) * PERIOD)[-1000:]
+    assert np.min(w) > 60.0                       # the plain design stays well above 60 rad/s here
+    for cover in ((60.0, 300.0), (45.0, 50.0), (300.0, 370.0)):
+        d = ed.design_multisine([CASE], duration_s=2.0, period_s=PERIOD, cover_rad_s=cover, min_tones=4)
+        _check_limits(d.params, CASE, 2.0)
+        per = int(round(d.params["period_s"] / PERIOD))
+        n = int(round(d.params["fade_in_s"] / PERIOD)) + 2 * per
+        steady = wf.render("multisine", d.params, np.arange(n) * PERIOD)[-per:]       # one period after the fade
+        span = np.ptp(steady)
+        # reached with ed.COVER_MARGIN of the sweep to spare at each end
+        assert np.min(steady) + 0.02 * span <= cover[0] and np.max(steady) - 0.02 * span >= cover[1]
+        assert len(wf.multisine_harmonics(d.params)) >= 4
+    # a sweep the current limit cannot make is refused, naming the speeds
+    weak = replace(CASE, peak_current_a=0.2)
+    with pytest.raises(ValueError, match="sweeping 43-377 rad/s"):
+        ed.design_multisine([weak], duration_s=2.0, period_s=PERIOD, cover_rad_s=(43.0, 377.0))
+    with pytest.raises(ValueError, match="not inside the speed band"):
+        ed.design_multisine([CASE], duration_s=2.0, period_s=PERIOD, cover_rad_s=(10.0, 300.0))
+
+
 def test_prediction_matches_the_simulated_plant():
     """Stated factor: the empirical Kt std over seeds is within 0.5x-2x of the prediction
     (6 seeds: the sample std alone scatters by ~±35 %; the drive's PI loop draws more

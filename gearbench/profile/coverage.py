@@ -51,6 +51,23 @@ def ratio_range(profile) -> tuple[float, float] | None:
     return None
 
 
+def map_speed_range(profile, motor: str) -> tuple[float, float] | None:
+    """[low, high] |speed| (rad/s) ``motor`` turns at over the profile's efficiency map:
+    the input speeds for ``in``, over the reduction ratio (``ratio_range``) for ``out``;
+    None without a map, or for ``out`` when the ratio is unknown. What its calibration
+    must sweep so that no motor loss is extrapolated (the excitation design's cover)."""
+    speeds = [abs(v) for s in profile.steps if type(s).__name__ == "EfficiencyStep"
+              for v in s.speeds_in_rad_s]
+    if not speeds:
+        return None
+    if motor == "in":
+        return min(speeds), max(speeds)
+    ratio = ratio_range(profile)
+    if ratio is None:
+        return None
+    return min(speeds) / ratio[1], max(speeds) / ratio[0]
+
+
 def uncovered(profile) -> list[str]:
     """One message per map point a motor reaches outside its calibration's speed range."""
     out = []

@@ -70,6 +70,7 @@ PERIOD_RANGE_S = (0.25, 2.0)  # multisine periods searched (whole periods per ru
 MAX_DESIGN_TONES = 16
 FADE_CHOICES_S = (0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0)
 STAGE2 = 8                    # candidates refined with clipped phases
+COVER_MARGIN = 0.025          # a covering sweep reaches this share of its span beyond the cover
 
 
 @dataclass(frozen=True)
@@ -289,6 +290,38 @@ def _amplitude(shape: _Shape, cases, offset: float, half_range: float):
     return best, why
 
 
+def _place(shape: _Shape, cases, w_lo: float, w_hi: float, cover):
+    """Amplitude, limiting limit and offset of ``shape`` inside the band [w_lo, w_hi]:
+    offset at the band's centre; or, with ``cover`` = (lo, hi), speeds the run must
+    sweep through (the efficiency map's, so no motor loss is extrapolated there), the
+    offset moved as little as the cover needs and the amplitude lowered where the sweep
+    would leave the band below the cover. None when the current-limited swing cannot
+    cover it."""
+    offset, half = (w_lo + w_hi) / 2, (w_hi - w_lo) / 2
+    amp, why = _amplitude(shape, cases, offset, half)
+    if cover is None or amp <= 0:
+        return amp, why, offset
+    # extremes of the unit shape, 0.5 % wide: the rendered command peaks a little past the grid's
+    u_lo, u_hi = 1.005 * float(np.min(shape.u)), 1.005 * float(np.max(shape.u))
+    # the swept range counts as covered COVER_MARGIN of its span inside its ends (coverage.MARGIN)
+    c_lo, c_hi = u_lo + COVER_MARGIN * (u_hi - u_lo), u_hi - COVER_MARGIN * (u_hi - u_lo)
+    # offset o with cover[1] <= o + A c_hi, o + A c_lo <= cover[0], w_lo <= o + A u_lo, o + A u_hi <= w_hi
+    room = min((cover[0] - w_lo) / (c_lo - u_lo), (w_hi - w_lo) / (u_hi - u_lo))
+    if room < amp:
+        amp, why = room, "speed range"
+    for _ in range(2):     # the offset moves the friction part of the peak current: twice
+        if amp * (c_hi - c_lo) < cover[1] - cover[0]:
+            return None
+        o_lo = max(cover[1] - amp * c_hi, w_lo - amp * u_lo)
+        o_hi = min(cover[0] - amp * c_lo, w_hi - amp * u_hi)
+        offset = float(np.clip((w_lo + w_hi) / 2, o_lo, min(o_hi, max(o_lo, o_hi))))
+        amp2, why2 = _amplitude(shape, cases, offset, math.inf)
+        if amp2 >= amp * (1 - 1e-9):
+            return amp, why, offset
+        amp, why = amp2, why2
+    return None
+
+
 def _objective(shape: _Shape, amplitude: float, cases, duration_s, period_s, taps) -> float:
     """max over cases of predicted Var(Kt)/Kt² · bench seconds (eq. D1, D2)."""
     freqs = np.asarray(shape.harmonics) / shape.period_s
@@ -318,7 +351,7 @@ def candidate_periods(duration_s: float, also_fit_s=()) -> list[float]:
 
 def design_multisine(cases, *, duration_s: float, period_s: float, max_tone_hz: float = 10.0,
                      min_fade_s: float = 0.2, cutoff_hz: float | None = None,
-                     also_fit_s=()) -> Design:
+                     also_fit_s=(), cover_rad_s: tuple | None = None, min_tones: int = 2) -> Design:
     """The multisine (velocity command) with the smallest predicted Var(Kt) per bench
     second for every case in ``cases`` (one waveform, several motors: every case's
     limits hold, the worst case's variance is minimised). Search: period (whole
@@ -328,7 +361,11 @@ def design_multisine(cases, *, duration_s: float, period_s: float, max_tone_hz: 
     the best ``STAGE2`` get clipped (crest-minimised) phases, ties go to the lowest
     band, and the raised-cosine fade-in is lengthened until the start-up also stays
     within the peak current. ``also_fit_s``: other run lengths the period must divide.
-    Raises ValueError naming an impossible limit."""
+    ``cover_rad_s`` = (lo, hi): speeds every steady period must sweep through (the map's,
+    ``coverage.map_speed_range``): candidates whose current-limited swing cannot are
+    dropped, the offset moves off the band's centre as far as the cover needs (``_place``).
+    ``min_tones``: fewest tones per candidate (a few more than two spread the fit's model
+    error over more frequencies). Raises ValueError naming an impossible limit."""
     cases = list(cases)
     w_lo = max(c.min_speed_rad_s for c in cases)
     w_hi = min(c.max_speed_rad_s for c in cases)
@@ -337,7 +374,11 @@ def design_multisine(cases, *, duration_s: float, period_s: float, max_tone_hz: 
     for c in cases:
         if c.friction_nm + c.viscous_nms_rad * w_hi >= c.peak_current_a * c.kt_nm_a:
             raise ValueError(f"{c.name}: the expected friction alone needs the whole peak current")
-    offset, half = (w_lo + w_hi) / 2, (w_hi - w_lo) / 2
+    if cover_rad_s is not None:
+        cover_rad_s = (float(min(cover_rad_s)), float(max(cover_rad_s)))
+        if not (w_lo <= cover_rad_s[0] and cover_rad_s[1] <= w_hi):
+            raise ValueError(f"the speeds to cover, {cover_rad_s[0]:g}-{cover_rad_s[1]:g} rad/s, are not "
+                             f"inside the speed band {w_lo:g}-{w_hi:g} rad/s")
     nyq = 0.5 / period_s
     top_hz = min(max_tone_hz, 0.45 * (cutoff_hz or min(40.0, 0.1 / period_s)), 0.9 * nyq)
     taps = analysis_filter(period_s, cutoff_hz)
@@ -345,26 +386,31 @@ def design_multisine(cases, *, duration_s: float, period_s: float, max_tone_hz: 
     for period in candidate_periods(duration_s, also_fit_s):
         kmax = int(math.floor(top_hz * period + 1e-9))
         for k_lo in range(1, kmax):
-            for k_hi in range(k_lo + 1, min(kmax, k_lo + MAX_DESIGN_TONES - 1) + 1):
+            for k_hi in range(k_lo + max(min_tones, 2) - 1, min(kmax, k_lo + MAX_DESIGN_TONES - 1) + 1):
                 for spectrum in ("acceleration", "speed"):
                     sh = _shape(np.arange(k_lo, k_hi + 1), period, spectrum, "schroeder")
-                    amp, why = _amplitude(sh, cases, offset, half)
-                    if amp <= 0:
+                    placed = _place(sh, cases, w_lo, w_hi, cover_rad_s)
+                    if placed is None or placed[0] <= 0:
                         continue
-                    scored.append((_objective(sh, amp, cases, duration_s, period_s, taps), sh))
+                    scored.append((_objective(sh, placed[0], cases, duration_s, period_s, taps), sh))
     if not scored:
-        raise ValueError(f"no multisine fits: tones up to {top_hz:g} Hz and periods "
+        need = (f" sweeping {cover_rad_s[0]:g}-{cover_rad_s[1]:g} rad/s within the current limit"
+                if cover_rad_s else "")
+        raise ValueError(f"no multisine fits{need}: tones up to {top_hz:g} Hz and periods "
                          f"{PERIOD_RANGE_S[0]:g}-{PERIOD_RANGE_S[1]:g} s need a longer run")
     scored.sort(key=lambda x: x[0])
     refined = []
     for _, sh in scored[:STAGE2]:
         for phases in ("clipped", "schroeder"):
             s2 = _shape(np.asarray(sh.harmonics), sh.period_s, sh.spectrum, phases)
-            amp, why = _amplitude(s2, cases, offset, half)
-            refined.append((_objective(s2, amp, cases, duration_s, period_s, taps), s2, amp, why))
+            placed = _place(s2, cases, w_lo, w_hi, cover_rad_s)
+            if placed is None or placed[0] <= 0:
+                continue
+            amp, why, off = placed
+            refined.append((_objective(s2, amp, cases, duration_s, period_s, taps), s2, amp, why, off))
     best = min(r[0] for r in refined)
     ties = [r for r in refined if r[0] <= best * (1 + TIE_REL)]
-    _, sh, amp, why = min(ties, key=lambda r: (max(r[1].harmonics) / r[1].period_s, r[0]))
+    _, sh, amp, why, offset = min(ties, key=lambda r: (max(r[1].harmonics) / r[1].period_s, r[0]))
     params = {"offset": float(offset), "amplitude": float(amp), "period_s": float(sh.period_s),
               "f_min_hz": min(sh.harmonics) / sh.period_s, "f_max_hz": max(sh.harmonics) / sh.period_s,
               "freqs_hz": None,

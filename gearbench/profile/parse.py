@@ -12,11 +12,13 @@ import dataclasses
 import math
 import re
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
 from ..errors import ProfileError
 from . import waveforms as wf
+from .coverage import map_speed_range
 from .model import (Outputs, BenchSpec, BusSpec, CalibrateStep, DiskSpec, EfficiencyStep, LimitSpec, LoadStep,
                     MotorSpec, Profile, ReducerSpec, Targets, WaveformSpec)
 from .yamlmarks import MarkedDoc, did_you_mean, one_line
@@ -213,10 +215,13 @@ def build_profile(doc: MarkedDoc, path: Path, sha256: str, base_dir: Path) -> Pr
     disks = _disks(c, top)
     waveforms = _waveforms(c, top, bench.period_s)
     steps = _steps(c, top, motors, reducer, disks, waveforms, bench.period_s)
-    waveforms = _design_waveforms(c, waveforms, steps, motors, disks, bench.period_s)
     targets = _targets(c, top, steps)
     limits = _limits(c, top, motors, reducer, steps)
     simulation = _simulation(c, top, bench, motors)
+    # designed calibrations sweep the map's speeds (coverage.map_speed_range needs the ratio)
+    plan = SimpleNamespace(steps=steps, reducer=reducer, limits=limits, simulation=simulation)
+    waveforms = _design_waveforms(c, waveforms, steps, motors, disks, bench.period_s,
+                                  cover_of=lambda motor: map_speed_range(plan, motor))
     outputs = _outputs(c, top)
     return Profile(path=path, sha256=sha256, name=name, description=description, bench=bench, motors=motors,
                    reducer=reducer, disks=disks, waveforms=waveforms, steps=steps, limits=limits,
@@ -549,9 +554,10 @@ def _check_run(c, sp, wave: WaveformSpec, mspec: MotorSpec, dspec: DiskSpec, dur
     _check_command(c, sp, wave, mspec, dspec, duration, period_s, mode)
 
 
-def _design_waveforms(c: _Checker, waveforms, steps, motors, disks, period_s):
+def _design_waveforms(c: _Checker, waveforms, steps, motors, disks, period_s, cover_of=lambda m: None):
     """Fill each ``design: optimal`` multisine from the calibrate steps that use it
-    (``gearbench.profile.design``), then check those runs like any other."""
+    (``gearbench.profile.design``), sweeping the speeds ``cover_of(motor)`` its motors
+    turn at over the efficiency map, then check those runs like any other."""
     from .design import DesignProblem, design_waveform
 
     out = dict(waveforms)
@@ -566,7 +572,8 @@ def _design_waveforms(c: _Checker, waveforms, steps, motors, disks, period_s):
         try:
             params, design = design_waveform(
                 wave.params, [(motors[s.motor], disks[s.disk], s.duration_s) for _, s in users], period_s,
-                also_fit_s=[s.min_s for _, s in users if getattr(s, "min_s", None)])
+                also_fit_s=[s.min_s for _, s in users if getattr(s, "min_s", None)],
+                cover=[cover_of(s.motor) for _, s in users])
         except DesignProblem as exc:
             path = exc.path if exc.path[0] == "motors" else wp + exc.path
             if path not in c.doc.key_marks and path not in c.doc.value_marks:

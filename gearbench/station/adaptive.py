@@ -254,7 +254,8 @@ class Staircase:
             rec["settle_s"] = st["settle_chunk"] * self.chunk * self.period_s
             # the slope's half-width if every level had its share of the error like this one
             need = slope_target_sem(self.eta_pp, eta, b, self._x_levels(), self.level)
-            rec["interval_reached"] = self.eta_pp * math.hypot(st["sem_in"], b * st["sem_out"]) / need
+            rec["interval_reached"] = (self.eta_pp * math.hypot(st["sem_in"], b * st["sem_out"]) / need
+                                       if need > 0 else math.inf)
         self.done_levels.append(rec)
         if self.level == 0:
             self._compensate_friction(rec)
@@ -275,7 +276,9 @@ class Staircase:
         if self.loss_out is None or span <= 0 or not zero_load.get("dth_out"):
             return
         loss = abs(self.loss_out(zero_load["dth_out"] / span))
-        if not np.isfinite(loss):
+        # a motor whose own friction brakes more than the lightest level asks: compensated,
+        # the levels would merge at zero current (no slope); its points then carry t + loss
+        if not np.isfinite(loss) or loss >= min((abs(t) for t in self.torques[1:] if t), default=0.0):
             return
         self.compensated_nm = loss
         self.levels[1:] = [-max(abs(t) - loss, 0.0) / self.kt_out for t in self.torques[1:]]
