@@ -42,12 +42,12 @@ import numpy as np
 
 from ..drives.base import AxisConfig, Mode
 from ..drives.buses import BusSpec, free_udp_port, open_bus
-from ..drives.cia402 import CiA402Network
+from ..drives.cia402 import LATE_ANSWER_S, CiA402Network
 from ..drives.realtime import acquisition_priority
 from ..emulate.launch import _child_setup
 from ..errors import BenchFault
-from . import _cpu
-from ._cpu import floor_text, load_average, realtime_stand_in, timer_floor
+from . import _cpu, _responder
+from ._cpu import STAND_IN_FIFO, floor_text, load_average, realtime_stand_in, timer_floor
 
 HOG = [sys.executable, "-c", "while 1: pass"]
 
@@ -82,14 +82,14 @@ def _start_listener(bus: str, path: str) -> subprocess.Popen:
 
 
 def _status(proc: subprocess.Popen) -> dict:
-    proc.stdin.write(json.dumps({"cmd": "status"}) + "\n")
-    proc.stdin.flush()
-    return json.loads(proc.stdout.readline())
+    return json.loads(_command(proc, {"cmd": "status"}))
 
 
-def run_once(interface: str, duration_s: float, period_s: float, paced: bool, hog: int = 0) -> dict:
-    proc = server = None
-    stand_in = "in-process"
+def run_once(interface: str, duration_s: float, period_s: float, paced: bool, hog: int = 0,
+             stand_in: str = "responder") -> dict:
+    """One run; ``stand_in`` (udp_multicast, paced): "responder" (the compiled one, see
+    ``_responder``) or "emulator" (``gearbench emulate`` answering SYNC itself, at SCHED_FIFO)."""
+    proc = server = responder = None
     if interface == "udp_multicast":
         bus = BusSpec("udp_multicast", "239.74.163.2", free_udp_port())
         proc = subprocess.Popen([sys.executable, "-m", "gearbench", "emulate", "--can", str(bus)],
@@ -97,19 +97,24 @@ def run_once(interface: str, duration_s: float, period_s: float, paced: bool, ho
                                 preexec_fn=_child_setup)   # as --sim starts it: the drives' stand-in
         if proc.stdout.readline().strip() != "ready":
             raise RuntimeError("gearbench emulate did not start")
-        stand_in = f"emulator, {realtime_stand_in(proc.pid) if paced else 'nice -10'}"
+        if not paced:
+            stand_in = "emulator, nice -10"
+        elif stand_in == "emulator" or _responder.available():
+            stand_in = f"emulator, {realtime_stand_in(proc.pid)}" + \
+                ("" if stand_in == "emulator" else f" (no responder: {_responder.available()})")
     else:
         from ..emulate.bench import EmulatedBench
         from ..emulate.canopen_server import start_canopen_server
         bus = BusSpec("virtual", f"bench-{time.monotonic_ns()}")
         server = start_canopen_server(EmulatedBench(), "virtual", bus.channel)
+        stand_in = "emulator, in-process"
     n = round(duration_s / period_s)
     hogs: list[subprocess.Popen] = []
     listener = None
     stamps_path = os.path.join(tempfile.mkdtemp(prefix="gearbench-sync-"), "stamps.npy")
     counters0 = counters1 = {}
     try:
-        if paced and interface != "virtual":
+        if paced and interface != "virtual" and stand_in != "responder":   # the responder stamps SYNCs itself
             listener = _start_listener(str(bus), stamps_path)
         with CiA402Network(bus=str(bus), lockstep=not paced) as net:
             din = net.add_drive(AxisConfig("in", 1, ""))
@@ -121,32 +126,48 @@ def run_once(interface: str, duration_s: float, period_s: float, paced: bool, ho
             dout.enable(Mode.TORQUE)
             din.set_setpoint(100.0)
             dout.set_setpoint(0.1)
-            hogs = [subprocess.Popen(HOG) for _ in range(hog)]
-            load0 = load_average()
             with acquisition_priority(net.acquisition_threads(), realtime=paced) as granted:
                 net.sample()                       # the producer's thread started (paced), first answer in
-                if proc is not None:
-                    counters0 = _status(proc)["counters"]
-                got, lost0, skipped0 = 1, net.lost_samples, net.late_syncs
+                if stand_in == "responder":
+                    responder = _hand_over(net, bus, proc, period_s)
+                    stand_in = f"compiled responder, {responder.priority}"
+                    for _ in range(50):            # its first answers in; the hand-over's gap counted before
+                        net.sample()
+                if responder is not None and os.environ.get("GB_PAUSE_EMULATOR"):
+                    proc.send_signal(signal.SIGSTOP)
+                hogs = [subprocess.Popen(HOG) for _ in range(hog)]
+                load0 = load_average()
+                time.sleep(0.05 * hog)             # the hogs running before the figures start
+                counters0 = _stand_in_counters(proc, responder)
+                got, lost0, skipped0, late0 = 1, net.lost_samples, net.late_syncs, net.syncs_sent_late
                 us0 = _cpu.user_system()
-                cpu0, emu0, t0 = _cpu.threads(), _cpu.threads(proc.pid) if proc else {}, time.perf_counter()
+                pid = responder.pid if responder is not None else proc.pid if proc is not None else None
+                cpu0, emu0, t0 = _cpu.threads(), _cpu.threads(pid) if pid else {}, time.perf_counter()
                 while got + net.lost_samples - lost0 < n + 1:
                     net.sample()
                     got += 1
                 wall = time.perf_counter() - t0
-                cpu1, emu1 = _cpu.threads(), _cpu.threads(proc.pid) if proc else {}
+                cpu1, emu1 = _cpu.threads(), _cpu.threads(pid) if pid else {}
                 us1 = _cpu.user_system()
-                if proc is not None:
-                    counters1 = _status(proc)["counters"]
+                counters1 = _stand_in_counters(proc, responder)
+                if responder is not None and os.environ.get("GB_PAUSE_EMULATOR"):
+                    proc.send_signal(signal.SIGCONT)
             load1 = load_average()
             lost = net.lost_samples - lost0
             skipped = net.late_syncs - skipped0
+            sent_late = net.syncs_sent_late - late0
             sup = net.supervision()
             producer = getattr(net.sync_producer, "kind", "loop" if paced else "lockstep")
     finally:
         for h in hogs:
             h.kill()
             h.wait()
+        if responder is not None:
+            responder.stop()
+            stamps = responder.sync_stamps()[counters0.get("syncs_heard", 0):counters1.get("syncs_heard", 0)]
+            # intervals between consecutive SYNCs only (a counter step of one)
+            steps = np.diff(stamps[:, 1]) % 240 == 1
+            np.save(stamps_path, np.diff(stamps[:, 0])[steps])
         if listener is not None:
             listener.stdin.close()
             listener.wait(30)
@@ -155,30 +176,65 @@ def run_once(interface: str, duration_s: float, period_s: float, paced: bool, ho
         if proc is not None:
             proc.send_signal(signal.SIGTERM)
             proc.wait(10)
-    stamps = np.load(stamps_path) if os.path.exists(stamps_path) else np.array([])
-    dev_us = np.abs(np.diff(stamps) - period_s) * 1e6 if len(stamps) > 2 else np.array([np.nan])
+    intervals = np.load(stamps_path) if os.path.exists(stamps_path) else np.array([])
+    if responder is None:
+        intervals = np.diff(intervals)     # the listener saved the SYNCs' receive times
+    dev_us = np.abs(intervals - period_s) * 1e6 if len(intervals) > 1 else np.array([np.nan])
     master = _cpu.delta(cpu0, cpu1)
-    emulator = sum(_cpu.delta(emu0, emu1).values()) if proc is not None else None
+    stand_in_cpu = sum(_cpu.delta(emu0, emu1).values()) if pid is not None else None
     syncs = got - 1 + lost
-    heard = {k: counters1.get(k, 0) - counters0.get(k, 0) for k in ("syncs_heard", "syncs_missed", "late_answers")}
-    # who lost what: SYNC slots the producer skipped (the master's: its thread was not run in
-    # time), SYNCs sent that the stand-in never heard or answered later than a period (not
-    # the master's), and the rest (the master's: answers in time that it did not take)
-    stand_in_lost = max(0, heard["syncs_missed"] - skipped) + heard["late_answers"] if proc is not None else 0
+    keys = ("syncs_heard", "syncs_missed", "late_answers", "too_late")
+    heard = {k: counters1.get(k, 0) - counters0.get(k, 0) for k in keys}
+    # who lost what: SYNC slots the producer never sent (the master's: its thread was not run for
+    # longer than it catches up), SYNCs sent that the stand-in never heard, or answered too late for
+    # the master to take them (the stand-in's), and the rest (the master's: answers it did not take)
+    stand_in_lost = max(0, heard["syncs_missed"] - skipped) + heard["too_late"] if pid is not None else 0
     return {"bus": interface, "syncs": syncs, "samples": got - 1, "lost": lost, "wall_s": wall,
-            "skipped": skipped, "stand_in_lost": stand_in_lost,
-            "master_lost": max(0, lost - skipped - stand_in_lost) + skipped,
+            "skipped": skipped, "sent_late": sent_late, "sync_late_max_s": sup.get("sync_late_max_s", 0.0),
+            "stand_in_lost": stand_in_lost, "master_lost": lost - min(lost, stand_in_lost),
             "samples_per_s": (got - 1) / wall, "producer": producer,
             "master_cpu_us": sum(master.values()) / syncs * 1e6,
             "master_user_us": (us1[0] - us0[0]) / syncs * 1e6, "master_system_us": (us1[1] - us0[1]) / syncs * 1e6,
             "master_threads_us":
                 {k: v / syncs * 1e6 for k, v in sorted(master.items(), key=lambda kv: -kv[1])},
-            "stand_in_cpu_us": None if emulator is None else emulator / syncs * 1e6,
-            "stand_in": stand_in, "stand_in_counters": heard if proc is not None else None,
+            "stand_in_cpu_us": None if stand_in_cpu is None else stand_in_cpu / syncs * 1e6,
+            "stand_in": stand_in, "stand_in_counters": heard if pid is not None else None,
             "answer_delay_max_ms": counters1.get("answer_delay_max_s", float("nan")) * 1e3,
             "jitter_us": [np.percentile(dev_us, 50), np.percentile(dev_us, 99), np.max(dev_us)],
             "priority": granted, "host_stall_max_s": sup.get("host_stall_max_s", 0.0),
             "faults": "", "load": f"{load0} -> {load1}"}
+
+
+def _stand_in_counters(proc, responder) -> dict:
+    if responder is not None:
+        return responder.counters()
+    return _status(proc)["counters"] if proc is not None else {}
+
+
+def _hand_over(net: CiA402Network, bus: BusSpec, proc: subprocess.Popen, period_s: float) -> "_responder.Responder":
+    """The compiled responder takes over answering SYNC from the emulator (which keeps SDO,
+    NMT and heartbeats, at normal priority): it starts with the TPDO payloads the emulated
+    drives sent last, the SYNC counter echo (the last byte of an echoing TPDO) rewritten."""
+    cobs = {cob: has_counter for cob, (_, has_counter) in net._formats.items()}
+    tap = open_bus(bus)
+    try:
+        payloads = _responder.last_tpdos(tap, cobs)
+    finally:
+        tap.shutdown()
+    responder = _responder.Responder(bus.channel, bus.port, period_s, LATE_ANSWER_S,
+                                     {cob: (data, len(data) - 1 if cobs[cob] else -1) for cob, data in payloads.items()},
+                                     STAND_IN_FIFO)
+    reply = json.loads(_command(proc, {"cmd": "pdo", "on": False}))
+    if not reply.get("ok"):
+        responder.stop()
+        raise RuntimeError(f"emulator refused the hand-over: {reply}")
+    return responder
+
+
+def _command(proc: subprocess.Popen, cmd: dict) -> str:
+    proc.stdin.write(json.dumps(cmd) + "\n")
+    proc.stdin.flush()
+    return proc.stdout.readline()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -188,33 +244,37 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--bus", nargs="+", default=["udp_multicast", "virtual"], choices=["udp_multicast", "virtual"])
     p.add_argument("--paced", action="store_true", help="send SYNC on the wall clock instead of lockstep")
     p.add_argument("--hog", type=int, default=0, help="processes spinning during each run (2 = both cores busy)")
+    p.add_argument("--stand-in", default="responder", choices=["responder", "emulator"],
+                   help="paced on udp_multicast: what answers SYNC (the compiled responder, or the emulator itself)")
     p.add_argument("--threads", action="store_true", help="also print the master's CPU per thread")
     args = p.parse_args(argv)
     print(f"two CiA 402 drives, SYNC period {args.period_s * 1e3:g} ms, {args.duration_s:g} s of drive time, "
           f"{'paced' if args.paced else 'lockstep'}, {args.hog} CPU hog(s); CPU in us per SYNC period")
     if args.paced:
         print(f"load {load_average()}; " + floor_text(timer_floor(args.period_s), args.period_s))
-    print(f"{'bus':<14}{'SYNCs':>8}{'lost':>6}{'master/stand-in':>16}{'samples/s':>10}{'master CPU':>11}{'stand-in CPU':>13}"
-          f"{'SYNC |dT-T| p50/p99/max us':>28}  stand-in: heard/missed/late, max delay   producer, priority,"
-          f" load 1/5/15 min before -> after")
+    print(f"{'bus':<14}{'SYNCs':>8}{'lost':>6}{'master/stand-in':>16}{'sent late, max':>16}{'samples/s':>10}"
+          f"{'master CPU':>11}{'stand-in CPU':>13}{'SYNC |dT-T| p50/p99/max us':>28}"
+          f"  stand-in: heard/missed/late/too late, max delay   producer, priority, load 1/5/15 min before -> after")
     for interface in args.bus:
         try:
-            r = run_once(interface, args.duration_s, args.period_s, args.paced, args.hog)
+            r = run_once(interface, args.duration_s, args.period_s, args.paced, args.hog, args.stand_in)
         except BenchFault as exc:
             print(f"{interface:<14}bench fault: {exc} (load {load_average()})")
             continue
         emu = "in-process" if r["stand_in_cpu_us"] is None else f"{r['stand_in_cpu_us']:.0f}"
         jit = "/".join(f"{v:.0f}" for v in r["jitter_us"]) if args.paced and interface != "virtual" else "-"
         c = r["stand_in_counters"]
-        own = "-" if c is None else (f"{c['syncs_heard']}/{c['syncs_missed']}/{c['late_answers']}, "
+        own = "-" if c is None else (f"{c['syncs_heard']}/{c['syncs_missed']}/{c['late_answers']}/{c['too_late']}, "
                                      f"{r['answer_delay_max_ms']:.2f} ms")
-        who = f"{r['master_lost']}/{r['stand_in_lost']}" if r["stand_in_counters"] is not None else "-"
-        print(f"{r['bus']:<14}{r['syncs']:>8}{r['lost']:>6}{who:>16}{r['samples_per_s']:>10.0f}{r['master_cpu_us']:>11.0f}"
-              f"{emu:>13}{jit:>28}  {r['stand_in']}: {own}   {r['producer']}, {r['priority']}, {r['load']}")
+        who = f"{r['master_lost']}/{r['stand_in_lost']}" if c is not None else "-"
+        late = f"{r['sent_late']}, {r['sync_late_max_s'] * 1e3:.1f} ms" if args.paced else "-"
+        print(f"{r['bus']:<14}{r['syncs']:>8}{r['lost']:>6}{who:>16}{late:>16}{r['samples_per_s']:>10.0f}"
+              f"{r['master_cpu_us']:>11.0f}{emu:>13}{jit:>28}  {r['stand_in']}: {own}   "
+              f"{r['producer']}, {r['priority']}, {r['load']}")
         if args.threads:
             print("    master by thread (us/SYNC): " + ", ".join(f"{k} {v:.0f}" for k, v in r["master_threads_us"].items())
                   + f"; user {r['master_user_us']:.0f} / kernel {r['master_system_us']:.0f}"
-                  + f"; SYNC slots skipped by the producer: {r['skipped']}")
+                  + f"; SYNC slots never sent (producer too far behind): {r['skipped']}")
     return 0
 
 
