@@ -1,30 +1,42 @@
 """Benchmark: two CiA 402 drives sampled on SYNC from the emulated bench.
 
 ``python -m gearbench.benchmarks drives_can [--duration-s 60] [--period-s 0.001] [--bus udp_multicast virtual]
-[--paced] [--hog N] [--threads]``
+[--paced] [--hog N] [--stand-in responder|emulator] [--threads]``
 
 A run is ``duration_s / period_s`` SYNCs of drive time (60,000 at 1 kHz for 60 s).
 Lockstep (default): SYNCs go out as fast as the drives answer, so the figure is the
 sustained sample rate; ``--paced`` sends them on the wall clock at ``period_s``, as a
 real tester does. udp_multicast runs the emulator in another process (``gearbench
-emulate``); virtual runs it in this one.
+emulate``); virtual runs it in this one. udp_multicast frames are sent with hop limit 0
+(they stay on this host, see ``run_once``).
 
-The master is measured, not the drives' stand-in: paced, the emulator's threads run at
-real-time priority above the master's (SCHED_FIFO 20 against 10) where the OS grants
-it, as drive hardware answers whatever the PC does, and its own counters (SYNCs heard,
-SYNCs it never heard, answers later than one period) are printed, and the lost samples
-are split into the master's (SYNC slots its producer skipped, answers in time it did not
-take) and the stand-in's (SYNCs sent but never heard, answers later than a period). CPU is measured per
-thread from Linux's schedstat (time on a CPU, which a busy host does not inflate) and
-given per SYNC period: the master's whole process (receive, decode, supervision, SYNC
-production) and the stand-in's. Paced, the SYNC interval jitter is taken by an
-independent listener in its own process (bus receive timestamps, |dT - T| p50 / p99 /
-max). ``--hog N`` starts N ``python3 -c "while 1: pass"`` at normal priority during
-each run (a busy tester PC: N = 2 loads both cores). The host's load average is
+The master is measured, not the drives' stand-in. Paced on udp_multicast, the emulator
+configures the drives (SDO, NMT, heartbeats) and then the compiled responder
+(``tools/responder``, built with gcc on first use) answers every SYNC with the four
+TPDOs, at SCHED_FIFO 20 above the master's 10 with its memory locked, as drive
+hardware answers whatever the PC does; ``--stand-in emulator`` keeps the emulator
+answering (its threads at SCHED_FIFO 20). The stand-in's own counters are printed: SYNCs
+heard, SYNCs sent that it never heard (counter gaps), answers later than a period, answers
+later than the master takes them (0.1 s), its largest delay.
+
+Lost, defined: a SYNC whose answers never reach the record (``lost_samples``: gaps in the
+sample index). A late wake-up of the master that still takes the queued answers is not a
+loss (answers name their SYNC by the counter echo). A SYNC the producer sent late because
+it woke late is a timing fault, counted apart ("sent late", with the latest); one it never
+sent (further behind than it catches up, 50 ms) is lost and the master's. Lost samples are
+split into the master's and the stand-in's (SYNCs it never heard or answered too late).
+
+CPU is measured per thread from Linux's schedstat (time on a CPU, which a busy host does
+not inflate much) and given per SYNC period: the master's whole process (receive, decode,
+supervision, SYNC production, the sample loop) and the stand-in's. Paced, the SYNC
+interval jitter (|dT - T| p50 / p99 / max between consecutive SYNCs) is taken from the
+kernel receive timestamps of an independent process: the responder's, or a listener's
+with the emulator. ``--hog N`` starts N ``python3 -c "while 1: pass"`` at normal priority
+during each run (a busy tester PC: N = 2 loads both cores). The host's load average is
 printed with every run: the host is shared. Paced, the host's own floor is measured first
 (``_cpu.timer_floor``): how often a real-time process that only sleeps to 1 ms deadlines
 wakes more than half a period late, i.e. the SYNC slots no user-space producer could
-keep on this host.
+keep on time on this host.
 """
 from __future__ import annotations
 
@@ -43,26 +55,29 @@ import numpy as np
 from ..drives.base import AxisConfig, Mode
 from ..drives.buses import BusSpec, free_udp_port, open_bus
 from ..drives.cia402 import LATE_ANSWER_S, CiA402Network
-from ..drives.realtime import acquisition_priority
+from ..drives.realtime import acquisition_priority, raise_this_thread
 from ..emulate.launch import _child_setup
 from ..errors import BenchFault
 from . import _cpu, _responder
-from ._cpu import STAND_IN_FIFO, floor_text, load_average, realtime_stand_in, timer_floor
+from ._cpu import STAND_IN_FIFO, floor_text, load_average, normal_priority, realtime_stand_in, timer_floor
 
 HOG = [sys.executable, "-c", "while 1: pass"]
 
 
 def listen(bus: str, path: str) -> None:
     """Independent SYNC listener (run in its own process, own bus connection): bus receive
-    timestamps of every SYNC, saved to ``path`` when stdin closes."""
+    timestamps of every SYNC and its counter byte (-1 without), saved to ``path`` when stdin
+    closes. Its thread runs at SCHED_FIFO where allowed (a starved listener whose receive
+    buffer overflows would see gaps that are not the producer's)."""
     b = open_bus(bus, can_filters=[{"can_id": 0x80, "can_mask": 0x7FF}])
     stamps, stop = [], threading.Event()
 
     def run():
+        raise_this_thread(above=-1)
         while not stop.is_set():
             msg = b.recv(0.1)
             if msg is not None and msg.arbitration_id == 0x80:
-                stamps.append(msg.timestamp)
+                stamps.append((msg.timestamp, msg.data[0] if msg.data else -1))
     t = threading.Thread(target=run, daemon=True)
     t.start()
     print("ready", flush=True)
@@ -70,7 +85,20 @@ def listen(bus: str, path: str) -> None:
     stop.set()
     t.join(2)
     b.shutdown()
-    np.save(path, np.array(stamps))
+    np.save(path, np.array(stamps, dtype=float).reshape(-1, 2))
+
+
+def sync_intervals(stamps: np.ndarray) -> np.ndarray:
+    """Intervals (s) between consecutive SYNCs from (receive time, counter) rows: where the SYNC
+    carries a counter, only pairs one counter step apart (a SYNC the receiver missed is not an
+    interval of the producer's)."""
+    if len(stamps) < 2:
+        return np.array([])
+    dt = np.diff(stamps[:, 0])
+    counters = stamps[:, 1]
+    if (counters < 0).any():
+        return dt
+    return dt[np.diff(counters) % 240 == 1]
 
 
 def _start_listener(bus: str, path: str) -> subprocess.Popen:
@@ -116,7 +144,11 @@ def run_once(interface: str, duration_s: float, period_s: float, paced: bool, ho
     try:
         if paced and interface != "virtual" and stand_in != "responder":   # the responder stamps SYNCs itself
             listener = _start_listener(str(bus), stamps_path)
-        with CiA402Network(bus=str(bus), lockstep=not paced) as net:
+        # hop limit 0: the frames stay on this host (Linux loops multicast back to local sockets, then
+        # drops it); with python-can's default 1 every SYNC also went out on the VM's virtual NIC,
+        # a VM exit per frame that was 17 % of the master's CPU (perf) and that no CAN adapter costs
+        local = {"hop_limit": 0} if interface == "udp_multicast" else {}
+        with CiA402Network(bus=str(bus), lockstep=not paced, bus_kwargs=local) as net:
             din = net.add_drive(AxisConfig("in", 1, ""))
             dout = net.add_drive(AxisConfig("out", 2, ""))
             if proc is not None and not paced:   # paced, the stand-in runs above the master: never starved
@@ -133,12 +165,13 @@ def run_once(interface: str, duration_s: float, period_s: float, paced: bool, ho
                     stand_in = f"compiled responder, {responder.priority}"
                     for _ in range(50):            # its first answers in; the hand-over's gap counted before
                         net.sample()
-                if responder is not None and os.environ.get("GB_PAUSE_EMULATOR"):
-                    proc.send_signal(signal.SIGSTOP)
-                hogs = [subprocess.Popen(HOG) for _ in range(hog)]
+                hogs = [subprocess.Popen(HOG, preexec_fn=normal_priority) for _ in range(hog)]
                 load0 = load_average()
                 time.sleep(0.05 * hog)             # the hogs running before the figures start
                 counters0 = _stand_in_counters(proc, responder)
+                if paced:      # the window starts at the first SYNC after the stand-in's counters were read
+                    net.discard_backlog()
+                    net.sample()
                 got, lost0, skipped0, late0 = 1, net.lost_samples, net.late_syncs, net.syncs_sent_late
                 us0 = _cpu.user_system()
                 pid = responder.pid if responder is not None else proc.pid if proc is not None else None
@@ -150,8 +183,8 @@ def run_once(interface: str, duration_s: float, period_s: float, paced: bool, ho
                 cpu1, emu1 = _cpu.threads(), _cpu.threads(pid) if pid else {}
                 us1 = _cpu.user_system()
                 counters1 = _stand_in_counters(proc, responder)
-                if responder is not None and os.environ.get("GB_PAUSE_EMULATOR"):
-                    proc.send_signal(signal.SIGCONT)
+                if responder is not None:     # the drives' stop at close is SDO: the emulator answers it
+                    realtime_stand_in(proc.pid)
             load1 = load_average()
             lost = net.lost_samples - lost0
             skipped = net.late_syncs - skipped0
@@ -164,10 +197,7 @@ def run_once(interface: str, duration_s: float, period_s: float, paced: bool, ho
             h.wait()
         if responder is not None:
             responder.stop()
-            stamps = responder.sync_stamps()[counters0.get("syncs_heard", 0):counters1.get("syncs_heard", 0)]
-            # intervals between consecutive SYNCs only (a counter step of one)
-            steps = np.diff(stamps[:, 1]) % 240 == 1
-            np.save(stamps_path, np.diff(stamps[:, 0])[steps])
+            np.save(stamps_path, responder.sync_stamps()[counters0.get("syncs_heard", 0):counters1.get("syncs_heard", 0)])
         if listener is not None:
             listener.stdin.close()
             listener.wait(30)
@@ -176,9 +206,7 @@ def run_once(interface: str, duration_s: float, period_s: float, paced: bool, ho
         if proc is not None:
             proc.send_signal(signal.SIGTERM)
             proc.wait(10)
-    intervals = np.load(stamps_path) if os.path.exists(stamps_path) else np.array([])
-    if responder is None:
-        intervals = np.diff(intervals)     # the listener saved the SYNCs' receive times
+    intervals = sync_intervals(np.load(stamps_path)) if os.path.exists(stamps_path) else np.array([])
     dev_us = np.abs(intervals - period_s) * 1e6 if len(intervals) > 1 else np.array([np.nan])
     master = _cpu.delta(cpu0, cpu1)
     stand_in_cpu = sum(_cpu.delta(emu0, emu1).values()) if pid is not None else None
@@ -194,6 +222,7 @@ def run_once(interface: str, duration_s: float, period_s: float, paced: bool, ho
             "stand_in_lost": stand_in_lost, "master_lost": lost - min(lost, stand_in_lost),
             "samples_per_s": (got - 1) / wall, "producer": producer,
             "master_cpu_us": sum(master.values()) / syncs * 1e6,
+            "master_wakeups_per_sync": _cpu.wakeups(cpu0, cpu1) / syncs,
             "master_user_us": (us1[0] - us0[0]) / syncs * 1e6, "master_system_us": (us1[1] - us0[1]) / syncs * 1e6,
             "master_threads_us":
                 {k: v / syncs * 1e6 for k, v in sorted(master.items(), key=lambda kv: -kv[1])},
@@ -274,6 +303,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.threads:
             print("    master by thread (us/SYNC): " + ", ".join(f"{k} {v:.0f}" for k, v in r["master_threads_us"].items())
                   + f"; user {r['master_user_us']:.0f} / kernel {r['master_system_us']:.0f}"
+                  + f"; {r['master_wakeups_per_sync']:.2f} thread wake-ups per SYNC"
                   + f"; SYNC slots never sent (producer too far behind): {r['skipped']}")
     return 0
 

@@ -34,7 +34,7 @@ from ..drives.base import AxisConfig, Mode
 from ..drives.modbus import ModbusNetwork
 from ..drives.realtime import acquisition_priority
 from . import _cpu
-from ._cpu import load_average, realtime_stand_in
+from ._cpu import load_average, normal_priority, realtime_stand_in
 
 HOG = [sys.executable, "-c", "while 1: pass"]
 
@@ -80,7 +80,7 @@ def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3,
             d_out.enable(Mode.TORQUE)
             d_in.set_setpoint(50.0)
             d_out.set_setpoint(0.1)
-            hogs = [subprocess.Popen(HOG) for _ in range(hog)]
+            hogs = [subprocess.Popen(HOG, preexec_fn=normal_priority) for _ in range(hog)]
             load0 = load_average()
             with acquisition_priority(realtime=not lockstep) as granted:
                 samples = net.sample()

@@ -349,8 +349,11 @@ class ThreadSyncProducer(_Producer):
         super().__init__(period_s, counter_overflow, begin, take, catch_up_s)
         self.network = network
         self.receive = receive
-        # udp_multicast hears its own frames: slots then begin on the SYNC as received, in bus order
-        self.observe = type(network.bus).__name__ == "UdpMulticastBus" and counter_overflow is not None
+        # udp_multicast hears its own frames: slots then begin on the SYNC as received, in bus order;
+        # not where answers echo the counter (catch_up_s > 0): they name their SYNC, order does not matter
+        self.direct = catch_up_s > 0 and counter_overflow is not None
+        self.observe = type(network.bus).__name__ == "UdpMulticastBus" and counter_overflow is not None \
+            and not self.direct
 
     def start(self) -> "ThreadSyncProducer":
         if self.observe:
@@ -389,7 +392,10 @@ class ThreadSyncProducer(_Producer):
                     self.sent_late += 1
                     self.sent_late_max_s = max(self.sent_late_max_s, behind)
                 counter = self.counter_of(n)
-                if self.observe:
+                if self.direct:
+                    self._begun(n, counter, time.time())
+                    send[counter - 1]()
+                elif self.observe:
                     # the SYNC first, on time; its slot begins where it is seen on the bus, in order,
                     # so the answers to the SYNCs before it may be taken after it is sent
                     send[counter - 1 if counter else 0]()

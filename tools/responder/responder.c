@@ -188,7 +188,7 @@ int main(int argc, char **argv) {
     setsockopt(s, SOL_SOCKET, SO_TIMESTAMPNS, &one, sizeof one);
     if (setsockopt(s, SOL_SOCKET, SO_RCVBUFFORCE, &rcvbuf, sizeof rcvbuf))   /* root: above rmem_max */
         setsockopt(s, SOL_SOCKET, SO_RCVBUF, &rcvbuf, sizeof rcvbuf);
-    unsigned char ttl = 1;
+    unsigned char ttl = 0;   /* multicast that stays on this host (ip_mc_output): no frame to the NIC */
     setsockopt(s, IPPROTO_IP, IP_MULTICAST_TTL, &ttl, sizeof ttl);
     struct sockaddr_in addr = {.sin_family = AF_INET, .sin_port = htons(port), .sin_addr.s_addr = htonl(INADDR_ANY)};
     if (bind(s, (struct sockaddr *)&addr, sizeof addr)) { perror("bind"); return 1; }
