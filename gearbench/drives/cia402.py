@@ -155,6 +155,7 @@ class CiA402Network(DriveNetwork):
         self._window = 1                # SYNCs back an echoed answer may still complete (start())
         self._echo = False              # every drive echoes the SYNC counter (start())
         self._deliver = 1               # samples ready before the sample loop is woken (start())
+        self._keep = 256                # samples kept for a sample loop that fell behind (start())
         self._tpdo_nodes: list[int] = []
         self._health_due = 0.0
         self._started = False
@@ -214,6 +215,7 @@ class CiA402Network(DriveNetwork):
         self._last_index = 0
         self._window = max(1, min(SYNC_OVERFLOW // 2, round(LATE_ANSWER_S / period_s)))
         self._deliver = max(1, round(DELIVER_S / period_s))
+        self._keep = max(256, round(READY_KEEP_S / period_s))
         self._echo = all(d._has_counter for d in self.drives.values())
         self._tpdo_nodes = sorted({cob & 0x7F for cob in self._formats})
         self.stalls.start()
@@ -326,7 +328,7 @@ class CiA402Network(DriveNetwork):
         """Producer thread, once per period: every frame received since, in bus order (one
         lock, TPDOs decoded here; other frames to their canopen subscribers). The sample loop
         is woken once, if a sample became complete."""
-        formats, subscribers = self._formats, self.network.subscribers
+        formats, subscribers, pending = self._formats, self.network.subscribers, self._pending
         ready_before = len(self._ready)
         heard = False
         with self._cv:
@@ -341,7 +343,12 @@ class CiA402Network(DriveNetwork):
                 if len(data) != fmt.size or not has_counter:   # the checks and bus-order rule of _on_tpdo
                     self._on_tpdo(can_id, data, timestamp)
                     continue
-                self._answer(can_id, fmt.unpack_from(data))
+                values = fmt.unpack_from(data)
+                got = pending.get(self._sync_number - (self._expect - values[-1]) % SYNC_OVERFLOW)
+                if got is not None and can_id not in got and len(got) < len(formats) - 1:
+                    got[can_id] = values       # the common case: not its SYNC's last answer (_answer)
+                else:
+                    self._answer(can_id, values)
             if len(self._ready) >= self._deliver > ready_before:
                 self._cv.notify()
         if heard:      # any TPDO is proof of life of its node; one clock read per period
@@ -535,8 +542,7 @@ class CiA402Network(DriveNetwork):
             if self._pending:       # echoed answers not complete within the window: lost
                 for old in [n for n in self._pending if n <= number - self._window]:
                     self.dropped_frames += len(self._formats) - len(self._pending.pop(old))
-            keep = max(256, round(READY_KEEP_S / self.period_s))
-            while len(self._ready) > keep:       # a sample loop that far behind loses the oldest
+            while len(self._ready) > self._keep:       # a sample loop that far behind loses the oldest
                 self._ready.popleft()
 
     def _discard_backlog(self) -> None:

@@ -212,15 +212,18 @@ class _BatchReceiver:
             h.control, h.controllen = cbase + i * self.CONTROL, self.CONTROL
         self.view = memoryview(self.data).cast("B")
         self.cview = memoryview(self.control).cast("B")
+        # the headers read and reset through one buffer at fixed offsets (a ctypes field access
+        # builds an object per access): received length, control length
+        self.hview = memoryview(self.msgs).cast("B")
+        self.header = ctypes.sizeof(_Mmsghdr)
+        self.length_at = _Mmsghdr.len.offset
+        self.control_at = _Mmsghdr.hdr.offset + _Msghdr.controllen.offset
+        self._args = (self._fd, self.msgs, self.SLOTS, self.MSG_DONTWAIT, None)
 
     def receive(self) -> int:
-        """Datagrams now in slots 0..n-1 (``msgs[i].len`` bytes; control reset for the next call)."""
-        n = self._recvmmsg(self._fd, self.msgs, self.SLOTS, self.MSG_DONTWAIT, None)
-        return max(n, 0)      # -1: EAGAIN (nothing waiting) or EINTR: nothing this period
-
-    def reset(self, n: int) -> None:
-        for i in range(n):
-            self.msgs[i].hdr.controllen = self.CONTROL
+        """Datagrams now in slots 0..n-1 (length at ``length_at`` of each header; the control
+        length, which the kernel lowers to what it wrote, is restored by the caller)."""
+        return max(self._recvmmsg(*self._args), 0)   # -1: EAGAIN (nothing waiting) or EINTR
 
 
 def _reader(bus: can.BusABC) -> Callable[[], list[tuple[int, bytes, float]]]:
@@ -242,25 +245,28 @@ def _reader(bus: can.BusABC) -> Callable[[], list[tuple[int, bytes, float]]]:
             batch = None
         if batch is not None:
             # a cmsghdr (len: size_t, level: int, type: int) then the timespec (two longs)
-            cmsg = struct.Struct("@Nii")
+            head = struct.calcsize("@Nii")
             stamp = struct.Struct("@ll").unpack_from
-            head = cmsg.size
-            view, cview, msgs, slot, cslot = batch.view, batch.cview, batch.msgs, batch.SIZE, batch.CONTROL
+            length = struct.Struct("@I").unpack_from
+            control = struct.Struct("@N")
+            view, cview, hview, slot, cslot = batch.view, batch.cview, batch.hview, batch.SIZE, batch.CONTROL
+            header, length_at, control_at, slots = batch.header, batch.length_at, batch.control_at, batch.SLOTS
 
             def read_batch() -> list[tuple[int, bytes, float]]:
                 out = []
                 while n := batch.receive():
                     for i in range(n):
-                        m = unpackb(view[i * slot:i * slot + msgs[i].len], raw=False)
+                        h, d = i * header, i * slot
+                        m = unpackb(view[d:d + length(hview, h + length_at)[0]], raw=False)
                         if m.get("is_error_frame") or m.get("is_remote_frame") or (m.get("is_fd") and not fd):
                             continue      # as python-can and canopen do: not a data frame of this bus
-                        if msgs[i].hdr.controllen >= head:
+                        if control.unpack_from(hview, h + control_at)[0] >= head:
                             sec, ns = stamp(cview, i * cslot + head)
                             out.append((m["arbitration_id"], m["data"], sec + ns * 1e-9))
                         else:
                             out.append((m["arbitration_id"], m["data"], 0.0))
-                    batch.reset(n)
-                    if n < batch.SLOTS:
+                        control.pack_into(hview, h + control_at, cslot)
+                    if n < slots:
                         return out
                 return out
             return read_batch
@@ -373,6 +379,7 @@ class ThreadSyncProducer(_Producer):
         # a burst only where each answer names its SYNC (counter echo): see the module doc
         catch_up = max(1, round(self.catch_up_s / period)) if self.overflow else 1
         number = 0           # the last slot sent (or skipped)
+        overflow, direct, begin, wall = self.overflow, self.direct, self.begin, time.time
         while not stop.is_set():
             due = t0 + (number + 1) * period
             now = clock()
@@ -391,9 +398,10 @@ class ThreadSyncProducer(_Producer):
                 if behind > period / 2:
                     self.sent_late += 1
                     self.sent_late_max_s = max(self.sent_late_max_s, behind)
-                counter = self.counter_of(n)
-                if self.direct:
-                    self._begun(n, counter, time.time())
+                counter = None if overflow is None else (n - 1) % overflow + 1
+                if direct:
+                    begin(n, counter, wall())
+                    self.number = n
                     send[counter - 1]()
                 elif self.observe:
                     # the SYNC first, on time; its slot begins where it is seen on the bus, in order,
@@ -404,6 +412,8 @@ class ThreadSyncProducer(_Producer):
                     self._begun(n, counter, time.time())    # before sending: no answer can precede it
                     send[counter - 1 if counter else 0]()
             number = last
+            if direct:
+                self._begun_at = time.monotonic()
             drain()
 
     def stop(self) -> None:
