@@ -43,7 +43,7 @@ Sampling (``_sample``): one SYNC, wait for both TPDOs of every drive for that SY
   dropped on the bus (counted lost, never filled in).
 - Paced (real drives): SYNC every period on the wall clock. Frames are matched to
   their SYNC by the counter echo where the drive has one: an answer completes its SYNC
-  however late it is taken (up to ``LATE_ANSWER_S``), and a SYNC is lost when its answers
+  however late it is taken (up to ``LATE_ANSWER_S``, 0.2 s), and a SYNC is lost when its answers
   never arrive, or a later SYNC's are complete first (samples stay in SYNC order).
   Without an echo the bus's order decides: a SYNC whose frames are not all in before the
   next one is lost (a frame received before this SYNC was sent answers an earlier one).
@@ -80,7 +80,8 @@ STARVED_LIMIT_FACTOR = 10    # an emulated drive starved of CPU may be silent th
 HEALTH_PERIOD_S = 0.01       # supervision verdicts at most this often, not per sample: EMCY, NMT and
                              # silence limits are tens of ms or more, and per sample it cost ~20 us
 READY_KEEP_S = 2.0           # complete samples kept for a sample loop that fell behind (beyond: lost)
-LATE_ANSWER_S = 0.1          # with a SYNC counter echo, an answer this late still completes its SYNC
+LATE_ANSWER_S = 0.2          # with a SYNC counter echo, an answer this late still completes its SYNC
+                             # (at most 200 SYNCs back: the counter repeats after 240)
 CATCH_UP_S = 0.05            # SYNC slots a late producer still sends (echo only; sync_producer doc)
 DELIVER_S = 0.004            # paced: the sample loop is woken once per this many seconds of samples
                              # (each wake-up of a thread costs the master ~20 us of CPU on a VM)
@@ -213,7 +214,7 @@ class CiA402Network(DriveNetwork):
             time.sleep(0.005)
         self.sync_count = 0
         self._last_index = 0
-        self._window = max(1, min(SYNC_OVERFLOW // 2, round(LATE_ANSWER_S / period_s)))
+        self._window = max(1, min(SYNC_OVERFLOW - 40, round(LATE_ANSWER_S / period_s)))
         self._deliver = max(1, round(DELIVER_S / period_s))
         self._keep = max(256, round(READY_KEEP_S / period_s))
         self._echo = all(d._has_counter for d in self.drives.values())
@@ -314,6 +315,9 @@ class CiA402Network(DriveNetwork):
         got = self._pending.get(number)
         if got is None:
             got = self._pending[number] = {}
+        elif cob_id in got:
+            self.late_frames += 1          # a repeat (or an answer 240 SYNCs old): the first one stands
+            return
         got[cob_id] = values
         if len(got) == len(self._formats):
             pending = self._pending
