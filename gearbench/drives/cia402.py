@@ -559,16 +559,21 @@ class CiA402Network(DriveNetwork):
         """The next SYNC whose answers were all in before the SYNC after it (the bus's order
         decides, not how late this loop is); SYNCs without them are gaps: counted lost.
         None when none completed within a supervision period (the caller judges that)."""
-        p = self.sync_producer
-        with self._cv:
-            if self._ready or self._cv.wait_for(lambda: self._ready, HEALTH_PERIOD_S):
-                number, got = self._ready.popleft()
-                self.sync_count, self.late_syncs = number, p.late
-                self.syncs_sent_late, self.sync_late_max_s = p.sent_late, p.sent_late_max_s
-                return got
+        p, ready = self.sync_producer, self._ready
+        # without the lock when samples are queued (a deque's popleft is atomic; the producer only
+        # pops beyond 256 queued): most samples are taken so, four of every five at 1 kHz
+        if ready or self._wait_ready():
+            number, got = ready.popleft()
+            self.sync_count, self.late_syncs = number, p.late
+            self.syncs_sent_late, self.sync_late_max_s = p.sent_late, p.sent_late_max_s
+            return got
         if p.idle_s() > self.silence_limit_s:     # outside the lock: stopping the drives needs the receiver
             self._fault(f"no SYNC seen on {self.bus_spec} for {self.silence_limit_s:g} s ({p.kind} producer)")
         return None
+
+    def _wait_ready(self) -> bool:
+        with self._cv:
+            return bool(self._cv.wait_for(lambda: self._ready, HEALTH_PERIOD_S))
 
     def _pace(self) -> None:
         """Wait for this SYNC's slot on the wall clock. A host that fell more than half
