@@ -44,7 +44,8 @@ SERVER = ("import sys, json; from gearbench.emulate.bench import EmulatedBench; 
           "b = EmulatedBench(); b.advance(); "       # compile the physics before 'ready'
           "h = start_modbus_server(b, '127.0.0.1', 0, register_map={map!r}, lockstep={lockstep}); "
           "print('ready', h.port, flush=True); sys.stdin.read(); "   # port 0: the OS picks, no race
-          "print(json.dumps(dict(overruns=h.overruns, lag_max_s=h.lag_max_s, periods=b.sample_index)), flush=True); "
+          "print(json.dumps(dict(overruns=h.overruns, lag_max_s=h.lag_max_s, late_periods=h.late_periods, "
+          "periods=b.sample_index)), flush=True); "
           "h.stop()")
 
 
@@ -144,7 +145,8 @@ def main(argv: list[str] | None = None) -> int:
               f"max {r['request_max_ms']:.1f} ms; CPU per sample: master {r['client_cpu_us']:.0f} us "
               f"({100 * r['client_cpu']:.0f} %), stand-in {r['server_cpu_us']:.0f} us ({100 * r['server_cpu']:.0f} %)")
         print(f"{'':>30}master {r['priority']}; stand-in {r['stand_in']}, its own pacing: "
-              f"{own.get('overruns', '?')} overruns, lag max {1e3 * own.get('lag_max_s', float('nan')):.1f} ms; "
+              f"{own.get('overruns', '?')} overruns, lag max {1e3 * own.get('lag_max_s', float('nan')):.1f} ms, "
+              f"{own.get('late_periods', '?')} of {own.get('periods', '?')} periods stepped over a period late; "
               f"load {r['load']}", flush=True)
     return 0
 
