@@ -10,8 +10,8 @@ import os
 import threading
 
 
-def threads(pid: int | str = "self") -> dict[str, tuple[str, float, float]]:
-    """{tid: (thread name, run s, run-queue wait s)} of every live thread of ``pid``."""
+def threads(pid: int | str = "self") -> dict[str, tuple[str, float, float, int]]:
+    """{tid: (thread name, run s, run-queue wait s, times put on a CPU)} of every live thread of ``pid``."""
     out = {}
     base = f"/proc/{pid}/task"
     try:
@@ -24,10 +24,10 @@ def threads(pid: int | str = "self") -> dict[str, tuple[str, float, float]]:
             with open(f"{base}/{tid}/comm") as f:
                 name = named.get(tid) or f.read().strip()
             with open(f"{base}/{tid}/schedstat") as f:
-                run_ns, wait_ns = (int(v) for v in f.read().split()[:2])
+                run_ns, wait_ns, slices = (int(v) for v in f.read().split()[:3])
         except (OSError, ValueError):
             continue
-        out[tid] = (name, run_ns / 1e9, wait_ns / 1e9)
+        out[tid] = (name, run_ns / 1e9, wait_ns / 1e9, slices)
     return out
 
 
@@ -44,9 +44,15 @@ def delta(before: dict, after: dict) -> dict[str, float]:
     """CPU seconds used between two ``threads()`` snapshots, summed by thread name
     (threads born in between count from zero; threads that ended are not seen)."""
     out: dict[str, float] = {}
-    for tid, (name, run_s, _) in after.items():
+    for tid, (name, run_s, *_) in after.items():
         out[name] = out.get(name, 0.0) + run_s - (before[tid][1] if tid in before else 0.0)
     return out
+
+
+def wakeups(before: dict, after: dict) -> int:
+    """Times the threads were put on a CPU between two ``threads()`` snapshots (each wake-up of a
+    sleeping thread is one; on a VM each costs microseconds of CPU the figures above include)."""
+    return sum(s - (before[tid][3] if tid in before else 0) for tid, (_, _, _, s) in after.items())
 
 
 STAND_IN_FIFO = 20          # above the master's acquisition (drives.realtime.FIFO_PRIORITY = 10)
@@ -63,6 +69,14 @@ def realtime_stand_in(pid: int, priority: int = STAND_IN_FIFO) -> str:
         except (OSError, AttributeError):
             pass
     return f"SCHED_FIFO {priority}" if granted else "normal (SCHED_FIFO refused)"
+
+
+def normal_priority() -> None:
+    """``preexec_fn`` of the CPU hogs: a child forked from a real-time thread inherits SCHED_FIFO,
+    and a spinning hog at SCHED_FIFO starves the whole host (it did once, for ten minutes), not
+    just what it should compete with. Back to normal scheduling, nice 0."""
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    os.setpriority(os.PRIO_PROCESS, 0, 0)
 
 
 def load_average() -> str:

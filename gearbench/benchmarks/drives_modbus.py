@@ -16,7 +16,7 @@ microseconds per sample of both drives; ``--hog N`` runs N ``python3 -c "while 1
 meanwhile; the host's load average is printed with each figure.
 
     python -m gearbench.benchmarks.drives_modbus [--seconds 10] [--period-s 0.002] [--hog 2]
-        [--modes lockstep free] [--map drivers/generic-modbus-servo.yaml]
+        [--modes lockstep free] [--map drivers/generic-modbus-servo.yaml]    (--hog 0 2: one run each)
 """
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ from ..drives.base import AxisConfig, Mode
 from ..drives.modbus import ModbusNetwork
 from ..drives.realtime import acquisition_priority
 from . import _cpu
-from ._cpu import load_average, realtime_stand_in
+from ._cpu import load_average, normal_priority, realtime_stand_in
 
 HOG = [sys.executable, "-c", "while 1: pass"]
 
@@ -44,7 +44,8 @@ SERVER = ("import sys, json; from gearbench.emulate.bench import EmulatedBench; 
           "b = EmulatedBench(); b.advance(); "       # compile the physics before 'ready'
           "h = start_modbus_server(b, '127.0.0.1', 0, register_map={map!r}, lockstep={lockstep}); "
           "print('ready', h.port, flush=True); sys.stdin.read(); "   # port 0: the OS picks, no race
-          "print(json.dumps(dict(overruns=h.overruns, lag_max_s=h.lag_max_s, periods=b.sample_index)), flush=True); "
+          "print(json.dumps(dict(overruns=h.overruns, lag_max_s=h.lag_max_s, late_periods=h.late_periods, "
+          "periods=b.sample_index)), flush=True); "
           "h.stop()")
 
 
@@ -80,7 +81,7 @@ def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3,
             d_out.enable(Mode.TORQUE)
             d_in.set_setpoint(50.0)
             d_out.set_setpoint(0.1)
-            hogs = [subprocess.Popen(HOG) for _ in range(hog)]
+            hogs = [subprocess.Popen(HOG, preexec_fn=normal_priority) for _ in range(hog)]
             load0 = load_average()
             with acquisition_priority(realtime=not lockstep) as granted:
                 samples = net.sample()
@@ -127,25 +128,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=10.0, help="measuring time per mode")
     ap.add_argument("--map", default=DEFAULT_MAP, help="register map of both drives")
     ap.add_argument("--period-s", type=float, default=2e-3, help="free-running sample period (rated: 2 ms)")
-    ap.add_argument("--hog", type=int, default=0, help="processes spinning meanwhile (2 = both cores busy)")
+    ap.add_argument("--hog", type=int, nargs="+", default=[0],
+                    help="processes spinning meanwhile (2 = both cores busy); several values: one run each")
     ap.add_argument("--modes", nargs="+", default=["lockstep", "free"], choices=["lockstep", "free"])
     args = ap.parse_args(argv)
-    print(f"Modbus TCP, 2 drives (unit ids 1, 2), loopback, emulator in another process, map {args.map}, "
-          f"{args.hog} CPU hog(s)")
-    for mode in args.modes:
-        r = measure(args.map, args.seconds, mode == "lockstep", args.period_s, args.hog)
+    print(f"Modbus TCP, 2 drives (unit ids 1, 2), loopback, emulator in another process, map {args.map}")
+    for mode, hog in ((m, h) for m in args.modes for h in args.hog):
+        r = measure(args.map, args.seconds, mode == "lockstep", args.period_s, hog)
         own = r["stand_in_own"]
-        label = r["mode"] if mode == "lockstep" else f"free-running, {1e3 * r['period_s']:g} ms"
-        print(f"{label:>20}: "
+        label = (r["mode"] if mode == "lockstep" else f"free-running, {1e3 * r['period_s']:g} ms") + f", {hog} hogs"
+        print(f"{label:>28}: "
               f"{r['samples_per_s_per_drive']:7.0f} samples/s per drive "
               f"({r['samples']} samples, lost {r['lost']} = {100 * r['lost_fraction']:.2f} %); "
               f"sample (2 drives) p50 {r['sample_p50_ms']:.2f} ms p99 {r['sample_p99_ms']:.2f} ms; "
               f"single read p50 {r['request_p50_ms']:.2f} ms p99 {r['request_p99_ms']:.2f} ms "
               f"max {r['request_max_ms']:.1f} ms; CPU per sample: master {r['client_cpu_us']:.0f} us "
               f"({100 * r['client_cpu']:.0f} %), stand-in {r['server_cpu_us']:.0f} us ({100 * r['server_cpu']:.0f} %)")
-        print(f"{'':>22}master {r['priority']}; stand-in {r['stand_in']}, its own pacing: "
-              f"{own.get('overruns', '?')} overruns, lag max {1e3 * own.get('lag_max_s', float('nan')):.1f} ms; "
-              f"load {r['load']}")
+        print(f"{'':>30}master {r['priority']}; stand-in {r['stand_in']}, its own pacing: "
+              f"{own.get('overruns', '?')} overruns, lag max {1e3 * own.get('lag_max_s', float('nan')):.1f} ms, "
+              f"{own.get('late_periods', '?')} of {own.get('periods', '?')} periods stepped over a period late; "
+              f"load {r['load']}", flush=True)
     return 0
 
 

@@ -33,7 +33,7 @@ from ..drives.cia402 import CiA402Network
 from ..drives.realtime import acquisition_priority
 from ..errors import BenchFault
 from ._cpu import floor_text, load_average, realtime_stand_in, timer_floor
-from .drives_can import _start_listener
+from .drives_can import _start_listener, sync_intervals
 
 NET = dict(heartbeat_ms=500, timeout_s=3.0, sdo_timeout_s=1.0, state_timeout_s=3.0)
 if os.environ.get("GEARBENCH_VCAN_EMULATED"):   # .ci/vcan's TCG guest: Python 20-100x slower, bounds to match
@@ -92,9 +92,10 @@ def paced(bus: str, producer: str, period_s: float, duration_s: float) -> dict:
             finally:
                 listener.stdin.close()
                 listener.wait(30)
-        stamps = np.load(path) if os.path.exists(path) else np.array([])
-    dev_us = np.abs(np.diff(stamps) - period_s) * 1e6 if len(stamps) > 2 else np.array([np.nan])
-    span = stamps[-1] - stamps[0] if len(stamps) > 1 else np.nan
+        stamps = np.load(path) if os.path.exists(path) else np.zeros((0, 2))
+    intervals = sync_intervals(stamps)
+    dev_us = np.abs(intervals - period_s) * 1e6 if len(intervals) > 1 else np.array([np.nan])
+    span = stamps[-1, 0] - stamps[0, 0] if len(stamps) > 1 else np.nan
     return {"producer": producer, "syncs_seen": len(stamps), "rate_hz": (len(stamps) - 1) / span,
             "p50_us": np.percentile(dev_us, 50), "p99_us": np.percentile(dev_us, 99), "max_us": dev_us.max(),
             "samples": got, "lost": syncs - got}

@@ -41,10 +41,14 @@ Sampling (``_sample``): one SYNC, wait for both TPDOs of every drive for that SY
   read of the drive is the barrier: the drive handles it after the SYNC, so when its
   answer is in, every TPDO sent before it is in too and a frame still missing was
   dropped on the bus (counted lost, never filled in).
-- Paced (real drives): SYNC every period on the wall clock; a SYNC whose frames are
-  not all in by the next slot is counted in ``lost_samples``. Frames are matched to
-  their SYNC by the counter echo where the drive has one, otherwise by the bus's
-  receive timestamp (a frame received before this SYNC was sent answers an earlier one).
+- Paced (real drives): SYNC every period on the wall clock. Frames are matched to
+  their SYNC by the counter echo where the drive has one: an answer completes its SYNC
+  however late it is taken (up to ``LATE_ANSWER_S``, 0.2 s), and a SYNC is lost when its answers
+  never arrive, or a later SYNC's are complete first (samples stay in SYNC order).
+  Without an echo the bus's order decides: a SYNC whose frames are not all in before the
+  next one is lost (a frame received before this SYNC was sent answers an earlier one).
+  Lost SYNCs are counted in ``lost_samples``; SYNCs sent late (the producer woke late and
+  caught up) are timing faults, counted apart (``supervision()``).
 
 Supervision (``gearbench.drives.supervision``): any frame of a node is proof of life;
 silence is measured on a clock that stops while the host is stalled, and a suspected
@@ -76,6 +80,11 @@ STARVED_LIMIT_FACTOR = 10    # an emulated drive starved of CPU may be silent th
 HEALTH_PERIOD_S = 0.01       # supervision verdicts at most this often, not per sample: EMCY, NMT and
                              # silence limits are tens of ms or more, and per sample it cost ~20 us
 READY_KEEP_S = 2.0           # complete samples kept for a sample loop that fell behind (beyond: lost)
+LATE_ANSWER_S = 0.2          # with a SYNC counter echo, an answer this late still completes its SYNC
+                             # (at most 200 SYNCs back: the counter repeats after 240)
+CATCH_UP_S = 0.05            # SYNC slots a late producer still sends (echo only; sync_producer doc)
+DELIVER_S = 0.004            # paced: the sample loop is woken once per this many seconds of samples
+                             # (each wake-up of a thread costs the master ~20 us of CPU on a VM)
 
 __all__ = ["ABORT_CONNECTION_QUICK_STOP", "CW_DISABLE_VOLTAGE", "CW_ENABLE", "CW_FAULT_RESET", "CW_QUICK_STOP",
            "CW_SHUTDOWN", "CW_SWITCH_ON", "CiA402Drive", "CiA402Network", "DEFAULT_EDS", "STATES",
@@ -109,7 +118,9 @@ class CiA402Network(DriveNetwork):
         # time_s = count x period to hold. An emulated bench (lockstep) advances its physics
         # one period per SYNC and may be driven as fast as it answers.
         self.lockstep = bool(lockstep)
-        self.late_syncs = 0
+        self.late_syncs = 0             # SYNC slots never sent (the producer fell too far behind)
+        self.syncs_sent_late = 0        # SYNCs sent over half a period late (caught up): timing faults
+        self.sync_late_max_s = 0.0
         self._t0: float | None = None
         self.bus_spec = parse_bus(bus)
         self.bus_kwargs = bus_kwargs or {}
@@ -140,6 +151,13 @@ class CiA402Network(DriveNetwork):
         # last answer is in, taken by the sample loop: it wakes once per sample, or not at all when behind
         self._ready: collections.deque = collections.deque()
         self._produced = False          # paced by a SYNC producer: answers go to _ready
+        self._pending: dict[int, dict] = {}   # SYNC number -> its answers so far (counter echo, paced)
+        self._delivered = 0             # the last SYNC number put in _ready (echo, paced)
+        self._window = 1                # SYNCs back an echoed answer may still complete (start())
+        self._echo = False              # every drive echoes the SYNC counter (start())
+        self._deliver = 1               # samples ready before the sample loop is woken (start())
+        self._keep = 256                # samples kept for a sample loop that fell behind (start())
+        self._tpdo_nodes: list[int] = []
         self._health_due = 0.0
         self._started = False
 
@@ -196,6 +214,11 @@ class CiA402Network(DriveNetwork):
             time.sleep(0.005)
         self.sync_count = 0
         self._last_index = 0
+        self._window = max(1, min(SYNC_OVERFLOW - 40, round(LATE_ANSWER_S / period_s)))
+        self._deliver = max(1, round(DELIVER_S / period_s))
+        self._keep = max(256, round(READY_KEEP_S / period_s))
+        self._echo = all(d._has_counter for d in self.drives.values())
+        self._tpdo_nodes = sorted({cob & 0x7F for cob in self._formats})
         self.stalls.start()
         self.liveness.reset(d.node.id for d in self.drives.values())
         self._started = True
@@ -248,7 +271,8 @@ class CiA402Network(DriveNetwork):
                 # where a drive echoes no SYNC counter, its samples are matched to SYNCs by arrival
                 # order and the bus's receive time only: flagged so a reader of the data knows
                 "sync_counter_echo": {n: bool(d._has_counter) for n, d in self.drives.items()},
-                "late_syncs": self.late_syncs,
+                "late_syncs": self.late_syncs, "syncs_sent_late": self.syncs_sent_late,
+                "sync_late_max_s": round(self.sync_late_max_s, 4),
                 "if_the_master_dies": {n: d.master_watch for n, d in self.drives.items()}}
 
     # ----------------------------------------------------------------- receive (notifier thread)
@@ -263,6 +287,9 @@ class CiA402Network(DriveNetwork):
             return
         values = fmt.unpack_from(data)
         with self._cv:
+            if self._produced and has_counter:
+                self._answer(cob_id, values)
+                return
             late = values[-1] != self._expect if has_counter else \
                 bool(timestamp) and timestamp < self._sync_sent_wall   # received before this SYNC went out
             if late:
@@ -275,6 +302,63 @@ class CiA402Network(DriveNetwork):
                     self._ready.append((self._sync_number, got))
                     self._got = {}      # complete: a repeated frame before the next SYNC is not a new sample
                 self._cv.notify()       # the sample loop wakes once, when the sample is complete
+
+    def _answer(self, cob_id: int, values: tuple) -> None:
+        """An echoed answer (under ``_cv``, paced by a producer): to the latest SYNC with its
+        counter, at most ``_window`` SYNCs back. Complete -> ``_ready``; the SYNCs before it
+        that are still incomplete are lost then (samples stay in SYNC order)."""
+        back = (self._expect - values[-1]) % SYNC_OVERFLOW if self._expect else 0
+        number = self._sync_number - back
+        if back >= self._window or number <= self._delivered:
+            self.late_frames += 1          # its SYNC is already lost or delivered
+            return
+        got = self._pending.get(number)
+        if got is None:
+            got = self._pending[number] = {}
+        elif cob_id in got:
+            self.late_frames += 1          # a repeat (or an answer 240 SYNCs old): the first one stands
+            return
+        got[cob_id] = values
+        if len(got) == len(self._formats):
+            pending = self._pending
+            for older in [n for n in pending if n <= number]:
+                if older != number:
+                    self.dropped_frames += len(self._formats) - len(pending[older])
+                del pending[older]
+            self._ready.append((number, got))
+            self._delivered = number
+
+    def _take_frames(self, frames: list) -> None:
+        """Producer thread, once per period: every frame received since, in bus order (one
+        lock, TPDOs decoded here; other frames to their canopen subscribers). The sample loop
+        is woken once, if a sample became complete."""
+        formats, subscribers, pending = self._formats, self.network.subscribers, self._pending
+        ready_before = len(self._ready)
+        heard = False
+        with self._cv:
+            for can_id, data, timestamp in frames:
+                f = formats.get(can_id)
+                if f is None:
+                    for callback in subscribers.get(can_id, ()):
+                        callback(can_id, data, timestamp)
+                    continue
+                heard = True
+                fmt, has_counter = f
+                if len(data) != fmt.size or not has_counter:   # the checks and bus-order rule of _on_tpdo
+                    self._on_tpdo(can_id, data, timestamp)
+                    continue
+                values = fmt.unpack_from(data)
+                got = pending.get(self._sync_number - (self._expect - values[-1]) % SYNC_OVERFLOW)
+                if got is not None and can_id not in got and len(got) < len(formats) - 1:
+                    got[can_id] = values       # the common case: not its SYNC's last answer (_answer)
+                else:
+                    self._answer(can_id, values)
+            if len(self._ready) >= self._deliver > ready_before:
+                self._cv.notify()
+        if heard:      # any TPDO is proof of life of its node; one clock read per period
+            now, last = time.monotonic(), self.liveness.last_heard
+            for node in self._tpdo_nodes:
+                last[node] = now
 
     def _on_any_of(self, node_id: int):
         def on_frame(can_id, data, timestamp):
@@ -442,9 +526,11 @@ class CiA402Network(DriveNetwork):
         if self.sync_producer is None:
             self._produced = True
             try:
-                self.sync_producer = start_sync_producer(self.network, self.period_s, SYNC_OVERFLOW
-                                                         if self.sync_counter_byte else None, self._begin_sync, kind,
-                                                         receive=self.options.get("receive", "cyclic") == "cyclic")
+                self.sync_producer = start_sync_producer(
+                    self.network, self.period_s, SYNC_OVERFLOW if self.sync_counter_byte else None,
+                    self._begin_sync, kind, receive=self.options.get("receive", "cyclic") == "cyclic",
+                    take=self._take_frames, catch_up_s=float(self.options.get("sync_catch_up_s", CATCH_UP_S))
+                    if self._echo else 0.0)
             except (ValueError, OSError) as exc:
                 raise DriveError(f"bus {self.bus_spec}: cannot start the SYNC producer ({exc})") from exc
         return True
@@ -457,27 +543,37 @@ class CiA402Network(DriveNetwork):
             if self._sync_number and self._got:
                 self.dropped_frames += len(self._formats) - len(self._got)
             self._sync_number, self._expect, self._got, self._sync_sent_wall = number, counter, {}, wall_s
-            keep = max(256, round(READY_KEEP_S / self.period_s))
-            while len(self._ready) > keep:       # a sample loop that far behind loses the oldest
+            if self._pending:       # echoed answers not complete within the window: lost
+                for old in [n for n in self._pending if n <= number - self._window]:
+                    self.dropped_frames += len(self._formats) - len(self._pending.pop(old))
+            while len(self._ready) > self._keep:       # a sample loop that far behind loses the oldest
                 self._ready.popleft()
 
     def _discard_backlog(self) -> None:
         with self._cv:
             self._ready.clear()
+            self._pending.clear()
+            self._delivered = self._sync_number
 
     def _wait_produced(self) -> dict | None:
         """The next SYNC whose answers were all in before the SYNC after it (the bus's order
         decides, not how late this loop is); SYNCs without them are gaps: counted lost.
         None when none completed within a supervision period (the caller judges that)."""
-        p = self.sync_producer
-        with self._cv:
-            if self._ready or self._cv.wait_for(lambda: self._ready, HEALTH_PERIOD_S):
-                number, got = self._ready.popleft()
-                self.sync_count, self.late_syncs = number, p.late
-                return got
+        p, ready = self.sync_producer, self._ready
+        # without the lock when samples are queued (a deque's popleft is atomic; the producer only
+        # pops beyond 256 queued): most samples are taken so, four of every five at 1 kHz
+        if ready or self._wait_ready():
+            number, got = ready.popleft()
+            self.sync_count, self.late_syncs = number, p.late
+            self.syncs_sent_late, self.sync_late_max_s = p.sent_late, p.sent_late_max_s
+            return got
         if p.idle_s() > self.silence_limit_s:     # outside the lock: stopping the drives needs the receiver
             self._fault(f"no SYNC seen on {self.bus_spec} for {self.silence_limit_s:g} s ({p.kind} producer)")
         return None
+
+    def _wait_ready(self) -> bool:
+        with self._cv:
+            return bool(self._cv.wait_for(lambda: self._ready, HEALTH_PERIOD_S))
 
     def _pace(self) -> None:
         """Wait for this SYNC's slot on the wall clock. A host that fell more than half

@@ -15,6 +15,9 @@ reply is one JSON line ``{"ok": true, ...}`` or ``{"ok": false, "error": ...}``)
 - ``{"cmd": "mute", "axis": "in", "on": true}`` — the drive stops answering (no PDO,
   SDO or heartbeat), like a cut cable;
 - ``{"cmd": "status"}`` — sample index, time, states and modes.
+- ``{"cmd": "pdo", "on": false}`` — no TPDO is sent on SYNC any more (the plant still runs;
+  SDO, heartbeat and EMCY go on): another stand-in answers SYNC (the benchmark's compiled
+  responder, ``tools/responder``).
 
 Fault injection (test facility of ``gearbench.emulate.faults``; any command but ``status``
 may carry ``"at_s"``: it is then applied when world time reaches it, between two steps):
@@ -74,6 +77,7 @@ class EmulatedBench:
         self.pdo_drop_rate = 0.0
         self.muted: set[str] = set()
         self.heartbeat_muted: set[str] = set()
+        self.pdo_on = True
         self.modbus_faults = {"exception": 0, "delay_s": 0.0, "count": 0, "disconnect": False}
         self._scheduled: list[tuple[float, dict]] = []
         self._rng = random.Random(seed)
@@ -192,13 +196,17 @@ class EmulatedBench:
             return {}
         if kind == "mark":
             return {}
+        if kind == "pdo":
+            if not dry:
+                self.pdo_on = bool(cmd.get("on", True))
+            return {}
         if kind == "status":
             return {"sample_index": self.sample_index,
                     "time_s": self.sample_index * self.world.period_s,
                     "drives": {n: a.snapshot() for n, a in self.drives.items()},
                     "counters": dict(self.counters)}
         raise ValueError(f"unknown cmd {kind!r}; known: mount, fault, drop, mute, heartbeat, "
-                         f"refuse_disable, modbus, mark, status")
+                         f"refuse_disable, modbus, mark, pdo, status")
 
     def run_control_loop(self, stdin, stdout) -> threading.Thread:
         """Serve fixture commands from ``stdin`` in a daemon thread until EOF."""

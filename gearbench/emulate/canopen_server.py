@@ -441,7 +441,8 @@ class CanopenServer:
             self.sync_count += steps
             for node in self.nodes:
                 node.update_actuals(measured[node.axis.name], counter)
-                if node.nmt._state == NMT_OPERATIONAL and node.axis.name not in self.bench.muted:
+                if node.nmt._state == NMT_OPERATIONAL and node.axis.name not in self.bench.muted \
+                        and self.bench.pdo_on:
                     frames += node.tpdo_frames(steps)
         for cob_id, payload in frames:
             if not self.bench.drop_frame():

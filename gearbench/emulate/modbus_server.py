@@ -51,6 +51,8 @@ class ModbusServerHandle:
         self.lockstep = lockstep
         self.overruns = 0          # free-running pacer resyncs (host too slow)
         self.lag_max_s = 0.0       # free-running: the furthest the world fell behind the wall clock
+        self.late_periods = 0      # free-running: periods stepped over a period late (in a catch-up burst:
+                                   # a master polling on time never saw them; the stand-in's losses)
         self.watchdog_s: dict[int, float] = {}      # unit -> armed comm_timeout
         self.last_request: dict[int, float] = {}    # unit -> monotonic time of its last request
         self.watchdog_trips = 0
@@ -132,6 +134,7 @@ class ModbusServerHandle:
                 self._watchdog(now)
             self.lag_max_s = max(self.lag_max_s, now - next_t)
             while next_t <= now:
+                self.late_periods += now - next_t >= period
                 self.bench.advance()
                 next_t += period
             time.sleep(max(0.0, next_t - time.monotonic()))
