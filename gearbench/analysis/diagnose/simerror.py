@@ -304,9 +304,16 @@ def end_noise_var(angle_noise_rad: float, dt_s: float) -> float:
             + velocity_noise(angle_noise_rad, dt_s) ** 2)
 
 
+def current_noise(sig: Signals) -> float:
+    """Std of the current's white measurement noise (memoised on the trace)."""
+    if "current_noise" not in sig.cache:
+        sig.cache["current_noise"] = _hf_noise(sig.current_a, 7, 2)
+    return sig.cache["current_noise"]
+
+
 def noise_floor(sig: Signals, kt_over_j: float, horizon: int) -> NoiseFloor:
     """Floor of the simulation error from the current and angle noise in the data."""
-    s_i = _hf_noise(sig.current_a, 7, 2)
+    s_i = current_noise(sig)
     s_th = _hf_noise(sig.position_rad, 9, 3)
     q = lattice_step(sig.position_rad)
     if q:  # a quantised angle: uniform noise of one step (the residual misses it at low speed)
