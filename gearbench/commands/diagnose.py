@@ -20,7 +20,8 @@ def add_arguments(p) -> None:
     p.add_argument("trace", metavar="TRACE", nargs="?", help="single-motor trace (.csv or "
                    ".parquet) with time_s, position_rad, current_a — or a RUN_DIR written by "
                    "'gearbench run': every step diagnosed (calibrations per motor, efficiency "
-                   "steps against the reducer model built from the run's calibrations)")
+                   "steps against the reducer model built from the run's calibrations), "
+                   "kept as RUN_DIR/diagnosis.json for the run's report.html")
     p.add_argument("--bench", metavar="BENCH_TRACE",
                    help="diagnose a two-motor reducer bench trace instead (in_/out_ position "
                         "and current): where the simulated reducer and the bench disagree")
