@@ -102,6 +102,24 @@ def test_offset_outside_the_current_range_is_not_physical():
     assert "outside the measured current" in eff.inadmissible(sig, big, base, {})
 
 
+def test_kt_saturation_is_judged_by_its_visible_fall_not_its_knee():
+    """Refused when the torque-current Kt's fall takes at the largest measured current
+    is below the current noise; a knee beyond the data with a visible fall is kept."""
+    sig = prepare(_trace())
+    w = fit_windows(sig, np.ones(len(sig), bool))
+    eff = next(e for e in E.LIBRARY if e.name == "kt_saturation")
+    base = E.Base(hold=0.7)
+    imax = float(np.max(np.abs(sig.current_a)))
+
+    def why(i_sat):
+        hp = {"kt_sat_a": i_sat, "largest_current_a": imax}
+        terms, fixed = eff.build(sig, base, hp)
+        return eff.inadmissible(sig, fit_model(sig, terms, w, fixed)[0], base, hp)
+
+    assert "not visible" in why(1e3 * imax)      # 1e-6 fall: invisible
+    assert why(2.0 * imax) is None               # knee beyond the data, 20 % fall: shown
+
+
 def test_load_torque_is_named_and_cogging_orders_need_the_ratio():
     """Gravity on an arm (order 1 of the load angle) through a 10:1 gear."""
     tr = _trace(excitation="reversing")
