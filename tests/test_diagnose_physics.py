@@ -228,10 +228,10 @@ def test_a_sim_run_diagnosed_whole_without_non_physical_numbers(sim_run, capsys)
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="issue 24 deliverable 4 not met yet: after the sampler's "
-                   "hold, interval-mean cogging and its ripple start, cvt --sim calibrations end "
-                   "2.2-4.4x the floor (the start from standstill, cogging not yet chosen on 2 s "
-                   "traces) and the bench steps above it (see the scorecard's run section)")
+@pytest.mark.xfail(strict=True, reason="issue 24 deliverable 4 not met yet: cvt --sim calibrations "
+                   "end 2.2-4.4x the floor (the start from standstill; cogging not significant on "
+                   "2 s traces), cyclo's 1.1-1.7x; efficiency steps 0.9-1.3x but cvt's 200 rad/s "
+                   "step 3.4x (its run-up and run-down); see the scorecard's run section")
 def test_every_step_of_a_sim_run_diagnoses_to_the_floor(any_sim_run):
     from gearbench.station.recorder import load_step_trace
 
