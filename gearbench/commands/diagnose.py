@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +20,8 @@ def add_arguments(p) -> None:
     p.add_argument("trace", metavar="TRACE", nargs="?", help="single-motor trace (.csv or "
                    ".parquet) with time_s, position_rad, current_a — or a RUN_DIR written by "
                    "'gearbench run': every step diagnosed (calibrations per motor, efficiency "
-                   "steps against the reducer model built from the run's calibrations)")
+                   "steps against the reducer model built from the run's calibrations), "
+                   "kept as RUN_DIR/diagnosis.json for the run's report.html")
     p.add_argument("--bench", metavar="BENCH_TRACE",
                    help="diagnose a two-motor reducer bench trace instead (in_/out_ position "
                         "and current): where the simulated reducer and the bench disagree")
@@ -312,6 +314,10 @@ def _read_json(path: Path, missing: str):
         raise TraceError(f"{path}: not valid JSON ({exc})") from None
 
 
+#: The whole-run diagnosis as written into the run folder (read by the unit report).
+RUN_DIAGNOSIS = "diagnosis.json"
+
+
 def _run_dir(args, folder: Path) -> int:
     """``gearbench diagnose RUN_DIR``: every step of a finished run."""
     from ..analysis.diagnose.runs import diagnose_run
@@ -331,6 +337,12 @@ def _run_dir(args, folder: Path) -> int:
             print(f"{q}: unreadable ({exc}); skipped")
     run = diagnose_run(steps, result, ratio=args.ratio)
     out = _jsonable({"run_dir": str(folder), **run})
+    # kept with the run: `gearbench report` adds its section to report.html
+    try:
+        (folder / RUN_DIAGNOSIS).write_text(json.dumps(out, indent=1))
+    except OSError as exc:
+        print(f"{folder / RUN_DIAGNOSIS}: not written ({exc.strerror}); report.html will "
+              f"have no diagnosis section", file=sys.stderr)
     if args.rrd:
         out["rrd"] = _run_rrd(run, Path(args.rrd))
     if args.json:

@@ -314,6 +314,21 @@ def _when(ts) -> str:
     return f"<span class='nowrap'>{date}</span> <span class='nowrap'>{time}</span>"
 
 
+def _diagnosis_section(run_dir: Path) -> str:
+    """The section `gearbench diagnose RUN_DIR` left in the run (diagnosis.json); none
+    when the run was not diagnosed, a note when the file cannot be read."""
+    from ..analysis.diagnose.runs import report_section
+
+    p = run_dir / "diagnosis.json"
+    if not p.exists():
+        return ""
+    try:
+        return f"<section>{report_section(json.loads(p.read_text()))['html']}</section>"
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        return (f"<section><h2>Diagnosis</h2><p class='note'>{_e(p)} unreadable ({_e(exc)}); "
+                f"run 'gearbench diagnose {_e(run_dir)}' again.</p></section>")
+
+
 def _simulated(result: dict) -> bool:
     return bool(result.get("simulation_truth")) or bool(result.get("sim"))
 
@@ -324,7 +339,8 @@ def build_report(run_dir: str | Path) -> str:
     result = load_run(d)
     traces = _traces(d)
     body = "\n".join([_header(result, d), _limits_section(result), _motor_section(result, traces),
-                      _efficiency_section(result), _samples_section(result, traces)])
+                      _efficiency_section(result), _samples_section(result, traces),
+                      _diagnosis_section(d)])
     title = f"gearbench report {result.get('serial', '')} {result.get('started_utc', '')}"
     verdict = str(result.get("status", "?")).upper() + (" · SIMULATED" if _simulated(result) else "")
     page = _PAGE_CSS.format(serial=_css_string(result.get("serial")), verdict=_css_string(verdict),

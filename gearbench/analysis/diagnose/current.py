@@ -99,7 +99,28 @@ class KtSaturation(Effect):
         if imax:
             out["kt_fall_at_largest_current"] = float(1.0 - 1.0 / (1.0 + (imax / hp["kt_sat_a"]) ** 2))
             out["kt_sat_extrapolated"] = bool(hp["kt_sat_a"] > imax)
+            out["kt_deficit_at_largest_current_a"] = float(imax * out["kt_fall_at_largest_current"])
         return out
+
+    def inadmissible(self, sig, model, base, hp):
+        """Judged by what the trace can show — the torque Kt's fall takes away at the
+        largest measured current, as a current (i_max * fall) — not by the knee i_sat,
+        which only the curve's continuation beyond the data would show.  A deficit
+        below the trace's own current noise (per sample) is invisible in it: refused.
+        A knee above the largest current with a visible fall is kept (marked
+        extrapolated): the fall within the range is what was measured."""
+        why = super().inadmissible(sig, model, base, hp)
+        d = self.describe(model, base, hp)
+        deficit = d.get("kt_deficit_at_largest_current_a")
+        if why is None and deficit is not None:
+            from .simerror import current_noise
+            noise = current_noise(sig)
+            if deficit < noise:
+                why = (f"Kt falls {d['kt_fall_at_largest_current']:.1%} at the largest "
+                       f"current {hp['largest_current_a']:.3g} A: {1e3 * deficit:.2g} mA of "
+                       f"torque-current, below the current noise {1e3 * noise:.2g} mA — "
+                       f"not visible in this trace")
+        return why
 
 
 class InertiaMismatch(Effect):

@@ -112,10 +112,15 @@ def run(pos, cur, w0, U, starts, horizon, half, dt, h, rk, rc, rp, fk, fc, fp, t
                     a -= rc[f] * w
                 elif k == SPRING:
                     a -= rc[f] * th
-                elif k == SIN:
-                    a += rc[f] * np.sin(rp[f, 2] * th)
-                elif k == COS:
-                    a += rc[f] * np.cos(rp[f, 2] * th)
+                elif k == SIN or k == COS:
+                    # rp[f, 0] = 1: the mean over the step (periodic.interval_sin_cos)
+                    x = rp[f, 2] * th
+                    sc = 1.0
+                    if rp[f, 0] > 0.0:
+                        da = rp[f, 2] * w * dt
+                        x += 0.5 * da
+                        sc = np.sinc(da / (2.0 * np.pi))
+                    a += rc[f] * sc * (np.sin(x) if k == SIN else np.cos(x))
                 elif k == RSIN:
                     a += rc[f] * cur[idx] * np.sin(rp[f, 2] * th)
                 elif k == RCOS:
