@@ -219,6 +219,7 @@ FORM_SPREAD = 0.25
 # at 1 kHz: <= 0.05)
 FORM_SPREAD_MAX_SHARE = 0.1
 LOAD_SIN, LOAD_COS = "load_sin", "load_cos"
+SP_STEP = "setpoint_step"
 
 
 @dataclass
@@ -296,11 +297,28 @@ def _prepare(t, th, i, *, cutoff_hz, friction_width_rad_s, command, source) -> _
             th, dt, velocity=dv.refine_reversals(th, w_smooth, half_width=hw)) * moving}
         if command is not None:
             matched["command_sign"] = np.sign(extra["command"]) * moving
+            matched["setpoint_step"] = _setpoint_steps(extra["command"], dt)
         # the masked offset column is needed only where an offset is fitted (reversing)
         others = {"current": i * moving, **({"moving": moving} if reverses else {}), **extra}
         fs = dv.consistent_derivatives(th, others, dt, taps, matched=matched)
     return _Signals(th, dt, cutoff_hz, taps, w_smooth, moving, fs, reverses,
                     _white_noise_variance(i), source)
+
+
+def _setpoint_steps(command: np.ndarray, dt: float) -> np.ndarray:
+    """The speed setpoint's step at each SYNC, Δcmd_k / dt (rad/s², first sample 0).
+
+    A drive that applies each speed setpoint as a step (no interpolation) kicks its
+    current command by Kp·Δcmd at every SYNC, and the kick decays inside the period:
+    the torque the rotor integrates over the period then differs from an instantaneous
+    current sample by c·Δcmd, c set by the drive's gains and current lag (robustness
+    benchmark: b2 off by +0.6 to +2.5 %, z up to 10 on the unloaded run). The column
+    carries c; it is nearly collinear with θ'' in one run (the loop follows the command),
+    so ``calibration.calibrate_from_fits`` estimates one c for both runs of a motor
+    (same drive, same gains) and Kt from the difference, where it cancels."""
+    d = np.zeros_like(command)
+    d[1:] = np.diff(command) / dt
+    return d
 
 
 def _base_columns(sig: _Signals, form: str, *, spring: bool, use_bias: bool) -> list:
@@ -316,6 +334,7 @@ def _base_columns(sig: _Signals, form: str, *, spring: bool, use_bias: bool) -> 
         offset = fs.get("moving", np.ones(sig.n))
     if spring:
         cols.append((C_J, fs["position"], -1.0 if form == "accel" else 1.0))
+
     if use_bias:
         cols.append((BIAS, offset, 1.0 if form == "accel" else -1.0))
     return cols
@@ -473,20 +492,49 @@ def _select_cogging(sig, cols, form, fit, cogging, rad_per_unit, lag, eiv, block
 
 
 def _to_accel_names(fit: _Fit, cov: np.ndarray):
-    """Values and covariance on the accel-form names: the accel form's coefficients times
-    their signs; the torque/iv form's p = (J/Kt, D/Kt, …) mapped by v_0 = 1/p_0,
-    v_k = s_k p_k / p_0 (delta method for the covariance)."""
+    """Values and covariance on the accel-form names (``own_to_accel_names``)."""
     names = tuple(c[0] for c in fit.cols) + ((LAG,) if len(fit.beta) > len(fit.cols) else ())
     sign = np.array([c[2] for c in fit.cols] + [1.0] * (len(names) - len(fit.cols)))
-    if fit.form == "accel":
-        return names, fit.beta * sign, cov * np.outer(sign, sign)
-    a = fit.beta[0]
-    values = sign * fit.beta / a
+    values, cov = own_to_accel_names(fit.form, fit.beta, sign, cov)
+    return names, values, cov
+
+
+def own_to_accel_names(form: str, beta, sign, cov) -> tuple[np.ndarray, np.ndarray]:
+    """A form's own coefficients → values and covariance on the accel-form names.
+
+    The accel form's coefficients times their signs; the torque/iv form's
+    p = (J/Kt, D/Kt, …) mapped by v_0 = 1/p_0, v_k = s_k p_k / p_0 (delta method for
+    the covariance).
+
+    Parameters
+    ----------
+    form : ``accel``, ``torque`` or ``iv``.
+    beta, sign, cov : the form's coefficients, their signs onto the accel names and
+        their covariance (``extras["own_form"]`` of a fit).
+
+    Returns
+    -------
+    (values, covariance) on the accel-form names.
+
+    References
+    ----------
+    JCGM 100:2008 (GUM), 5.1.2 (first-order propagation)
+
+    Examples
+    --------
+    >>> own_to_accel_names("torque", [0.5, 0.1], [1.0, 1.0], np.zeros((2, 2)))[0]
+    array([2. , 0.2])
+    """
+    beta, sign, cov = np.asarray(beta, float), np.asarray(sign, float), np.asarray(cov, float)
+    if form == "accel":
+        return beta * sign, cov * np.outer(sign, sign)
+    a = beta[0]
+    values = sign * beta / a
     values[0] = 1.0 / a
     Jac = np.diag(sign / a)
     Jac[:, 0] = -values / a
     Jac[0, 0] = -1.0 / a ** 2
-    return names, values, Jac @ cov @ Jac.T
+    return values, Jac @ cov @ Jac.T
 
 
 def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np.ndarray, *,
@@ -497,7 +545,7 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
                      source: str = "<array>", rad_per_unit: float | None = 1.0,
                      form: str = "auto", command: np.ndarray | None = None,
                      load_rad_per_unit: float | None = None,
-                     form_spread: bool = True) -> IdentificationResult:
+                     form_spread: bool = True, setpoint_step: bool = False) -> IdentificationResult:
     """Bias-reduced fit of ``J θ'' + D θ' + Tc s(θ') [+ C θ] [+ q·(sin, cos) θ_L] = Kt i [+ c]``.
 
     Every run is fitted twice: in ``form`` and, as a cross-check, by the plain filtered
@@ -531,6 +579,11 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
         for a motor angle behind a gear): adds a position-dependent load torque of
         order 1, q_s sin θ_L + q_c cos θ_L (gravity, unbalance, an eccentric load),
         reported as ``load_sin``/``load_cos`` — distinct from cogging (motor angle).
+    setpoint_step : add the speed setpoint's step per SYNC, Δcmd/dt (``command``
+        needed), as a regressor ``setpoint_step``: the current kick of a drive that
+        steps its setpoint without interpolation (``_setpoint_steps``). Nearly collinear
+        with θ'' within one run; ``calibrate_motor`` turns it on and shares it between
+        its two runs.
     form_spread : also fit the other regression direction (accel for the torque side,
         and vice versa) with the same terms and add ``FORM_SPREAD``·ΔΔᵀ of their
         difference Δ in (Kt/J, D/J, Tc/J) to the covariance: with a correct model both
@@ -573,8 +626,12 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
     label = "default" if form == "auto" else form
     if form == "auto":
         form = AUTO_FORM
+    if setpoint_step and command is None:
+        raise ExcitationError(f"{source}: the setpoint-step term needs the recorded speed "
+                              f"command (column 'command'); record it or fit without the term")
     opts = dict(spring=spring, use_bias=use_bias, lag=lag, eiv=eiv_correction, cogging=cogging,
-                rad_per_unit=rad_per_unit, load_rad_per_unit=load_rad_per_unit)
+                rad_per_unit=rad_per_unit, load_rad_per_unit=load_rad_per_unit,
+                setpoint_step=setpoint_step)
     return _identify_checked(sig, form, label, opts, check=check, form_spread=form_spread)
 
 
@@ -591,7 +648,8 @@ def _identify_checked(sig: _Signals, form: str, label: str, opts: dict, *, check
                                **{**opts, "cogging": orders})
         main = _with_form_spread(main, other)
     plain = replace(_identify_form(sig, "torque", **{**opts, "eiv": False, "lag": False,
-                                                     "cogging": False}), method="torque-ls")
+                                                     "cogging": False, "setpoint_step": False}),
+                    method="torque-ls")
     cross = _cross_check(main, plain)
     chosen = main
     if not main.extras["identified"][KT_J] and plain.extras["identified"][KT_J]:
@@ -607,11 +665,13 @@ def _identify_checked(sig: _Signals, form: str, label: str, opts: dict, *, check
 
 
 def _identify_form(sig: _Signals, form: str, *, spring, use_bias, lag, eiv, cogging,
-                   rad_per_unit, load_rad_per_unit) -> IdentificationResult:
+                   rad_per_unit, load_rad_per_unit, setpoint_step=False) -> IdentificationResult:
     """One formulation on prepared signals → an ``IdentificationResult`` (no checks)."""
     cols = _base_columns(sig, form, spring=spring, use_bias=use_bias)
     n_base = len(cols)
     cols += _load_columns(sig, load_rad_per_unit, form)
+    if setpoint_step and "setpoint_step" in sig.fs:
+        cols.append((SP_STEP, sig.fs["setpoint_step"], 1.0 if form == "accel" else -1.0))
     block = max(4 * len(sig.taps), sig.n // 64)
     fit = _fit(sig, cols, form, lag=lag, eiv=eiv)
     fit, orders = _select_cogging(sig, cols, form, fit, cogging, rad_per_unit, lag, eiv, block)
@@ -646,6 +706,10 @@ def _identify_form(sig: _Signals, form: str, *, spring, use_bias, lag, eiv, cogg
                 "current_delay_s": fit.shift_s + (lag_v / b2 if b2 else 0.0),
                 "identified": identified, "regressor_noise_share": share,
                 "per_ampere": per_ampere,
+                # the form's own coefficients and covariance (calibration combines two runs there)
+                "own_form": {"names": list(names), "beta": fit.beta.tolist(),
+                             "sign": [c[2] for c in fit.cols] + [1.0] * (len(names) - len(fit.cols)),
+                             "cov": cov_own.tolist()},
                 "residual_unit": "rad/s^2" if form == "accel" else "A"})
 
 
@@ -1020,13 +1084,13 @@ def identify_trace(trace, *, method: str = "default", **options) -> Identificati
     # the iv form asks for the command; the default form takes it when the trace says it
     # is a speed setpoint (it is not used there, but reported with the fit's inputs)
     if "command" in trace and "command" not in options and (
-            method == "iv" or (method == "default" and _is_speed_command(trace))):
+            method == "iv" or (method in ("default", "torque") and is_speed_command(trace))):
         options["command"] = trace["command"]
     return identify(trace.time_s, trace["position_rad"], trace["current_a"], method=method,
                     source=trace.source, **options)
 
 
-def _is_speed_command(trace) -> bool:
+def is_speed_command(trace) -> bool:
     """A ``command`` column is a speed setpoint when the trace says so (``meta`` mode
     ``velocity``, as the simulator and the station write it)."""
     mode = (trace.meta.get("sim") or {}).get("mode") or trace.meta.get("mode")
