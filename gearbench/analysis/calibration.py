@@ -287,15 +287,22 @@ def share_setpoint_step(unloaded: IdentificationResult, loaded: IdentificationRe
     x = np.concatenate([own[0]["beta"], own[1]["beta"]])
     S = np.zeros((len(x), len(x)))
     S[:nu, :nu], S[nu:, nu:] = own[0]["cov"], own[1]["cov"]
-    H = np.zeros(len(x))
-    H[own[0]["names"].index(SP_STEP)] = 1.0
-    H[nu + own[1]["names"].index(SP_STEP)] = -1.0
-    hsh = float(H @ S @ H)
-    if not hsh > 0:
+    ku, kl = own[0]["names"].index(SP_STEP), nu + own[1]["names"].index(SP_STEP)
+    shared = _condition_on(x, S, np.eye(len(x))[[ku]] - np.eye(len(x))[[kl]])
+    if shared is None:
         return unloaded, loaded, 0.0
-    gain = S @ H / hsh
-    x = x - gain * float(H @ x)
-    S = S - np.outer(gain, H @ S)
+    x1, S1 = shared
+    # a drive that interpolates its setpoint has c = 0: keep the term only where the
+    # shared c is significant (Wald above the BIC price), else condition on c = 0
+    n_eff = min(f.n_effective for f in (unloaded, loaded))
+    wald = x1[ku] ** 2 / S1[ku, ku] if S1[ku, ku] > 0 else 0.0
+    kept = bool(wald > 2.0 * np.log(max(n_eff, 2.0)))
+    if not kept:
+        zero = _condition_on(x, S, np.eye(len(x))[[ku, kl]])
+        if zero is None:
+            return unloaded, loaded, 0.0
+        x1, S1 = zero
+    x, S = x1, S1
     out = []
     for k, (fit, o, sl) in enumerate(zip((unloaded, loaded), own, (slice(0, nu), slice(nu, None)))):
         _, before = own_to_accel_names(fit.extras["form"], o["beta"], o["sign"], o["cov"])
@@ -303,13 +310,25 @@ def share_setpoint_step(unloaded: IdentificationResult, loaded: IdentificationRe
         added = fit.covariance - before            # form spread (model error), kept
         out.append(replace(fit, values=tuple(map(float, values)), covariance=cov + added,
                            B=np.array([0.0, float(values[0])]),
-                           extras={**fit.extras, "setpoint_step_shared": True}))
+                           extras={**fit.extras, "setpoint_step": {
+                               "coefficient_a_s2_per_rad": float(x[ku]) if kept else 0.0,
+                               "wald": float(wald), "kept": kept}}))
     # cov(b2_u, b2_l) = dv_u/dp_u · cov(p_u, p_l) · dv_l/dp_l, v = 1/p
     pu, pl = x[0], x[nu]
     b2_cov = float(S[0, nu] / (pu * pu * pl * pl))
     if KT_J not in unloaded.names:
         return unloaded, loaded, 0.0
     return out[0], out[1], b2_cov
+
+
+def _condition_on(x: np.ndarray, S: np.ndarray, H: np.ndarray):
+    """x, S conditioned on H x = 0 (Gaussian conditional / restricted GLS), or None."""
+    HSH = H @ S @ H.T
+    try:
+        gain = S @ H.T @ np.linalg.inv(HSH)
+    except np.linalg.LinAlgError:
+        return None
+    return x - gain @ (H @ x), S - gain @ H @ S
 
 
 def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
