@@ -29,6 +29,7 @@ from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
+from scipy import fft as sp_fft
 from scipy import stats
 
 from ..errors import ExcitationError, TraceError
@@ -1468,16 +1469,19 @@ def covariance_block(residual: np.ndarray, filter_taps: int) -> int:
     >>> covariance_block(np.random.default_rng(0).normal(size=6400), 11)
     11
     """
-    e = np.asarray(residual, float) - np.mean(residual)
-    n = len(e)
+    n = len(residual)
+    # the correlation time from at most 2^16 samples (a long run's is the same)
+    e = np.asarray(residual[:1 << 16], float)
+    e = e - np.mean(e)
     base = int(filter_taps)
-    if n < 4 or not np.any(e):
+    if len(e) < 4 or not np.any(e):
         return base
-    f = np.fft.rfft(e, 2 * n)
-    acf = np.fft.irfft(f * np.conj(f), 2 * n)[:n]
+    m = sp_fft.next_fast_len(2 * len(e), real=True)
+    f = sp_fft.rfft(e, m)
+    acf = sp_fft.irfft(f * np.conj(f), m)[:len(e)]
     acf = acf / acf[0]
     neg = np.nonzero(acf[1:] <= 0)[0]
-    stop = int(neg[0]) + 1 if len(neg) else n
+    stop = int(neg[0]) + 1 if len(neg) else len(e)
     tau = 1.0 + 2.0 * float(np.sum(acf[1:stop]))
     return int(min(max(base, BLOCK_CORRELATION_TIMES * tau), max(n // MIN_BLOCKS, base)))
 
@@ -1502,7 +1506,9 @@ def _block_covariance(Xt: np.ndarray, e: np.ndarray, A: np.ndarray, *, block: in
     scores = W * e[None, :]
     c = np.zeros((k, n + 1))
     np.cumsum(scores, axis=1, out=c[:, 1:])
-    S = c[:, L:] - c[:, :-L]                          # k x (n − L + 1) window sums
+    # every window starting a step apart (L/8: as good as all of them, 8x cheaper)
+    step = max(1, L // 8)
+    S = c[:, L::step] - c[:, :n + 1 - L:step]         # window sums
     omega = (S @ S.T) / L * n / S.shape[1]
     Ainv = np.linalg.inv(A)
     cov = Ainv @ omega @ Ainv.T
