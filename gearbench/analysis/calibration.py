@@ -235,6 +235,8 @@ def calibrate_from_fits(unloaded: IdentificationResult, loaded: IdentificationRe
         "loss_run_difference": [float(x) for x in spread],
         "unloaded": _fit_summary(unloaded), "loaded": _fit_summary(loaded),
     }
+    if "setpoint_step" in unloaded.extras:
+        fit["setpoint_step"] = unloaded.extras["setpoint_step"]
     if C_J in unloaded.names:
         fit["C"] = unloaded.value(C_J) * J
     if speed_range is not None:
