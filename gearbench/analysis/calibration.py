@@ -10,10 +10,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..errors import GearbenchError
+from ..errors import ExcitationError, GearbenchError
 from ..trace import Trace
-from .identify import (C_J, D_J, KT_J, SP_STEP, TC_J, IdentificationResult, identify_trace,
-                       is_speed_command, own_to_accel_names)
+from .identify import (C_J, D_J, KT_J, MAX_B2_REL_STD, SP_STEP, TC_J, IdentificationResult,
+                       identify_trace, is_speed_command, own_to_accel_names)
 from .torque_constant import torque_constant
 from .uncertainty import DOF_MAX
 
@@ -280,11 +280,9 @@ def share_setpoint_step(unloaded: IdentificationResult, loaded: IdentificationRe
     --------
     >>> fu, fl, cov_b2 = share_setpoint_step(fit_unloaded, fit_loaded)   # doctest: +SKIP
     """
-    own = [f.extras.get("own_form") for f in (unloaded, loaded)]
-    forms = [f.extras.get("form") for f in (unloaded, loaded)]
-    if (any(o is None or SP_STEP not in o["names"] for o in own)
-            or any(fm not in ("torque", "iv") for fm in forms)):
+    if not all(_carries_setpoint_step(f) for f in (unloaded, loaded)):
         return unloaded, loaded, 0.0
+    own = [f.extras["own_form"] for f in (unloaded, loaded)]
     nu = len(own[0]["beta"])
     x = np.concatenate([own[0]["beta"], own[1]["beta"]])
     S = np.zeros((len(x), len(x)))
@@ -310,9 +308,16 @@ def share_setpoint_step(unloaded: IdentificationResult, loaded: IdentificationRe
         _, before = own_to_accel_names(fit.extras["form"], o["beta"], o["sign"], o["cov"])
         values, cov = own_to_accel_names(fit.extras["form"], x[sl], o["sign"], S[sl, sl])
         added = fit.covariance - before            # form spread (model error), kept
-        out.append(replace(fit, values=tuple(map(float, values)), covariance=cov + added,
+        cov = cov + added
+        b2_known = bool(values[0] > 0 and np.sqrt(cov[0, 0]) <= MAX_B2_REL_STD * values[0])
+        # a run's own advice on Kt/J no longer holds once the two runs are combined
+        warnings = [w for w in fit.extras.get("warnings", [])
+                    if not (b2_known and w.startswith("Kt/J is not identifiable"))]
+        out.append(replace(fit, values=tuple(map(float, values)), covariance=cov,
                            B=np.array([0.0, float(values[0])]),
-                           extras={**fit.extras, "setpoint_step": {
+                           extras={**fit.extras, "warnings": warnings,
+                                   "identified": {**fit.extras["identified"], KT_J: b2_known},
+                                   "setpoint_step": {
                                "coefficient_a_s2_per_rad": float(x[ku]) if kept else 0.0,
                                "wald": float(wald), "kept": kept}}))
     # cov(b2_u, b2_l) = dv_u/dp_u · cov(p_u, p_l) · dv_l/dp_l, v = 1/p
@@ -368,17 +373,36 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
     if "setpoint_step" not in options and method in ("default", "torque", "iv"):
         # both runs hold the speed command: one setpoint-step term for the motor's drive
         options["setpoint_step"] = all(_holds_speed_command(t) for t in (unloaded, loaded))
-    fu = identify_trace(unloaded, method=method, **options)
-    fl = identify_trace(loaded, method=method, **options)
+    try:
+        fu = identify_trace(unloaded, method=method, **options)
+        fl = identify_trace(loaded, method=method, **options)
+        shareable = all(_carries_setpoint_step(f) for f in (fu, fl))
+    except ExcitationError:
+        if not options.get("setpoint_step"):
+            raise
+        shareable = False           # refused with the term: judged again without it
+    if options.get("setpoint_step") and not shareable:
+        # a run fell back to the plain cross-check fit: the term cannot be shared
+        options["setpoint_step"] = False
+        fu = identify_trace(unloaded, method=method, **options)
+        fl = identify_trace(loaded, method=method, **options)
     cal = calibrate_from_fits(fu, fl, disk_kgm2, disk_std_kgm2=disk_std_kgm2, disk_name=disk_name,
                               unloaded_name=unloaded.source, loaded_name=loaded.source)
     # a run short of Kt/J's 5 % is not refused (its Kt interval says how little it knows;
     # torque_constant refuses a disk that does not show): its advice is kept
-    warnings = [f"{name}: {w}" for fit, name in ((fu, unloaded.source), (fl, loaded.source))
+    su, sl, _ = share_setpoint_step(fu, fl)          # the advice as the combined fits see it
+    warnings = [f"{name}: {w}" for fit, name in ((su, unloaded.source), (sl, loaded.source))
                 for w in fit.extras.get("warnings", [])]
     if warnings:
         cal.fit["warnings"] = warnings
     return cal
+
+
+def _carries_setpoint_step(fit: IdentificationResult) -> bool:
+    """The fit has the setpoint-step term in a torque-side form (``share_setpoint_step``)."""
+    own = fit.extras.get("own_form")
+    return (own is not None and SP_STEP in own["names"]
+            and fit.extras.get("form") in ("torque", "iv"))
 
 
 def _holds_speed_command(trace: Trace) -> bool:

@@ -702,7 +702,10 @@ def _identify_checked(sig: _Signals, form: str, label: str, opts: dict, *, check
                     method="torque-ls")
     cross = _cross_check(main, plain)
     chosen = main
-    if not main.extras["identified"][KT_J] and plain.extras["identified"][KT_J]:
+    # (not with the setpoint-step term: its collinearity with θ'' is resolved across
+    # the two calibration runs, ``calibration.share_setpoint_step``)
+    if (not main.extras["identified"][KT_J] and plain.extras["identified"][KT_J]
+            and not opts.get("setpoint_step")):
         # the textbook fit may identify what this one cannot (with the same model-error term)
         alt = _with_form_spread(plain, other) if other is not None else plain
         if alt.extras["identified"][KT_J]:
