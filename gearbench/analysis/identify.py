@@ -226,6 +226,7 @@ MIN_BLOCKS = 16
 # Widths of Coulomb friction's zero-speed transition profiled on reversing runs, as
 # shares of the run's top speed (robustness plants: 0.005-0.2 rad/s at 60-200 rad/s)
 FRICTION_WIDTHS = tuple(np.geomspace(1e-4, 5e-3, 12))
+FRICTION_WIDTH_MIN_GAIN = 0.05   # residual sum of squares the width must remove
 
 
 @dataclass
@@ -325,12 +326,15 @@ def _choose_friction_width(sig: _Signals, w_rev: np.ndarray) -> None:
     0.14 rad/s band, b2 −0.5 %, residual 25 mA; with the band 0.0 %, 9 mA). The width
     is profiled: the plain torque-side fit with s(θ') = tanh(θ'/w) (sub-sample
     integrated, ``derivatives.smooth_coulomb_regressor``) for w on ``FRICTION_WIDTHS``
-    × the run's top speed and w = 0 (the sign step); the smallest residual wins and
-    replaces ``fs["sign"]`` (``friction_width_rad_s`` in the fit's extras)."""
+    × the run's top speed and w = 0 (the sign step); the smallest residual wins if it
+    is ``FRICTION_WIDTH_MIN_GAIN`` below the step's (a width must earn its keep: near
+    ties would flip on float rounding) and replaces ``fs["sign"]``
+    (``friction_width_rad_s`` in the fit's extras)."""
     top = top_speed(sig.w_smooth)
     cols = _base_columns(sig, "torque", spring=False, use_bias=True)
     k = [c[0] for c in cols].index(TC_J)
-    best = (_plain_rss(sig, cols), 0.0, sig.fs["sign"])
+    rss_step = _plain_rss(sig, cols)
+    best = ((1.0 - FRICTION_WIDTH_MIN_GAIN) * rss_step, 0.0, sig.fs["sign"])
     for share in FRICTION_WIDTHS:
         width = share * top
         raw = dv.smooth_coulomb_regressor(w_rev, width) * sig.moving
