@@ -241,49 +241,6 @@ def coulomb_regressor(position_rad: np.ndarray, dt_s: float, *, velocity: np.nda
     return out
 
 
-def smooth_coulomb_regressor(velocity: np.ndarray, width: float, *, substeps: int = 16) -> np.ndarray:
-    """tanh(ω/``width``) as the central second difference of the angle sees it.
-
-    As :func:`coulomb_regressor`, with the speed linear between samples and the
-    triangle weights of the second difference, but the sign smoothed over ``width``:
-    friction that passes through zero over a speed band (presliding, a Stribeck or
-    tanh transition), where a rotor held by a speed loop creeps through the band
-    instead of crossing it in an instant. Integrated by the midpoint rule on
-    ``substeps`` points per sample interval; ``width`` → 0 gives ``coulomb_regressor``.
-
-    Parameters
-    ----------
-    velocity : speed at every sample.
-    width : speed scale of the transition (same unit as ``velocity``), > 0.
-    substeps : midpoint-rule points per interval.
-
-    Returns
-    -------
-    numpy.ndarray
-        One value per sample, already matched (pass in ``matched``).
-
-    References
-    ----------
-    C. Canudas de Wit, H. Olsson, K. J. Åström and P. Lischinsky, "A new model for control of systems with friction", IEEE Trans. Autom. Control 40(3), 1995, pp. 419-425 (smooth friction transitions near zero speed)
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> smooth_coulomb_regressor(np.array([1.0, 1.0, 1.0]), 1e-6).round(6).tolist()
-    [1.0, 1.0, 1.0]
-    """
-    w = np.asarray(velocity, float)
-    u = (np.arange(substeps) + 0.5) / substeps
-    wa, wb = w[:-1, None], w[1:, None]
-    t = np.tanh((wa + (wb - wa) * u[None, :]) / width)
-    right = (t * u).mean(axis=1)          # triangle rising towards the sample on the right
-    left = (t * (1.0 - u)).mean(axis=1)
-    out = np.empty_like(w)
-    out[1:-1] = right[:-1] + left[1:]
-    out[0], out[-1] = np.tanh(w[0] / width), np.tanh(w[-1] / width)
-    return out
-
-
 def consistent_derivatives(position_rad: np.ndarray, others: dict[str, np.ndarray],
                            dt_s: float, taps: np.ndarray, *,
                            matched: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:

@@ -223,10 +223,6 @@ LOAD_SIN, LOAD_COS = "load_sin", "load_cos"
 SP_STEP = "setpoint_step"
 BLOCK_CORRELATION_TIMES = 4.0   # block length / the residual's integrated correlation time
 MIN_BLOCKS = 16
-# Widths of Coulomb friction's zero-speed transition profiled on reversing runs, as
-# shares of the run's top speed (robustness plants: 0.005-0.2 rad/s at 60-200 rad/s)
-FRICTION_WIDTHS = tuple(np.geomspace(1e-4, 5e-3, 12))
-FRICTION_WIDTH_MIN_GAIN = 0.05   # residual sum of squares the width must remove
 
 
 @dataclass
@@ -243,7 +239,6 @@ class _Signals:
     reverses: bool
     noise_var_raw: float        # white current-noise variance, A²
     source: str
-    friction_width: float = 0.0  # Coulomb transition width through zero speed (0: a step)
 
     @property
     def n(self) -> int:
@@ -301,62 +296,16 @@ def _prepare(t, th, i, *, cutoff_hz, friction_width_rad_s, command, source) -> _
                  **extra}, dt, taps)
     else:
         moving = 1.0 - dv.standstill(w_smooth, standstill_speed(th, w_smooth, dt))
-        w_rev = dv.refine_reversals(th, w_smooth, half_width=hw)
-        matched = {"sign": dv.coulomb_regressor(th, dt, velocity=w_rev) * moving}
+        matched = {"sign": dv.coulomb_regressor(
+            th, dt, velocity=dv.refine_reversals(th, w_smooth, half_width=hw)) * moving}
         if command is not None:
             matched["command_sign"] = np.sign(extra["command"]) * moving
             matched["setpoint_step"] = _setpoint_steps(extra["command"], dt)
         # the masked offset column is needed only where an offset is fitted (reversing)
         others = {"current": i * moving, **({"moving": moving} if reverses else {}), **extra}
         fs = dv.consistent_derivatives(th, others, dt, taps, matched=matched)
-    sig = _Signals(th, dt, cutoff_hz, taps, w_smooth, moving, fs, reverses,
-                   _white_noise_variance(i), source)
-    if reverses and not friction_width_rad_s:
-        _choose_friction_width(sig, w_rev)
-    return sig
-
-
-def _choose_friction_width(sig: _Signals, w_rev: np.ndarray) -> None:
-    """Coulomb friction's transition through zero speed, chosen from the data.
-
-    Friction that passes through zero over a speed band (a tanh or Stribeck
-    transition, presliding) holds a speed-looped rotor in the band for milliseconds at
-    each reversal; an instant sign step then misstates the friction there, and on a
-    friction-dominated reversing run that biases J/Kt by percent (robustness: a
-    0.14 rad/s band, b2 −0.5 %, residual 25 mA; with the band 0.0 %, 9 mA). The width
-    is profiled: the plain torque-side fit with s(θ') = tanh(θ'/w) (sub-sample
-    integrated, ``derivatives.smooth_coulomb_regressor``) for w on ``FRICTION_WIDTHS``
-    × the run's top speed and w = 0 (the sign step); the smallest residual wins if it
-    is ``FRICTION_WIDTH_MIN_GAIN`` below the step's (a width must earn its keep: near
-    ties would flip on float rounding) and replaces ``fs["sign"]``
-    (``friction_width_rad_s`` in the fit's extras)."""
-    top = top_speed(sig.w_smooth)
-    cols = _base_columns(sig, "torque", spring=False, use_bias=True)
-    k = [c[0] for c in cols].index(TC_J)
-    rss_step = _plain_rss(sig, cols)
-    best = ((1.0 - FRICTION_WIDTH_MIN_GAIN) * rss_step, 0.0, sig.fs["sign"])
-    for share in FRICTION_WIDTHS:
-        width = share * top
-        raw = dv.smooth_coulomb_regressor(w_rev, width) * sig.moving
-        filt = dv.filter_valid(raw, sig.taps)[1:-1]
-        trial = cols[:k] + [(TC_J, filt, cols[k][2])] + cols[k + 1:]
-        rss = _plain_rss(sig, trial)
-        if rss < best[0]:
-            best = (rss, width, filt)
-    sig.fs["sign"] = best[2]
-    sig.friction_width = best[1]
-
-
-def _plain_rss(sig: _Signals, cols: list) -> float:
-    """Residual sum of squares of the current on ``cols`` (least squares, no lag)."""
-    X = np.vstack([c[1] for c in cols])
-    y = sig.fs["current"]
-    try:
-        beta = np.linalg.solve(X @ X.T, X @ y)
-    except np.linalg.LinAlgError:
-        return float("inf")
-    e = y - beta @ X
-    return float(e @ e)
+    return _Signals(th, dt, cutoff_hz, taps, w_smooth, moving, fs, reverses,
+                    _white_noise_variance(i), source)
 
 
 def _setpoint_steps(command: np.ndarray, dt: float) -> np.ndarray:
@@ -760,7 +709,6 @@ def _identify_form(sig: _Signals, form: str, *, spring, use_bias, lag, eiv, cogg
         extras={"form": fit.form, "cutoff_hz": sig.cutoff_hz, "filter_taps": len(sig.taps),
                 "current_noise_a": float(np.sqrt(sig.noise_var_raw)), "cogging": cog_amps,
                 "speed_range_rad_s": sig.speed_range,
-                "friction_width_rad_s": sig.friction_width,
                 "current_delay_s": fit.shift_s + (lag_v / b2 if b2 else 0.0),
                 "identified": identified, "regressor_noise_share": share,
                 "per_ampere": per_ampere,
