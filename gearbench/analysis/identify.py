@@ -16,8 +16,12 @@ Two methods, same result type:
             current-noise (errors-in-variables) correction; cogging harmonics
             sin/cos(k θ) with the orders k found from the data (``cogging_order_scores``
             screens k = 1…64 on the rotor angle, an information criterion keeps them);
-            a parameter covariance from block sums of the residual scores (valid for
-            coloured residuals) with Student-t degrees of freedom = blocks − 1.
+            a parameter covariance from overlapping window sums of the residual scores
+            (a Bartlett HAC estimate, valid for coloured residuals; window = the FIR or
+            8 correlation times of the residual) with Student-t degrees of freedom
+            1.5 (n/window − 1); optionally the setpoint-step term of a drive that steps
+            its speed setpoint every SYNC (``setpoint_step``, shared between a motor's
+            two calibration runs by ``calibration.share_setpoint_step``).
 
 ``check_excitation`` refuses data that cannot identify b2 (constant speed, no
 acceleration content, ill-conditioned regressors) with an ``ExcitationError`` saying
@@ -221,7 +225,7 @@ FORM_SPREAD = 0.25
 FORM_SPREAD_MAX_SHARE = 0.1
 LOAD_SIN, LOAD_COS = "load_sin", "load_cos"
 SP_STEP = "setpoint_step"
-BLOCK_CORRELATION_TIMES = 4.0   # block length / the residual's integrated correlation time
+BLOCK_CORRELATION_TIMES = 8.0   # window length / the residual's integrated correlation time
 MIN_BLOCKS = 16
 
 
@@ -598,7 +602,7 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
     -------
     IdentificationResult
         On the accel-form names (``Kt/J``, ``D/J``, ``Tc/J``, …) whatever the form,
-        with a covariance from block sums of residual scores (valid for coloured
+        with a covariance from overlapping window sums of residual scores (valid for coloured
         residuals); ``extras["identified"]`` says per parameter whether the run
         identifies it (95 % interval excluding zero, Kt/J to ``MAX_B2_REL_STD``).
 

@@ -17,7 +17,8 @@ plant with fresh noise shows the Kt misses are deterministic, not noise — e.g.
 that steps its speed setpoint every SYNC and reports an instantaneous current sample
 biases b2 by 1-3 %, mostly the same in both runs (it cancels in eq. 17) but not entirely
 (the loaded run tracks the command differently), leaving 0.1-0.7 % on Kt that no split
-of a run can see. Kt is proportional to the disk's inertia j, so j's own relative
+of a run can see (that effect is now fitted, ``calibration.share_setpoint_step``, whose
+correlated b2 enter through ``b2_covariance``; the term stays for what is left). Kt is proportional to the disk's inertia j, so j's own relative
 standard uncertainty adds 1:1 to Kt's (u_rel(Kt)² gains u_rel(j)²). The interval is
 Student-t with Welch–Satterthwaite degrees of freedom, the model and disk parts
 counting as known (``gearbench.analysis.uncertainty``).
