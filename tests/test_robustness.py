@@ -146,19 +146,17 @@ def test_intervals_cover_95_percent_on_a_held_out_seed_and_stay_useful(seed1_run
 
 
 def test_without_the_model_error_terms_the_same_intervals_under_cover(seed1_runs, monkeypatch):
-    """The check above can fail: noise-only intervals (the block covariance) miss."""
+    """The check above can fail: without the unshared b2 model error (MODEL_B2_REL) the
+    Kt intervals hold the truth clearly less often (seed 1: 72/80 against 77/80; the
+    overlapping covariance alone covers the efficiency points since it replaced the
+    disjoint blocks, so LOSS_RUN_SPREAD no longer decides those)."""
     import gearbench.analysis.calibration as cal
     import gearbench.analysis.torque_constant as tq
+    with_terms = _cover_counts(_summary(seed1_runs)[0])["kt"]
     monkeypatch.setattr(tq, "MODEL_B2_REL", 0.0)
     monkeypatch.setattr(cal, "LOSS_RUN_SPREAD", 0.0)
-    outs, _ = _summary(seed1_runs)
-    counts = _cover_counts(outs)
-    hits, n = counts["abs"]
-    assert hits < coverage_acceptance(n, alpha=ALPHA)[0], ("abs", hits, n)
-    # Kt: 80 intervals are too few to reject 95 % at this alpha (71/80 without the model
-    # term); the pooled count, dominated by the absolute points, must fall below its bound
-    hits, n = (sum(v[i] for v in counts.values()) for i in (0, 1))
-    assert hits < coverage_acceptance(n, alpha=ALPHA)[0], ("pooled", hits, n)
+    hits, n = _cover_counts(_summary(seed1_runs)[0])["kt"]
+    assert hits <= with_terms[0] - 3 and hits / n < 0.93, ("kt", hits, n, with_terms)
 
 
 def test_drive_stepping_its_setpoint_is_fitted_with_one_setpoint_step_term_for_both_runs():

@@ -1432,7 +1432,7 @@ def covariance_block(residual: np.ndarray, filter_taps: int) -> int:
     # the correlation time from at most 2^16 samples (a long run's is the same)
     e = np.asarray(residual[:1 << 16], float)
     e = e - np.mean(e)
-    base = int(filter_taps)
+    base = 2 * int(filter_taps)
     if len(e) < 4 or not np.any(e):
         return base
     m = sp_fft.next_fast_len(2 * len(e), real=True)
