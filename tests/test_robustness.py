@@ -146,16 +146,56 @@ def test_intervals_cover_95_percent_on_a_held_out_seed_and_stay_useful(seed1_run
 
 
 def test_without_the_model_error_terms_the_same_intervals_under_cover(seed1_runs, monkeypatch):
-    """The check above can fail: noise-only intervals (the block covariance) miss."""
+    """The check above can fail: without the unshared b2 model error (MODEL_B2_REL) the
+    Kt intervals hold the truth clearly less often (seed 1: 72/80 against 77/80; the
+    overlapping covariance alone covers the efficiency points since it replaced the
+    disjoint blocks, so LOSS_RUN_SPREAD no longer decides those)."""
     import gearbench.analysis.calibration as cal
     import gearbench.analysis.torque_constant as tq
+    with_terms = _cover_counts(_summary(seed1_runs)[0])["kt"]
     monkeypatch.setattr(tq, "MODEL_B2_REL", 0.0)
     monkeypatch.setattr(cal, "LOSS_RUN_SPREAD", 0.0)
-    outs, _ = _summary(seed1_runs)
-    counts = _cover_counts(outs)
-    hits, n = counts["abs"]
-    assert hits < coverage_acceptance(n, alpha=ALPHA)[0], ("abs", hits, n)
-    # Kt: 80 intervals are too few to reject 95 % at this alpha (71/80 without the model
-    # term); the pooled count, dominated by the absolute points, must fall below its bound
-    hits, n = (sum(v[i] for v in counts.values()) for i in (0, 1))
-    assert hits < coverage_acceptance(n, alpha=ALPHA)[0], ("pooled", hits, n)
+    hits, n = _cover_counts(_summary(seed1_runs)[0])["kt"]
+    assert hits <= with_terms[0] - 3 and hits / n < 0.93, ("kt", hits, n, with_terms)
+
+
+def test_drive_stepping_its_setpoint_is_fitted_with_one_setpoint_step_term_for_both_runs():
+    """Seed 7 case 89, input motor: the drive applies each speed setpoint as a step
+    (no interpolation) and reports an instantaneous current sample. Fitted apart, b2 of
+    the unloaded run is ~1 % high at ~40 sigma and Kt −0.2 % at 2 sigma; one shared
+    setpoint-step coefficient for the two runs brings Kt within 0.1 % and its interval."""
+    from gearbench.analysis.calibration import calibrate_motor
+    case = R.draw_case(89, 7)
+    m = case.plant.motor_in
+    assert m.setpoint_interpolation == 0 and m.current_avg_s == 0.0
+    u, lo = R.simulate_case(case)["runs"]["in"]
+    shared = calibrate_motor(u, lo, case.disks_kgm2["in"])
+    apart = calibrate_motor(u, lo, case.disks_kgm2["in"], setpoint_step=False)
+    assert shared.fit["setpoint_step"]["kept"] and "setpoint_step" not in apart.fit
+    assert abs(shared.Kt / m.Kt - 1) < 0.001
+    assert shared.Kt_ci95[0] <= m.Kt <= shared.Kt_ci95[1]
+    assert abs(apart.Kt / m.Kt - 1) > 2 * abs(shared.Kt / m.Kt - 1)
+
+
+def test_overlapping_covariance_is_honest_for_coloured_residuals():
+    """Least squares of an AR(1)-coloured noise (ρ = 0.9) on a slow regressor: the
+    overlapping-window covariance matches the true spread of the estimate over 300
+    repeats (white OLS covariance is ~4x too small), with ~1.5 (n/L − 1) dof."""
+    from scipy.signal import lfilter
+
+    from gearbench.analysis.identify import _block_covariance, covariance_block
+    rng = np.random.default_rng(3)
+    n = 4000
+    x = np.sin(2 * np.pi * np.arange(n) / 500.0)
+    est, var = [], []
+    for _ in range(300):
+        e = lfilter([1.0], [1.0, -0.9], rng.normal(size=n))
+        b = (x @ e) / (x @ x)
+        r = e - b * x
+        L = covariance_block(r, 20)
+        cov, dof, _ = _block_covariance(x[None, :], r, np.array([[x @ x]]), block=L)
+        est.append(b)
+        var.append(cov[0, 0])
+    ratio = np.mean(var) / np.var(est)
+    assert 0.75 < ratio < 1.3
+    assert dof == int(1.5 * (n / L - 1))

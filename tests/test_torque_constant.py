@@ -164,3 +164,16 @@ def test_from_dict_names_the_missing_key():
         MotorCalibration.from_dict({"Kt": 0.05, "J": 1e-5, "D": 0.0}, where="IN.json")
     with pytest.raises(GearbenchError, match="'Kt' must be a finite number"):
         MotorCalibration.from_dict({"Kt": "x", "J": 1e-5, "D": 0.0, "Tc": 0.0}, where="IN.json")
+
+
+def test_correlated_runs_give_kt_from_their_difference():
+    """Two fits that share a parameter (the setpoint-step term) have correlated b2:
+    a positive covariance shrinks Kt's uncertainty (an error common to both runs
+    cancels in eq. 17), a negative one widens it."""
+    bu, bl = KT / J, KT / (J + DISK)
+    fu, fl = fake_fit(bu, 0.01 * bu), fake_fit(bl, 0.01 * bl)
+    c = 0.9 * 0.01 * bu * 0.01 * bl
+    base = torque_constant(fu, fl, DISK, model_b2_rel=0.0)
+    plus = torque_constant(fu, fl, DISK, model_b2_rel=0.0, b2_covariance=c)
+    minus = torque_constant(fu, fl, DISK, model_b2_rel=0.0, b2_covariance=-c)
+    assert plus.statistical_std < 0.7 * base.statistical_std < base.statistical_std < minus.statistical_std

@@ -6,13 +6,14 @@
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..errors import GearbenchError
+from ..errors import ExcitationError, GearbenchError
 from ..trace import Trace
-from .identify import C_J, D_J, TC_J, IdentificationResult, identify_trace
+from .identify import (C_J, D_J, KT_J, MAX_B2_REL_STD, SP_STEP, TC_J, IdentificationResult,
+                       identify_trace, is_speed_command, own_to_accel_names)
 from .torque_constant import torque_constant
 from .uncertainty import DOF_MAX
 
@@ -193,8 +194,10 @@ def calibrate_from_fits(unloaded: IdentificationResult, loaded: IdentificationRe
     >>> cal = calibrate_from_fits(fu, fl, 2e-5)   # doctest: +SKIP
 
     """
+    unloaded, loaded, b2_cov = share_setpoint_step(unloaded, loaded)
     kt = torque_constant(unloaded, loaded, disk_kgm2, disk_inertia_std=disk_std_kgm2,
-                         unloaded_name=unloaded_name, loaded_name=loaded_name)
+                         unloaded_name=unloaded_name, loaded_name=loaded_name,
+                         b2_covariance=b2_cov)
     J = kt.rotor_inertia_kgm2
     ests = []
     for fit, inertia in ((unloaded, J), (loaded, J + disk_kgm2)):
@@ -232,6 +235,8 @@ def calibrate_from_fits(unloaded: IdentificationResult, loaded: IdentificationRe
         "loss_run_difference": [float(x) for x in spread],
         "unloaded": _fit_summary(unloaded), "loaded": _fit_summary(loaded),
     }
+    if "setpoint_step" in unloaded.extras:
+        fit["setpoint_step"] = unloaded.extras["setpoint_step"]
     if C_J in unloaded.names:
         fit["C"] = unloaded.value(C_J) * J
     if speed_range is not None:
@@ -241,6 +246,96 @@ def calibrate_from_fits(unloaded: IdentificationResult, loaded: IdentificationRe
         D=float(v[0]), Tc=float(v[1]), method=unloaded.method, fit=fit,
         loss_covariance=tuple(tuple(float(x) for x in r) for r in cov),
         Kt_std=kt.torque_constant_std, Kt_dof=float(kt.dof))
+
+
+def share_setpoint_step(unloaded: IdentificationResult, loaded: IdentificationResult):
+    """Both runs' fits with one setpoint-step coefficient for the motor's drive.
+
+    The setpoint-step term c·Δcmd (``identify._setpoint_steps``) is a property of the
+    drive (its gains and current lag), the same in both runs, but within one run it is
+    nearly collinear with θ'' and leaves J/Kt known to ~1 %. Conditioning the two runs'
+    torque-side estimates x = (β_unloaded, β_loaded), covariance Σ (block diagonal), on
+    the constraint H x = c_unloaded − c_loaded = 0 — x* = x − Σ Hᵀ (H Σ Hᵀ)⁻¹ H x,
+    Σ* = Σ − Σ Hᵀ (H Σ Hᵀ)⁻¹ H Σ (the Gaussian conditional; generalised least squares
+    under a linear restriction) — resolves it: the loaded run follows the command
+    differently, and the direction still unknown moves J/Kt of both runs alike, which
+    cancels in eq. 17 (robustness: Kt from −2.4 ± 0.9 % apart to −0.02 ± 0.04 % joint).
+    Any model-error variance a fit added on the accel names (form spread) is kept.
+
+    Parameters
+    ----------
+    unloaded, loaded : the two runs' fits, each with ``setpoint_step`` in a torque-side
+        form (otherwise they are returned unchanged).
+
+    Returns
+    -------
+    (unloaded, loaded, b2_covariance)
+        The updated fits and the covariance between their Kt/J (0 when unchanged).
+
+    References
+    ----------
+    C. R. Rao, "Linear Statistical Inference and its Applications", 2nd ed., Wiley 1973, 4a.9 (least squares under linear restrictions); JCGM 100:2008 (GUM), 5.2 (correlated input quantities)
+
+    Examples
+    --------
+    >>> fu, fl, cov_b2 = share_setpoint_step(fit_unloaded, fit_loaded)   # doctest: +SKIP
+    """
+    if not all(_carries_setpoint_step(f) for f in (unloaded, loaded)):
+        return unloaded, loaded, 0.0
+    own = [f.extras["own_form"] for f in (unloaded, loaded)]
+    nu = len(own[0]["beta"])
+    x = np.concatenate([own[0]["beta"], own[1]["beta"]])
+    S = np.zeros((len(x), len(x)))
+    S[:nu, :nu], S[nu:, nu:] = own[0]["cov"], own[1]["cov"]
+    ku, kl = own[0]["names"].index(SP_STEP), nu + own[1]["names"].index(SP_STEP)
+    shared = _condition_on(x, S, np.eye(len(x))[[ku]] - np.eye(len(x))[[kl]])
+    if shared is None:
+        return unloaded, loaded, 0.0
+    x1, S1 = shared
+    # a drive that interpolates its setpoint has c = 0: keep the term only where the
+    # shared c is significant (Wald above the BIC price), else condition on c = 0
+    n_eff = min(f.n_effective for f in (unloaded, loaded))
+    wald = x1[ku] ** 2 / S1[ku, ku] if S1[ku, ku] > 0 else 0.0
+    kept = bool(wald > 2.0 * np.log(max(n_eff, 2.0)))
+    if not kept:
+        zero = _condition_on(x, S, np.eye(len(x))[[ku, kl]])
+        if zero is None:
+            return unloaded, loaded, 0.0
+        x1, S1 = zero
+    x, S = x1, S1
+    out = []
+    for k, (fit, o, sl) in enumerate(zip((unloaded, loaded), own, (slice(0, nu), slice(nu, None)))):
+        _, before = own_to_accel_names(fit.extras["form"], o["beta"], o["sign"], o["cov"])
+        values, cov = own_to_accel_names(fit.extras["form"], x[sl], o["sign"], S[sl, sl])
+        added = fit.covariance - before            # form spread (model error), kept
+        cov = cov + added
+        b2_known = bool(values[0] > 0 and np.sqrt(cov[0, 0]) <= MAX_B2_REL_STD * values[0])
+        # a run's own advice on Kt/J no longer holds once the two runs are combined
+        warnings = [w for w in fit.extras.get("warnings", [])
+                    if not (b2_known and w.startswith("Kt/J is not identifiable"))]
+        out.append(replace(fit, values=tuple(map(float, values)), covariance=cov,
+                           B=np.array([0.0, float(values[0])]),
+                           extras={**fit.extras, "warnings": warnings,
+                                   "identified": {**fit.extras["identified"], KT_J: b2_known},
+                                   "setpoint_step": {
+                               "coefficient_a_s2_per_rad": float(x[ku]) if kept else 0.0,
+                               "wald": float(wald), "kept": kept}}))
+    # cov(b2_u, b2_l) = dv_u/dp_u · cov(p_u, p_l) · dv_l/dp_l, v = 1/p
+    pu, pl = x[0], x[nu]
+    b2_cov = float(S[0, nu] / (pu * pu * pl * pl))
+    if KT_J not in unloaded.names:
+        return unloaded, loaded, 0.0
+    return out[0], out[1], b2_cov
+
+
+def _condition_on(x: np.ndarray, S: np.ndarray, H: np.ndarray):
+    """x, S conditioned on H x = 0 (Gaussian conditional / restricted GLS), or None."""
+    HSH = H @ S @ H.T
+    try:
+        gain = S @ H.T @ np.linalg.inv(HSH)
+    except np.linalg.LinAlgError:
+        return None
+    return x - gain @ (H @ x), S - gain @ H @ S
 
 
 def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
@@ -275,17 +370,44 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
     if not (np.isfinite(disk_kgm2) and disk_kgm2 > 0):
         raise GearbenchError(f"inertia must be > 0 kg m^2 (got {disk_kgm2}); pass the disk's "
                              f"inertia, e.g. --inertia 1.5e-5")
-    fu = identify_trace(unloaded, method=method, **options)
-    fl = identify_trace(loaded, method=method, **options)
+    if "setpoint_step" not in options and method in ("default", "torque", "iv"):
+        # both runs hold the speed command: one setpoint-step term for the motor's drive
+        options["setpoint_step"] = all(_holds_speed_command(t) for t in (unloaded, loaded))
+    try:
+        fu = identify_trace(unloaded, method=method, **options)
+        fl = identify_trace(loaded, method=method, **options)
+        shareable = all(_carries_setpoint_step(f) for f in (fu, fl))
+    except ExcitationError:
+        if not options.get("setpoint_step"):
+            raise
+        shareable = False           # refused with the term: judged again without it
+    if options.get("setpoint_step") and not shareable:
+        # a run fell back to the plain cross-check fit: the term cannot be shared
+        options["setpoint_step"] = False
+        fu = identify_trace(unloaded, method=method, **options)
+        fl = identify_trace(loaded, method=method, **options)
     cal = calibrate_from_fits(fu, fl, disk_kgm2, disk_std_kgm2=disk_std_kgm2, disk_name=disk_name,
                               unloaded_name=unloaded.source, loaded_name=loaded.source)
     # a run short of Kt/J's 5 % is not refused (its Kt interval says how little it knows;
     # torque_constant refuses a disk that does not show): its advice is kept
-    warnings = [f"{name}: {w}" for fit, name in ((fu, unloaded.source), (fl, loaded.source))
+    su, sl, _ = share_setpoint_step(fu, fl)          # the advice as the combined fits see it
+    warnings = [f"{name}: {w}" for fit, name in ((su, unloaded.source), (sl, loaded.source))
                 for w in fit.extras.get("warnings", [])]
     if warnings:
         cal.fit["warnings"] = warnings
     return cal
+
+
+def _carries_setpoint_step(fit: IdentificationResult) -> bool:
+    """The fit has the setpoint-step term in a torque-side form (``share_setpoint_step``)."""
+    own = fit.extras.get("own_form")
+    return (own is not None and SP_STEP in own["names"]
+            and fit.extras.get("form") in ("torque", "iv"))
+
+
+def _holds_speed_command(trace: Trace) -> bool:
+    """The trace records the speed setpoint it followed (column ``command``, velocity mode)."""
+    return "command" in trace and is_speed_command(trace)
 
 
 def _speed_range(*fits: IdentificationResult) -> tuple[float, float] | None:

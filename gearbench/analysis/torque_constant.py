@@ -17,7 +17,8 @@ plant with fresh noise shows the Kt misses are deterministic, not noise — e.g.
 that steps its speed setpoint every SYNC and reports an instantaneous current sample
 biases b2 by 1-3 %, mostly the same in both runs (it cancels in eq. 17) but not entirely
 (the loaded run tracks the command differently), leaving 0.1-0.7 % on Kt that no split
-of a run can see. Kt is proportional to the disk's inertia j, so j's own relative
+of a run can see (that effect is now fitted, ``calibration.share_setpoint_step``, whose
+correlated b2 enter through ``b2_covariance``; the term stays for what is left). Kt is proportional to the disk's inertia j, so j's own relative
 standard uncertainty adds 1:1 to Kt's (u_rel(Kt)² gains u_rel(j)²). The interval is
 Student-t with Welch–Satterthwaite degrees of freedom, the model and disk parts
 counting as known (``gearbench.analysis.uncertainty``).
@@ -110,7 +111,7 @@ def paper_printed_eq17(b2_unloaded: float, b2_loaded: float, disk_inertia_kgm2: 
 def torque_constant(unloaded: IdentificationResult, loaded: IdentificationResult,
                     disk_inertia_kgm2: float, *, disk_inertia_std: float = 0.0,
                     model_b2_rel: float | None = None, unloaded_name: str = "unloaded run",
-                    loaded_name: str = "loaded run") -> TorqueConstant:
+                    loaded_name: str = "loaded run", b2_covariance: float = 0.0) -> TorqueConstant:
     """Kt from two fits (corrected eq. 17) with its uncertainty by first-order propagation.
 
     With u = 1/b2^ − 1/b2~ = j/Kt:  ∂Kt/∂b2~ = −Kt²/(j b2~²),  ∂Kt/∂b2^ = Kt²/(j b2^²),
@@ -126,6 +127,8 @@ def torque_constant(unloaded: IdentificationResult, loaded: IdentificationResult
     unloaded, loaded : the two runs' fits.
     disk_inertia_kgm2, disk_inertia_std : the disk's inertia and its standard uncertainty.
     model_b2_rel : relative b2 model error not shared by the runs (None: ``MODEL_B2_REL``).
+    b2_covariance : covariance of the two runs' b2 (fits that share a parameter,
+        ``calibration.share_setpoint_step``; 0: independent runs).
     unloaded_name, loaded_name : the runs' names for messages.
 
     Returns
@@ -150,7 +153,8 @@ def torque_constant(unloaded: IdentificationResult, loaded: IdentificationResult
         raise ExcitationError(f"{unloaded_name if bu <= 0 else loaded_name}: identified Kt/J = "
                               f"{min(bu, bl):.4g} is not positive; check the current sign and "
                               f"the excitation")
-    diff_std = float(np.hypot(unloaded.b2_std, loaded.b2_std))
+    diff_std = float(np.sqrt(max(unloaded.b2_std ** 2 + loaded.b2_std ** 2 - 2 * b2_covariance,
+                                 0.0)))
     if abs(bu - bl) < 3.0 * diff_std:
         # equal Kt/J within noise: the disk did not show, and Kt = j b2~ b2^/(b2~ - b2^) would be noise
         raise ExcitationError(
@@ -169,7 +173,8 @@ def torque_constant(unloaded: IdentificationResult, loaded: IdentificationResult
     if not (np.isfinite(disk_inertia_std) and disk_inertia_std >= 0):
         raise GearbenchError(f"disk inertia standard uncertainty must be >= 0 kg m^2, got "
                              f"{disk_inertia_std!r}")
-    var_stat = (dkt_dbu * unloaded.b2_std) ** 2 + (dkt_dbl * loaded.b2_std) ** 2
+    var_stat = max((dkt_dbu * unloaded.b2_std) ** 2 + (dkt_dbl * loaded.b2_std) ** 2
+                   + 2 * dkt_dbu * dkt_dbl * b2_covariance, 0.0)
     var_disk = (kt / j * disk_inertia_std) ** 2
     var_model = (model_b2_rel * kt * bu / (bu - bl)) ** 2
     var_known = var_disk + var_model
@@ -182,7 +187,8 @@ def torque_constant(unloaded: IdentificationResult, loaded: IdentificationResult
     jr = kt / bu
     dj_dbu = dkt_dbu / bu - kt / bu ** 2
     dj_dbl = dkt_dbl / bu
-    j_std = float(np.sqrt((dj_dbu * unloaded.b2_std) ** 2 + (dj_dbl * loaded.b2_std) ** 2
+    j_std = float(np.sqrt(max((dj_dbu * unloaded.b2_std) ** 2 + (dj_dbl * loaded.b2_std) ** 2
+                              + 2 * dj_dbu * dj_dbl * b2_covariance, 0.0)
                           + (jr / j * disk_inertia_std) ** 2))
     return TorqueConstant(kt, interval(kt, std, dof), std, jr, j_std, dof,
                           float(np.sqrt(var_stat)), float(np.sqrt(var_model)), float(np.sqrt(var_disk)))
