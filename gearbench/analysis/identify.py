@@ -1404,7 +1404,7 @@ def encoder_resolution(position_rad: np.ndarray) -> float:
 
 
 def covariance_block(residual: np.ndarray, filter_taps: int) -> int:
-    """Window length (samples) of the overlapping block covariance: the FIR's length
+    """Window length (samples) of the overlapping block covariance: twice the FIR's length
     (a filtered white residual is correlated over less), or ``BLOCK_CORRELATION_TIMES``
     x the residual's integrated autocorrelation time τ = 1 + 2 Σ ρ_k (summed while
     ρ_k > 0) where model error correlates it for longer, capped at n / ``MIN_BLOCKS``.
@@ -1426,7 +1426,7 @@ def covariance_block(residual: np.ndarray, filter_taps: int) -> int:
     --------
     >>> import numpy as np
     >>> covariance_block(np.random.default_rng(0).normal(size=6400), 11)
-    11
+    22
     """
     n = len(residual)
     # the correlation time from at most 2^16 samples (a long run's is the same)

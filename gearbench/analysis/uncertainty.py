@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from scipy import stats
 
 COVERAGE = 0.95
@@ -178,3 +180,46 @@ def coverage_acceptance(trials: int, level: float = COVERAGE, alpha: float = 2e-
     low = int(stats.binom.ppf(alpha / 2, trials, level))
     high = int(stats.binom.isf(alpha / 2, trials, level))
     return low, high
+
+
+def design_effect(hits: np.ndarray, trials: np.ndarray) -> float:
+    """Kish design effect of a coverage count whose intervals come in clusters (e.g. the
+    efficiency points of one plant share its calibration, so they hold or miss the truth
+    together): the cluster-robust variance of the pooled proportion over the binomial one.
+
+    deff = Var_cluster(p̂) / (p̂ (1 − p̂) / N),  Var_cluster(p̂) = Σ_c (h_c − p̂ m_c)² / N²
+
+    with h_c hits of m_c intervals in cluster c, N = Σ m_c (clusters of one give exactly 1). Independent intervals
+    give deff ≈ 1; dividing the trials by deff gives the effective number of independent
+    intervals for :func:`coverage_acceptance`. Never below 1 (a clustered count is never
+    better determined than independent trials); 1 when every interval holds or none does.
+
+    Parameters
+    ----------
+    hits : intervals holding the truth, per cluster.
+    trials : intervals, per cluster.
+
+    Returns
+    -------
+    float
+        The design effect, ≥ 1.
+
+    References
+    ----------
+    L. Kish, *Survey Sampling*, Wiley 1965, sec. 5.4 (design effect of cluster samples).
+
+    Examples
+    --------
+    >>> design_effect(np.array([4, 4, 0, 4]), np.array([4, 4, 4, 4])) > 3
+    True
+    >>> design_effect(np.array([1, 1, 0, 1]), np.array([1, 1, 1, 1]))
+    1.0
+
+    """
+    hits, trials = np.asarray(hits, float), np.asarray(trials, float)
+    n = trials.sum()
+    p = hits.sum() / n
+    if len(trials) < 2 or p <= 0.0 or p >= 1.0:
+        return 1.0
+    var_cluster = np.sum((hits - p * trials) ** 2) / n**2
+    return max(1.0, float(var_cluster / (p * (1 - p) / n)))
