@@ -131,7 +131,8 @@ def run(args) -> int:
     fitted = F.with_params(prob.block, params)
     fitted_values = F.written_values(params)
     report["parameters"] = [{"path": p.path, "start": start_values.get(p.path, 0.0), "fitted": fitted_values[p.path],
-                             "interval95": p.interval, "effect": p.effect} for p in params]
+                             "interval95": p.interval, "sigma": p.sigma, "model_bias": p.model_bias,
+                             "effect": p.effect} for p in params]
     _print_params(report["parameters"])
     plant1 = PlantParams.from_dict(fitted, "simulation")
     rows1 = replay(plant1, segments, quanta=quanta)
@@ -155,7 +156,7 @@ def proof(result: dict, segments, plant, profile, quanta) -> dict:
     """Re-simulate the recorded steps on the twin (noise on, the plant's seed), analyse
     them as the run was analysed, and set the run's results (re-analysed with the same
     code, so only the data differ) beside the twin's."""
-    from ..reanalysis import reanalyse_result
+    from ..fleet.reanalysis import reanalyse_result
     from ..twin.replay import replay, simulated_trace
 
     rows = replay(plant, segments, noise=True, quanta=quanta)
@@ -272,9 +273,11 @@ def _print_chain(chain: list[dict]) -> None:
 
 
 def _print_params(rows: list[dict]) -> None:
-    print(f"\n  {'parameter':<30} {'profile':>12} {'fitted':>12} {'95 % interval':>14}")
+    # the interval is 1.96·sigma (noise, coloured) + |model bias| (smoothed vs exact replay)
+    print(f"\n  {'parameter':<30} {'profile':>12} {'fitted':>12} {'95 % interval':>14} {'sigma':>10} {'model bias':>11}")
     for r in rows:
-        print(f"  {r['path']:<30} {r['start']:12.5g} {r['fitted']:12.5g} {'±' + format(r['interval95'], '.3g'):>14}")
+        print(f"  {r['path']:<30} {r['start']:12.5g} {r['fitted']:12.5g} {'±' + format(r['interval95'], '.3g'):>14} "
+              f"{r.get('sigma', float('nan')):10.3g} {r.get('model_bias', float('nan')):+11.3g}")
 
 
 def _print_before_after(before, after) -> None:

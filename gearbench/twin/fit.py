@@ -10,10 +10,27 @@ the replay with a 1000x finer encoder and unrounded setpoints (``Problem.smooth`
 bench's quantisation makes the exact replay piecewise constant in the parameters, and
 stalled Gauss-Newton; the gap and the proof use the exact replay.
 
-Intervals: 95 % = 1.96·√diag(H⁻¹ B H⁻¹), H = JᵀJ, B = Σ_b g_b g_bᵀ over time blocks of
-``INTERVAL_BLOCK_S`` (g_b = J_bᵀ r_b): the block sandwich (heteroscedasticity- and
-autocorrelation-consistent within a block; Newey & West 1987 with a rectangular
-window), because the residuals of position and velocity are coloured.
+Intervals (95 %), honest about a coloured residual and an inexact model:
+
+    half-width = 1.96·σ + |b|
+
+* σ² = the largest of three covariances of the least-squares estimate, each
+  (JᵀJ)⁻¹ B (JᵀJ)⁻¹: B = s²·JᵀJ (white residual, s² = S/(n − p)), and the block
+  sandwich B = Σ_b g_b g_bᵀ (g_b = J_bᵀ r_b) over time blocks of 0.1 s and of
+  ``INTERVAL_BLOCK_S`` (heteroscedasticity- and autocorrelation-consistent within a
+  block; Newey & West 1987 with a rectangular window). The residual's correlation length
+  is not known in advance, and a sandwich over few long blocks underestimates
+  (its B has fewer terms than parameters), so no single block length is trusted.
+* b = the model-error share: the fit runs on a smoothed replay (``Problem.smooth``) while
+  the bench quantises, so the fitted model is not the one that made the data. b is the
+  first-order shift of the estimate between fitting the smoothed and the exact replay,
+  b = −(JᵀJ)⁻¹Jᵀ(r_exact − r_smooth) at the fitted values; it is an uncorrected bias
+  and is added linearly, not in quadrature (Phillips, Eberhardt & Parry 1997,
+  "Guidelines for expressing the uncertainty of measurement results containing
+  uncorrected bias", J. Res. NIST 102(5)).
+
+Both are carried to the block's SI values by the delta method (J = (J/Kt)·Kt with its
+covariance, kt_sat_a = p^(-1/2)).
 
 Effects (the diagnosis vocabulary: ``current_offset``, ``kt_saturation``,
 ``torque_ripple``, ``stribeck_friction``, ``direction_friction``, ``time_delay``,
@@ -40,10 +57,8 @@ from .gap import noise_floors, residuals
 from .replay import AXES, Quanta, Segment, replay
 
 BLOCK_S = 0.1          # time block of the held-out folds
-INTERVAL_BLOCK_S = 0.5  # time block of the intervals' sandwich: a model's misfit is coloured
-#                         over tenths of a second (on the independent simulator's pair the
-#                         Kt interval is still 3x narrower than the error: the misfit of a
-#                         drive loop the simulation does not have is not noise)
+INTERVAL_BLOCK_S = 0.5  # longest time block of the intervals' sandwich (a model's misfit is
+#                         coloured over tenths of a second); the 0.1 s folds' blocks are the other
 FD_REL = 0.005         # forward-difference step, fraction of the parameter's scale
 MIN_DROP = 25.0        # held-out S must fall by this many floors² ...
 MIN_SHRINK = 0.05      # ... and by this fraction of itself (a stalled fit leaves a few % to any candidate)
@@ -73,6 +88,8 @@ class Param:
     transform: str = "lin"
     effect: str = ""
     interval: float = float("nan")
+    sigma: float = float("nan")       # standard error (the largest of the three covariances)
+    model_bias: float = float("nan")  # b, the model-error share (module docstring)
 
     def written(self, v: float | None = None, kt: dict | None = None) -> float:
         v = self.value if v is None else v
@@ -348,7 +365,8 @@ def fit(prob: Problem, params: list[Param], *, iterations: int = 8, mask: np.nda
         jac = _jacobian(prob, params, u, r)
     for p, v in zip(params, u):
         p.value = float(v)
-    _intervals(prob, params, jac[sel], r[sel], prob.blocks(INTERVAL_BLOCK_S)[sel])
+    r_exact = prob.residual_vector(with_params(prob.block, params, u), smooth=False)
+    _intervals(prob, params, jac[sel], r[sel], None if r_exact is None else r_exact[sel], sel)
     return {"S": S, "S0": S0, "n": int(sel.sum()), "jac": jac, "r": r, "u": u}
 
 
@@ -358,18 +376,23 @@ def written_values(params: list[Param]) -> dict:
     return {p.path: p.written(None, kt) for p in params}
 
 
-def _intervals(prob, params, J, r, blocks) -> None:
-    """Block-sandwich 95 % intervals (module docstring), carried to the block's SI values
-    by the delta method (J = (J/Kt)·Kt with its covariance, kt_sat_a = p^(-1/2))."""
+def _intervals(prob, params, J, r, r_exact, sel) -> None:
+    """95 % intervals: 1.96·σ + |b| (module docstring), set on each Param (``interval``,
+    ``sigma``, ``model_bias``) in the block's SI values by the delta method."""
     sc = np.array([p.scale for p in params])
     Js = J * sc
     H = Js.T @ Js
     Hi = np.linalg.pinv(H, rcond=1e-12)
-    ub, inv = np.unique(blocks, return_inverse=True)
-    G = np.zeros((len(ub), J.shape[1]))
-    np.add.at(G, inv, Js * r[:, None])
-    B = G.T @ G
-    cov = (Hi @ B @ Hi) * np.outer(sc, sc)
+    s2 = float(r @ r) / max(len(r) - len(params), 1)
+    covs = [Hi * s2]
+    for span in (BLOCK_S, INTERVAL_BLOCK_S):
+        _, inv = np.unique(prob.blocks(span)[sel], return_inverse=True)
+        G = np.zeros((inv.max() + 1, J.shape[1]))
+        np.add.at(G, inv, Js * r[:, None])
+        covs.append(Hi @ (G.T @ G) @ Hi)
+    covs = [c * np.outer(sc, sc) for c in covs]
+    # b: the exact replay's residual minus the smoothed one, projected on the parameters
+    bias = (-(Hi @ (Js.T @ (r_exact - r))) * sc) if r_exact is not None else np.zeros(len(params))
     kt_index = {p.path.split(".")[1]: i for i, p in enumerate(params) if p.path.endswith(".Kt")}
     for i, p in enumerate(params):
         grad = np.zeros(len(params))
@@ -377,10 +400,13 @@ def _intervals(prob, params, J, r, blocks) -> None:
             k = kt_index[p.transform[7:]]
             grad[i], grad[k] = params[k].value, p.value
         elif p.transform == "invsq":
-            grad[i] = 0.5 * p.value ** -1.5 if p.value > 0 else 0.0
+            # kt_sat_a = p^(-1/2): d/dp = -p^(-3/2)/2
+            grad[i] = -0.5 * p.value ** -1.5 if p.value > 0 else 0.0
         else:
             grad[i] = 1.0
-        p.interval = float(Z95 * math.sqrt(max(grad @ cov @ grad, 0.0)))
+        p.sigma = float(math.sqrt(max(max(grad @ c @ grad for c in covs), 0.0)))
+        p.model_bias = float(grad @ bias)
+        p.interval = Z95 * p.sigma + abs(p.model_bias)
 
 
 def folds(prob: Problem) -> tuple[np.ndarray, np.ndarray]:
