@@ -270,11 +270,13 @@ def dev_single_axis(dev_dir: Path, motor: str = "motor_a", iterations: int = 12)
     got = F.written_values(params)
     print(f"\n=== independent simulator ({dev_dir.name}/calib_{motor}_*.csv), single axis ===")
     print(f"S/n {res['S0'] / res['n']:.2f} -> {res['S'] / res['n']:.2f}")
-    print(f"{'parameter':<30} {'truth':>11} {'fitted':>11} {'±95 %':>10} {'within':>7}")
+    print(f"{'parameter':<30} {'truth':>11} {'fitted':>11} {'error %':>8} {'±95 %':>10} {'±95 % %':>8} {'within':>7}")
     for p in params:
         t = truth.get(p.path.rsplit(".", 1)[1])
         w = "" if t is None else ("yes" if abs(got[p.path] - t) <= p.interval else "NO")
-        print(f"{p.path:<30} {_f(t):>11} {got[p.path]:11.5g} {p.interval:10.3g} {w:>7}")
+        e = f"{100 * (got[p.path] - t) / abs(t):8.2f}" if t else f"{'':8}"
+        h = f"{100 * p.interval / abs(t):8.2f}" if t else f"{'':8}"
+        print(f"{p.path:<30} {_f(t):>11} {got[p.path]:11.5g} {e} {p.interval:10.3g} {h} {w:>7}")
     a = {(r["step"], r["signal"]): r["gap"] for r in after}
     for r in before:
         if r["axis"] == "in" and r["signal"] == "current_a" or r["signal"] == "position_rad" and r["axis"] == "in":
@@ -329,7 +331,7 @@ def emps_single_axis(folder: Path, iterations: int = 12, max_effects: int = 2) -
     res = F.fit(prob, params, iterations=iterations)
     chain = F.add_effects(prob, params, max_effects=max_effects)
     got = F.written_values(params)
-    after = total_gap(replay(prob.plant(F.with_params(prob.block, params)), segs, floors),
+    after = total_gap(replay(prob.plant(F.with_params(prob.block, params)), segs),
                       segs, floors, signals=("velocity_rad_s",))
     ivl = {p.path: p.interval for p in params}
     scale = {"motors.in.J": ("M_kg", k ** 2), "motors.in.D": ("Fv_n_s_per_m", k ** 2),
