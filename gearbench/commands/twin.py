@@ -138,6 +138,10 @@ def run(args) -> int:
                              "interval95": p.interval, "sigma": p.sigma, "model_bias": p.model_bias,
                              "effect": p.effect} for p in params]
     _print_params(report["parameters"])
+    s_n = chain[-1]["remaining"] if chain else res["S"] / res["n"]
+    report["remaining_s_per_n"] = s_n
+    if F.model_limited(s_n):
+        print(f"  NOTE: {F.model_limited(s_n)}")
     plant1 = PlantParams.from_dict(fitted, "simulation")
     rows1 = replay(plant1, segments, quanta=quanta)
     after = gap_table(rows1, segments, floors)

@@ -63,6 +63,9 @@ FD_REL = 0.005         # forward-difference step, fraction of the parameter's sc
 MIN_DROP = 25.0        # held-out S must fall by this many floors² ...
 MIN_SHRINK = 0.05      # ... and by this fraction of itself (a stalled fit leaves a few % to any candidate)
 Z95 = 1.96
+# S/n (in noise floors², 1 = noise only) above which the remaining gap is mostly structure:
+# the intervals hold the noise and the smoothing's error, not a model wrong in structure
+MODEL_LIMITED_S_N = 1.5
 ORDERS_TRIED = 3      # ripple orders tried per axis (``residual_orders``)
 DEBUG = False
 FIT_SIGNALS = ("position_rad", "velocity_rad_s", "current_a")
@@ -558,3 +561,12 @@ def _gn_heldout(prob, params, u, jac, r, fit_fold, held, block, own: list[int] |
         if rn is not None:
             best = min(best, float(rn[held] @ rn[held]))
     return best
+
+
+def model_limited(s_per_n: float) -> str:
+    """A note when the remaining gap is structure rather than noise (``MODEL_LIMITED_S_N``),
+    else ""."""
+    if s_per_n <= MODEL_LIMITED_S_N:
+        return ""
+    return (f"the remaining gap is not noise (S/n {s_per_n:.3g}, 1 = the noise floor): the model is not "
+            f"the one that made the data, and the intervals (noise and smoothing only) understate the error")
