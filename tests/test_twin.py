@@ -236,3 +236,9 @@ def test_proof_names_what_the_twin_misses():
     twin["limits"][0]["passed"] = False
     assert _verdict({"real": real, "twin": twin}, []) == [
         "Kt in", "eta_incremental at 100 rad/s, 0.040 N m", "limit kt_in verdict"]
+
+
+def test_a_gap_of_structure_is_said_to_limit_the_intervals():
+    assert F.model_limited(1.0) == "" and F.model_limited(F.MODEL_LIMITED_S_N) == ""
+    note = F.model_limited(180.0)
+    assert "S/n 180" in note and "understate" in note
