@@ -1,17 +1,23 @@
 """``python -m gearbench.benchmarks twin``: does ``gearbench twin`` recover a hidden bench?
 
-For each case (cvt, cyclo): the shipped profile's ``simulation:`` block is changed in
-secret (``gearbench.twin.hidden.HIDDEN``: parameters moved by 4-30 %, two effects switched
-on that the block does not have), ``gearbench run HIDDEN --sim`` records a run, and
-``gearbench twin RUN --profile profiles/<case>.yaml`` — which sees only the run and the
-*nominal* profile — fits the twin. Printed: parameter, truth, fitted, 95 % interval,
-within; each hidden effect found or not; the run's results beside the twin's (the
-command's proof); then the twin predicts a second run of the same hidden bench (another
-noise seed): ``run --sim --twin`` beside the hidden run.
+Sections (``--sections``, all by default):
 
-Runs are cached (``--cache``, default /tmp/gearbench-twin-bench): a run takes ~20-30 s.
+* hidden: for cvt and cyclo the shipped profile's ``simulation:`` block is changed in
+  secret (``gearbench.twin.hidden.HIDDEN``: parameters moved by 4-30 %, two effects
+  switched on that the block does not have), ``gearbench run HIDDEN --sim`` records a
+  run, and ``gearbench twin RUN --profile profiles/<case>.yaml`` - which sees only the run
+  and the *nominal* profile - fits the twin. Printed: parameter, truth, fitted, error %,
+  95 % interval and its width in %, within; each hidden effect found or not; the run's
+  results beside the twin's (the command's proof).
+* unit2: a second unit of the same kind (``hidden.UNIT2``: unit 1's parameters moved by a
+  unit-to-unit spread of 1-8 %, another seed) beside ``run --sim --twin`` of unit 1's twin.
+* dev: the independent simulator's calibration pair as one axis.
+* emps: the real EMPS axis, its force replayed in torque mode.
 
-    python -m gearbench.benchmarks twin [--cases cvt,cyclo] [--cache DIR] [--iterations N]
+Runs and twin fits are cached (``--cache``, default /tmp/gearbench-twin-bench): a run
+takes ~20-30 s, a twin fit minutes (cvt) to tens of minutes (cyclo).
+
+    python -m gearbench.benchmarks twin [--cases cvt,cyclo] [--sections ...] [--cache DIR]
 """
 from __future__ import annotations
 
