@@ -242,3 +242,26 @@ def test_a_gap_of_structure_is_said_to_limit_the_intervals():
     assert F.model_limited(1.0) == "" and F.model_limited(F.MODEL_LIMITED_S_N) == ""
     note = F.model_limited(180.0)
     assert "S/n 180" in note and "understate" in note
+
+
+@pytest.mark.slow
+def test_cli_twin_on_a_sim_run_gives_the_proof(tmp_path):
+    """The whole command on a recorded --sim run (one iteration, no effects): the proof
+    re-analyses both runs (its import had moved once, unnoticed) and the JSON holds the
+    parameters with their sigma, model bias and interval."""
+    import json
+
+    out = tmp_path / "run"
+    subprocess.run([sys.executable, "-m", "gearbench", "run", "profiles/cvt.yaml", "--sim", "--yes",
+                    "--quiet", "--out", str(out)], check=True)
+    rep = tmp_path / "twin.json"
+    r = subprocess.run([sys.executable, "-m", "gearbench", "twin", str(out), "--iterations", "1",
+                        "--max-effects", "0", "--json", str(rep), "--write", str(tmp_path / "twin.yaml")],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-2000:]
+    doc = json.loads(rep.read_text())
+    assert doc["proof"]["real"]["motors"] and doc["proof"]["twin"]["motors"]
+    for p in doc["parameters"]:
+        assert p["interval95"] == pytest.approx(1.96 * p["sigma"] + abs(p["model_bias"]))
+    assert "interval = 1.96·sigma" in r.stdout
+    load_twin_block(str(tmp_path / "twin.yaml"))
