@@ -123,6 +123,9 @@ def run(args) -> int:
     start_values = F.written_values(params)
     print(f"\nfitting {len(params)} parameters (Levenberg-Marquardt on position, velocity and current)")
     res = F.fit(prob, params, iterations=args.iterations, verbose=print)
+    # the base fit, before any effect: a parameter that moves by more than its interval once
+    # an effect is added had been fitted against that effect (biased while it was missing)
+    base_values = F.written_values(params)
     print(f"S/n {res['S0'] / res['n']:.3f} -> {res['S'] / res['n']:.3f} (1 = at the noise floor)")
     print("\nadding the effects the simulation lacks, by held-out gain:")
     chain = F.add_effects(prob, params, max_effects=args.max_effects, verbose=print)
@@ -131,8 +134,14 @@ def run(args) -> int:
     fitted = F.with_params(prob.block, params)
     fitted_values = F.written_values(params)
     report["parameters"] = [{"path": p.path, "start": start_values.get(p.path, 0.0), "fitted": fitted_values[p.path],
-                             "interval95": p.interval, "effect": p.effect} for p in params]
+                             "before_effects": base_values.get(p.path),
+                             "interval95": p.interval, "sigma": p.sigma, "model_bias": p.model_bias,
+                             "effect": p.effect} for p in params]
     _print_params(report["parameters"])
+    s_n = chain[-1]["remaining"] if chain else res["S"] / res["n"]
+    report["remaining_s_per_n"] = s_n
+    if F.model_limited(s_n):
+        print(f"  NOTE: {F.model_limited(s_n)}")
     plant1 = PlantParams.from_dict(fitted, "simulation")
     rows1 = replay(plant1, segments, quanta=quanta)
     after = gap_table(rows1, segments, floors)
@@ -155,7 +164,7 @@ def proof(result: dict, segments, plant, profile, quanta) -> dict:
     """Re-simulate the recorded steps on the twin (noise on, the plant's seed), analyse
     them as the run was analysed, and set the run's results (re-analysed with the same
     code, so only the data differ) beside the twin's."""
-    from ..reanalysis import reanalyse_result
+    from ..fleet.reanalysis import reanalyse_result
     from ..twin.replay import replay, simulated_trace
 
     rows = replay(plant, segments, noise=True, quanta=quanta)
@@ -272,9 +281,24 @@ def _print_chain(chain: list[dict]) -> None:
 
 
 def _print_params(rows: list[dict]) -> None:
-    print(f"\n  {'parameter':<30} {'profile':>12} {'fitted':>12} {'95 % interval':>14}")
+    # the interval is 1.96·sigma (noise, coloured) + |model bias| (smoothed vs exact replay)
+    print(f"\n  {'parameter':<30} {'profile':>12} {'fitted':>12} {'95 % interval':>14} {'sigma':>10} {'model bias':>11}"
+          f" {'moved by effects':>17}")
+    biased = []
     for r in rows:
-        print(f"  {r['path']:<30} {r['start']:12.5g} {r['fitted']:12.5g} {'±' + format(r['interval95'], '.3g'):>14}")
+        b = r.get("before_effects")
+        # how far the effects moved it, in its own intervals (> 1: fitted against a missing effect)
+        shift = (r["fitted"] - b) / r["interval95"] if b is not None and r["interval95"] > 0 else float("nan")
+        if abs(shift) > 1:
+            biased.append(f"{r['path']} ({shift:+.1f})")
+        print(f"  {r['path']:<30} {r['start']:12.5g} {r['fitted']:12.5g} {'±' + format(r['interval95'], '.3g'):>14} "
+              f"{r.get('sigma', float('nan')):10.3g} {r.get('model_bias', float('nan')):+11.3g} "
+              f"{'' if shift != shift else format(shift, '+.1f') + ' ivl':>17}")
+    print("  interval = 1.96·sigma (largest of white and block-sandwich covariances) + |model bias| "
+          "(smoothed vs exact replay)")
+    if biased:
+        print(f"  fitted against an effect the simulation lacked (moved by more than their interval once "
+              f"the effects were added): {', '.join(biased)}")
 
 
 def _print_before_after(before, after) -> None:

@@ -59,3 +59,31 @@ def hidden_block(nominal: dict, spec: dict, defaults) -> tuple[dict, dict]:
             set_path(block, path, v)
             truth[path] = float(v)
     return block, truth
+
+
+# A second unit of the same kind: the hidden bench of ``HIDDEN`` with each parameter moved
+# by a unit-to-unit spread of a few % (motors and reducers of one type from one line; not
+# the same bench with another noise seed). (path, factor) on the first unit's value.
+UNIT2 = {
+    "cvt": {"motors.in.Kt": 1.02, "motors.out.Kt": 0.985, "motors.in.J": 1.03, "motors.out.J": 0.97,
+            "motors.in.Tc": 1.08, "motors.out.Tc": 0.93, "motors.in.D": 1.05,
+            "drag_torque_nm": 1.06, "drag_viscous": 0.95, "cvt.eta_max": 0.99,
+            "motors.in.current_offset_a": 0.8, "motors.out.kt_sat_a": 1.06},
+    "cyclo": {"motors.in.Kt": 0.98, "motors.out.Kt": 1.015, "motors.in.J": 0.97, "motors.out.J": 1.03,
+              "motors.in.Tc": 1.07, "motors.out.Tc": 0.94, "motors.out.D": 1.05,
+              "drag_torque_nm": 0.94, "drag_viscous": 1.06, "eta_mesh": 0.99,
+              "backlash_rad": 1.15, "motors.out.ripple_amp": 0.9},
+}
+
+
+def second_unit(block: dict, spread: dict, defaults) -> tuple[dict, dict]:
+    """(block of a second unit, its truth {path: value}): every path of ``spread`` (one
+    case of ``UNIT2``) multiplied by its factor on the first unit's ``block``."""
+    b = copy.deepcopy(block)
+    truth = {}
+    for path, f in spread.items():
+        now = get_path(b, path)
+        now = defaults(path) if now is None else now
+        set_path(b, path, float(now) * f)
+        truth[path] = float(now) * f
+    return b, truth
