@@ -89,6 +89,9 @@ def test_a_late_producer_catches_up_instead_of_skipping():
     begun, p = _producer_run(catch_up_s=0.05)
     assert begun[:80] == list(range(1, 81))        # every SYNC sent, none skipped
     assert p.skipped == 0 and p.sent_late >= 20 and p.sent_late_max_s >= 0.025
+    # each SYNC sent late says by how much: its sample is stamped then, off the grid
+    assert len(p.sent_late_by) == p.sent_late and max(p.sent_late_by.values()) >= 0.025
+    assert all(v > 0.5e-3 for v in p.sent_late_by.values())
 
 
 def test_slots_further_back_than_catch_up_are_skipped_and_counted():

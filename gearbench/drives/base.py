@@ -30,7 +30,9 @@ class Sample:
 
     ``index`` is the drive-side sample counter (SYNC counter for CANopen, the
     drive's counter register for Modbus); ``time_s`` = index x period, the drive's
-    time base, never the host clock.
+    time base, never the host clock — except where a SYNC went out late (a paced master
+    that woke late catches up): the drives sampled when it arrived, so ``time_s`` is
+    that instant, off the grid (the analysis treats such a sample as lost).
     """
 
     index: int

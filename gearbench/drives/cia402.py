@@ -595,6 +595,9 @@ class CiA402Network(DriveNetwork):
     def _build(self, got: dict[int, tuple]) -> dict[str, Sample]:
         index = self.sync_count
         time_s = index * self.period_s
+        p = self.sync_producer
+        if p is not None and p.sent_late_by:    # sent late: the drives sampled then, not on the grid
+            time_s += p.sent_late_by.pop(index, 0.0)
         out = {}
         for name, d in self.drives.items():
             nid = d.node.id

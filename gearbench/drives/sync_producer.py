@@ -25,7 +25,9 @@ Late wake-ups (a VM's vCPU not run for a few ms, both cores hogged): the thread 
 sends every SYNC whose deadline has passed at once, oldest first, when the drives echo the
 SYNC counter (``catch_up_s`` > 0: each answer names its SYNC, so a burst is matched
 exactly); the SYNC went out late, which is a timing fault, counted (``sent_late``,
-``sent_late_max_s``), not a lost sample. Slots further back than ``catch_up_s`` (and every
+``sent_late_max_s``), not a lost sample — but the drives sampled when it arrived, so its
+sample is stamped with that time (``sent_late_by``), never the grid's, and the analysis
+treats a sample off the grid as lost (``station.analyse.fill_lost_samples``). Slots further back than ``catch_up_s`` (and every
 missed slot without an echo, where answers are matched by bus order) are skipped
 (``skipped``): those samples are lost.
 
@@ -70,6 +72,9 @@ class _Producer:
         self.catch_up_s = catch_up_s             # missed slots this far back are sent late, not skipped
         self.sent_late = 0                       # SYNCs sent more than half a period after their deadline
         self.sent_late_max_s = 0.0               # the latest of them, behind its deadline
+        # SYNC number -> seconds behind its deadline, for the SYNCs sent late: the drives
+        # sampled then, not on the grid (the master stamps the sample so; the sample loop pops)
+        self.sent_late_by: dict[int, float] = {}
         self.receive = False                     # this producer's thread receives (see module doc)
         self.exception: BaseException | None = None   # first error of a receive callback (kept going)
         self.frames = 0                          # frames received by the thread
@@ -398,6 +403,9 @@ class ThreadSyncProducer(_Producer):
                 if behind > period / 2:
                     self.sent_late += 1
                     self.sent_late_max_s = max(self.sent_late_max_s, behind)
+                    if len(self.sent_late_by) > 4096:   # never taken (their samples were lost)
+                        self.sent_late_by.clear()
+                    self.sent_late_by[n] = behind
                 counter = None if overflow is None else (n - 1) % overflow + 1
                 if direct:
                     begin(n, counter, wall())

@@ -23,24 +23,39 @@ MAX_LOST_FRACTION = 0.01   # more lost samples than this: the step is not analys
 def fill_lost_samples(step: Trace) -> Trace:
     """Put a recorded step back on its regular sample grid.
 
-    Samples lost on the bus leave gaps in the ``sample`` counter. Up to 1 % of a
-    step is filled by linear interpolation (the count goes into ``meta``) so the
-    derivative filters stay aligned; more than that is refused, never hidden.
+    Samples lost on the bus leave gaps in the ``sample`` counter; a sample whose SYNC went
+    out late (the master caught up after a late wake-up) was taken when it arrived, off
+    the grid by more than half a period — its value belongs to another instant, so it is
+    treated as lost too. Up to 1 % of a step is filled by linear interpolation (the counts
+    go into ``meta``) so the derivative filters stay aligned; more than that is refused,
+    never hidden.
     """
     if "sample" not in step or len(step) < 2:
         return step
     idx = np.asarray(step["sample"], dtype=np.int64)
+    t = np.asarray(step.time_s, dtype=float)
+    per = float(np.median(np.diff(t) / np.maximum(np.diff(idx), 1)))   # the period (few are off)
+    offset = float(np.median(t - idx * per))
+    dev = np.abs(t - (offset + idx * per))
+    # only a drive time base (index x period, exact) says a sample is off the grid; a file's
+    # host timestamps jitter, and are left as they are
+    on_grid = dev <= per / 2 if np.median(dev) <= 1e-6 * per else np.ones(len(t), bool)
     full = np.arange(idx[0], idx[-1] + 1)
-    missing = len(full) - len(idx)
+    off = int(np.count_nonzero(~on_grid))
+    missing = len(full) - len(idx) + off
     if missing == 0:
         return step
-    if missing > MAX_LOST_FRACTION * len(full):
+    if missing > MAX_LOST_FRACTION * len(full) or np.count_nonzero(on_grid) < 2:
         raise TraceError(f"step {step.source}: {missing} of {len(full)} samples were lost on the "
-                         f"bus; check the bus load/wiring and repeat the step")
-    per = (step.time_s[-1] - step.time_s[0]) / (idx[-1] - idx[0])
-    cols = {n: np.interp(full, idx, step[n]) for n in step.names if n != "sample"}
+                         f"bus or sampled off the grid (SYNC sent late); check the bus load/wiring "
+                         f"and the tester PC's load, and repeat the step")
+    keep = on_grid
+    cols = {n: np.interp(full, idx[keep], np.asarray(step[n], float)[keep])
+            for n in step.names if n != "sample"}
     meta = dict(step.meta, interpolated_samples=int(missing))
-    return Trace(step.time_s[0] + (full - idx[0]) * per, {"sample": full, **cols}, meta, step.source)
+    if off:
+        meta["off_grid_samples"] = off
+    return Trace(offset + full * per, {"sample": full, **cols}, meta, step.source)
 
 
 def calibrate(unloaded: Trace, loaded: Trace, *, motor: str, disk_kgm2: float,
