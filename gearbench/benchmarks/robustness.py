@@ -319,10 +319,15 @@ def _fraction(flags) -> float:
     return float(np.mean(flags)) if flags else float("nan")
 
 
+def _direction_groups(cases: list[Case]) -> list[tuple[str, list[int]]]:
+    """The tables' rows: all plants, forward-only and reversing calibrations (case indices)."""
+    return [("all", list(range(len(cases)))),
+            ("forward", [k for k, c in enumerate(cases) if not c.reversing]),
+            ("reversing", [k for k, c in enumerate(cases) if c.reversing])]
+
+
 def print_table(cases: list[Case], outcomes: list[dict[str, Outcome]], methods=METHODS) -> None:
-    groups = [("all", range(len(cases))),
-              ("forward", [k for k, c in enumerate(cases) if not c.reversing]),
-              ("reversing", [k for k, c in enumerate(cases) if c.reversing])]
+    groups = _direction_groups(cases)
     print(f"{'cases':<14}{'method':<12}{'|Kt err| %':>23}   {'|incr err| pp':>23}   "
           f"{'|abs err| pp':>23}  {'95% coverage':>14}  fail  meet noise biased")
     print(f"{'':<26}{'mean   95pct     max':>23}   {'mean   95pct     max':>23}   "
@@ -342,9 +347,7 @@ def print_table(cases: list[Case], outcomes: list[dict[str, Outcome]], methods=M
 def print_quantities(cases: list[Case], outcomes: list[dict[str, Outcome]], methods=METHODS) -> None:
     """Per quantity, forward and reversing: 95 % coverage and the share of plants with a
     biased miss (beyond the target and beyond 2 sigma of the method's own uncertainty)."""
-    groups = [("all", range(len(cases))),
-              ("forward", [k for k, c in enumerate(cases) if not c.reversing]),
-              ("reversing", [k for k, c in enumerate(cases) if c.reversing])]
+    groups = _direction_groups(cases)
     print(f"\n{'cases':<16}{'method':<12}{'coverage %  Kt  incr   abs':>28}   "
           f"{'biased %  Kt  incr   abs':>26}")
     for name, idx in groups:
