@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import select
 import subprocess
 import sys
@@ -33,12 +32,15 @@ import numpy as np
 from ..drives.base import AxisConfig, Mode
 from ..drives.modbus import ModbusNetwork
 from ..drives.realtime import acquisition_priority
-from . import _cpu
-from ._cpu import load_average, normal_priority, realtime_stand_in
+from ..drives.register_map import load_register_map
+from . import _cpu, _responder
+from ._cpu import STAND_IN_FIFO, load_average, normal_priority, realtime_stand_in
 
 HOG = [sys.executable, "-c", "while 1: pass"]
 
 DEFAULT_MAP = "drivers/generic-modbus-servo.yaml"
+COMPILED_MODEL = "generic-modbus-servo"   # the layout tools/responder/modbus_stand_in.c answers
+LATE_ANSWER_S = 2e-4     # the compiled stand-in counts answers sent later than this after the request arrived
 SERVER = ("import sys, json; from gearbench.emulate.bench import EmulatedBench; "
           "from gearbench.emulate.modbus_server import start_modbus_server; "
           "b = EmulatedBench(); b.advance(); "       # compile the physics before 'ready'
@@ -47,12 +49,6 @@ SERVER = ("import sys, json; from gearbench.emulate.bench import EmulatedBench; 
           "print(json.dumps(dict(overruns=h.overruns, lag_max_s=h.lag_max_s, late_periods=h.late_periods, "
           "periods=b.sample_index)), flush=True); "
           "h.stop()")
-
-
-def _cpu_s(pid: int) -> float:
-    """user + system CPU seconds of a process (Linux /proc)."""
-    fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def _start_server(regmap: str, lockstep: bool) -> tuple[subprocess.Popen, int]:
@@ -66,13 +62,50 @@ def _start_server(regmap: str, lockstep: bool) -> tuple[subprocess.Popen, int]:
     return proc, int(words[1])
 
 
-def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3, hog: int = 0) -> dict:
+class _EmulatorStandIn:
+    """The Python emulator (pymodbus server) in another process; its own pacing as counters."""
+
+    def __init__(self, regmap: str, lockstep: bool):
+        self.proc, self.port = _start_server(regmap, lockstep)
+        self.pid = self.proc.pid
+        self.kind = "emulator, " + (realtime_stand_in(self.proc.pid) if not lockstep else "normal")
+        self.own: dict = {}
+
+    def counters(self) -> dict:
+        return {}
+
+    def stop(self) -> dict:
+        self.proc.stdin.close()
+        line = self.proc.stdout.readline()
+        self.own = json.loads(line) if line.startswith("{") else {}
+        self.proc.terminate()
+        self.proc.wait(5)
+        return self.own
+
+
+def _stand_in(regmap: str, lockstep: bool, period_s: float, which: str):
+    """The drives' stand-in: the compiled one (free-running, the generic map) or the emulator.
+    Returns (stand-in, why the compiled one was not used or None)."""
+    if lockstep or which == "emulator":
+        return _EmulatorStandIn(regmap, lockstep), None
+    m = load_register_map(regmap)
+    why = _responder.available(_responder.MODBUS_SOURCE) or \
+        (None if m.model == COMPILED_MODEL else f"map {regmap} is not the {COMPILED_MODEL} it lays out")
+    if why:
+        return _EmulatorStandIn(regmap, lockstep), why
+    s = _responder.ModbusStandIn(m.counter_period_s, round(period_s / m.counter_period_s), LATE_ANSWER_S, STAND_IN_FIFO)
+    s.kind = f"compiled stand-in, {s.priority}"
+    return s, None
+
+
+def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3, hog: int = 0,
+            stand_in: str = "compiled") -> dict:
     """Sample both drives for ``seconds``; returns figures (see module docstring)."""
-    proc, port = _start_server(regmap, lockstep)
-    stand_in = realtime_stand_in(proc.pid) if not lockstep else "normal"
+    srv, why_not = _stand_in(regmap, lockstep, period_s, stand_in)
     hogs: list[subprocess.Popen] = []
+    own0 = own1 = {}
     try:
-        net = ModbusNetwork(port=port, lockstep=lockstep, timeout_s=2.0)
+        net = ModbusNetwork(port=srv.port, lockstep=lockstep, timeout_s=2.0)
         with net:
             d_in = net.add_drive(AxisConfig("in", 1, regmap))
             d_out = net.add_drive(AxisConfig("out", 2, regmap))
@@ -82,21 +115,26 @@ def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3,
             d_in.set_setpoint(50.0)
             d_out.set_setpoint(0.1)
             hogs = [subprocess.Popen(HOG, preexec_fn=normal_priority) for _ in range(hog)]
+            time.sleep(0.05 * hog)             # the hogs running before the figures start
             load0 = load_average()
             with acquisition_priority(realtime=not lockstep) as granted:
                 samples = net.sample()
+                own0 = srv.counters()
+                samples = net.sample()         # the window starts after the stand-in's counters were read
                 lost0, first_index = net.lost_samples, samples["in"].index
-                cpu0, srv0, t0 = _cpu.threads(), _cpu.threads(proc.pid), time.perf_counter()
+                cpu0, srv0, t0 = _cpu.threads(), _cpu.threads(srv.pid), time.perf_counter()
                 per_sample, n = [], 0
                 while (now := time.perf_counter()) - t0 < seconds:
                     samples = net.sample()
                     per_sample.append(time.perf_counter() - now)
                     n += 1
                 wall = time.perf_counter() - t0
-                cpu1, srv1 = _cpu.threads(), _cpu.threads(proc.pid)
+                cpu1, srv1 = _cpu.threads(), _cpu.threads(srv.pid)
+                own1 = srv.counters()
             load1 = load_average()
-            cpu, srv = sum(_cpu.delta(cpu0, cpu1).values()), sum(_cpu.delta(srv0, srv1).values())
+            cpu, srv_cpu = sum(_cpu.delta(cpu0, cpu1).values()), sum(_cpu.delta(srv0, srv1).values())
             lost, span = net.lost_samples - lost0, samples["in"].index - first_index
+            wakeups = _cpu.wakeups(cpu0, cpu1)
             # latency of single requests: one read of one drive's sample block
             lat = []
             for _ in range(2000):
@@ -107,20 +145,21 @@ def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3,
         for h in hogs:
             h.kill()
             h.wait()
-        proc.stdin.close()
-        line = proc.stdout.readline()
-        own = json.loads(line) if line.startswith("{") else {}
-        proc.terminate()
-        proc.wait(5)
+        last = srv.stop()
+    own = {k: own1[k] - own0.get(k, 0) for k in own1 if k not in ("answer_delay_max_s", "priority")} if own1 else last
+    if own1:
+        own["answer_delay_max_s"] = own1["answer_delay_max_s"]
     lat_ms, per_ms = np.array(lat) * 1e3, np.array(per_sample) * 1e3
-    return {"mode": "lockstep" if lockstep else "free-running 1 kHz", "samples": n,
+    return {"mode": "lockstep" if lockstep else "free-running", "samples": n,
             "samples_per_s_per_drive": n / wall, "lost": lost, "lost_fraction": lost / max(span, 1),
             "request_p50_ms": float(np.percentile(lat_ms, 50)), "request_p99_ms": float(np.percentile(lat_ms, 99)),
             "request_max_ms": float(lat_ms.max()),
             "sample_p50_ms": float(np.percentile(per_ms, 50)), "sample_p99_ms": float(np.percentile(per_ms, 99)),
-            "client_cpu": cpu / wall, "server_cpu": srv / wall, "client_cpu_us": cpu / n * 1e6,
-            "server_cpu_us": srv / n * 1e6, "priority": granted, "stand_in": stand_in, "stand_in_own": own,
-            "load": f"{load0} -> {load1}", "period_s": period_s}
+            "client_cpu": cpu / wall, "server_cpu": srv_cpu / wall, "client_cpu_us": cpu / n * 1e6,
+            "server_cpu_us": srv_cpu / n * 1e6, "wakeups_per_sample": wakeups / n, "priority": granted,
+            "stand_in": srv.kind + (f" (no compiled stand-in: {why_not})" if why_not else ""),
+            "stand_in_own": own, "load": f"{load0} -> {load1}", "period_s": period_s,
+            "supervision": net.supervision()}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -131,22 +170,35 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--hog", type=int, nargs="+", default=[0],
                     help="processes spinning meanwhile (2 = both cores busy); several values: one run each")
     ap.add_argument("--modes", nargs="+", default=["lockstep", "free"], choices=["lockstep", "free"])
+    ap.add_argument("--stand-in", default="compiled", choices=["compiled", "emulator"],
+                    help="free-running: what answers (the compiled stand-in, or the Python emulator at SCHED_FIFO)")
     args = ap.parse_args(argv)
     print(f"Modbus TCP, 2 drives (unit ids 1, 2), loopback, emulator in another process, map {args.map}")
     for mode, hog in ((m, h) for m in args.modes for h in args.hog):
-        r = measure(args.map, args.seconds, mode == "lockstep", args.period_s, hog)
+        r = measure(args.map, args.seconds, mode == "lockstep", args.period_s, hog, args.stand_in)
         own = r["stand_in_own"]
         label = (r["mode"] if mode == "lockstep" else f"free-running, {1e3 * r['period_s']:g} ms") + f", {hog} hogs"
         print(f"{label:>28}: "
               f"{r['samples_per_s_per_drive']:7.0f} samples/s per drive "
-              f"({r['samples']} samples, lost {r['lost']} = {100 * r['lost_fraction']:.2f} %); "
+              f"({r['samples']} samples, lost {r['lost']} = {100 * r['lost_fraction']:.3f} %); "
               f"sample (2 drives) p50 {r['sample_p50_ms']:.2f} ms p99 {r['sample_p99_ms']:.2f} ms; "
               f"single read p50 {r['request_p50_ms']:.2f} ms p99 {r['request_p99_ms']:.2f} ms "
               f"max {r['request_max_ms']:.1f} ms; CPU per sample: master {r['client_cpu_us']:.0f} us "
-              f"({100 * r['client_cpu']:.0f} %), stand-in {r['server_cpu_us']:.0f} us ({100 * r['server_cpu']:.0f} %)")
-        print(f"{'':>30}master {r['priority']}; stand-in {r['stand_in']}, its own pacing: "
-              f"{own.get('overruns', '?')} overruns, lag max {1e3 * own.get('lag_max_s', float('nan')):.1f} ms, "
-              f"{own.get('late_periods', '?')} of {own.get('periods', '?')} periods stepped over a period late; "
+              f"({100 * r['client_cpu']:.0f} %, {r['wakeups_per_sample']:.2f} wake-ups), "
+              f"stand-in {r['server_cpu_us']:.0f} us ({100 * r['server_cpu']:.0f} %)")
+        if "requests" in own:
+            ownt = (f"{own['requests']} requests, {own['block_reads']} sample reads, {own['late_answers']} answered "
+                    f"later than {LATE_ANSWER_S * 1e3:g} ms (max {own['answer_delay_max_s'] * 1e3:.3f} ms), cells no "
+                    f"read fell in {own['cells_unread']}, cells read twice {own['repeat_reads']}, "
+                    f"{own['exceptions']} exceptions, {own['watchdog_trips']} watchdog trips")
+        else:
+            ownt = (f"{own.get('overruns', '?')} overruns, lag max {1e3 * own.get('lag_max_s', float('nan')):.1f} ms, "
+                    f"{own.get('late_periods', '?')} of {own.get('periods', '?')} periods stepped over a period late")
+        sup = r["supervision"]
+        extra = (f"; reads in a later cell {sup['polls_late']}, latest send {sup['poll_late_max_s'] * 1e3:.2f} ms after "
+                 f"due; lost: {sup['lost_sent_late']} read sent after its cell had ended (master not run), "
+                 f"{sup['lost_misplaced']} sent in time" if "polls_late" in sup else "")
+        print(f"{'':>30}master {r['priority']}{extra}; stand-in {r['stand_in']}, its own counters: {ownt}; "
               f"load {r['load']}", flush=True)
     return 0
 
