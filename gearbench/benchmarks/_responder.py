@@ -97,19 +97,20 @@ class Responder:
 
 
 class ModbusStandIn:
-    """Two Modbus TCP drives (unit ids 1, 2, the generic register map) on a loopback port the OS
-    picks (``port``); ``counters()`` while it runs, ``stop()`` returns the last ones."""
+    """Two Modbus TCP drives (unit ids 1, 2, the generic register map) on two loopback ports the OS
+    picks (``ports``: one connection per drive, as drives with an IP each); ``counters()`` while it
+    runs, ``stop()`` returns the last ones."""
 
     def __init__(self, counter_period_s: float, cell_counts: int, late_s: float, priority: int):
         self.proc = subprocess.Popen([str(build(MODBUS_SOURCE)), repr(counter_period_s), str(cell_counts),
                                       repr(late_s), str(priority)],
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-        words = self.proc.stdout.readline().split(maxsplit=2)
-        if words[:1] != ["ready"] or len(words) < 2:
+        words = self.proc.stdout.readline().split(maxsplit=3)
+        if words[:1] != ["ready"] or len(words) < 3:
             self.proc.kill()
             raise RuntimeError(f"Modbus stand-in did not start: {' '.join(words)!r}")
-        self.port = int(words[1])
-        self.priority = words[2].strip() if len(words) > 2 else "normal"
+        self.ports = (int(words[1]), int(words[2]))
+        self.priority = words[3].strip() if len(words) > 3 else "normal"
         self.pid = self.proc.pid
 
     def counters(self) -> dict:

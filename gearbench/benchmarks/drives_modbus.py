@@ -1,22 +1,47 @@
-"""Benchmark: Modbus TCP sampling of two emulated drives, server in another process.
+"""Benchmark: Modbus TCP sampling of two drives, their stand-in in another process.
 
-Reports samples/s per drive (goal >= 500/s on loopback), request latency
-percentiles (one multi-register read of one drive's sample block) and CPU use, for
-  - lockstep: each sample = sync write + read of drive 1 (one 0x17 request) + read
-    of drive 2; throughput is what the link and both ends allow;
-  - free-running: the emulator runs the bench at 1 kHz real time; the master
-    takes the next sample every ``--period-s`` (default 2 ms: the rated 500 samples/s
-    per drive over Modbus TCP) at real-time priority, gaps are counted as lost samples.
-    The emulator (the drives' stand-in) runs at real-time priority above the master
-    (SCHED_FIFO 20 against 10) and reports its own pacing: world periods it could not
-    keep (overruns) and the furthest it fell behind the wall clock.
+    python -m gearbench.benchmarks drives_modbus [--seconds 10] [--period-s 0.002] [--hog 0 2]
+        [--modes lockstep free] [--stand-in compiled|emulator] [--map drivers/generic-modbus-servo.yaml]
+
+The 10-minute acceptance run (free-running at the rated period, quiet and with both cores hogged):
+
+    python -m gearbench.benchmarks drives_modbus --seconds 600 --modes free --hog 0 2
+
+Modes:
+  - lockstep: each sample = sync write + read of drive 1 (one 0x17 request) + read of drive 2,
+    against the Python emulator; throughput is what the link and both ends allow;
+  - free-running (a real bench): the drives run on their own clock; the master reads each
+    drive's sample block once per sampling period (``--period-s``, default 2 ms: the rated
+    rate, 500 samples/s per drive; README "Modbus: rated rate") at SCHED_FIFO 10.
+
+Rated rate: 2 ms. Modbus has no SYNC and no drive-side history: the master's read *is* the
+sample, so the rate is bounded by the drive's answer time. Vendors document plain register
+reads answered within about 1-2 ms (IAI ROBO Cylinder: 1 ms max internal processing;
+Oriental Motor BLH/BLV over RTU: silent interval + 2 ms or less), and Kollmorgen says of the
+AKD that Modbus TCP "is not deterministic" (the AKD2G throttles high message rates). A 2 ms
+period is the fastest at which such a drive answers inside the period; with real drives use
+at least twice their documented answer time.
+
+The master is measured, not the stand-in. Free-running, the default stand-in is compiled
+(``tools/responder/modbus_stand_in.c``, built with gcc on first use): two drives of the
+generic map on two ports (one connection per drive, as drives with an IP each), at
+SCHED_FIFO 20 above the master with its memory locked, whose sample counter is the kernel's
+receive time of each request (a stand-in the host does not run for a while still answers with
+the instant the request reached it, as hardware). Its own counters are printed: requests,
+answers later than 0.2 ms, cells of its counter no read fell in (the loss as the drive sees
+it), cells read twice. ``--stand-in emulator``: the Python emulator (pymodbus server, world
+stepped by a pacer thread) at SCHED_FIFO 20, with its pacing counters.
+
+Lost, defined: a cell (one sampling period of the first drive's sample counter) between two
+samples taken that no read fell in: the drive's value for that period is gone. Each lost
+cell is attributed: its read was sent after the cell had ended (the master was not run in
+time: a host stall, which the host timer floor printed first shows for a process that does
+nothing but sleep), or sent in time and still late (the master's schedule: 0 expected).
 
 CPU is measured from Linux's schedstat (time on a CPU, not inflated by a busy host) as
-microseconds per sample of both drives; ``--hog N`` runs N ``python3 -c "while 1: pass"``
-meanwhile; the host's load average is printed with each figure.
-
-    python -m gearbench.benchmarks.drives_modbus [--seconds 10] [--period-s 0.002] [--hog 2]
-        [--modes lockstep free] [--map drivers/generic-modbus-servo.yaml]    (--hog 0 2: one run each)
+microseconds per sample of both drives, with the master's thread wake-ups per sample; ``--hog
+N`` runs N ``python3 -c "while 1: pass"`` meanwhile; the host's load average is printed with
+each figure.
 """
 from __future__ import annotations
 
@@ -30,11 +55,11 @@ import time
 import numpy as np
 
 from ..drives.base import AxisConfig, Mode
-from ..drives.modbus import ModbusNetwork
+from ..drives.modbus import ModbusNetwork, PollSchedule
 from ..drives.realtime import acquisition_priority
 from ..drives.register_map import load_register_map
 from . import _cpu, _responder
-from ._cpu import STAND_IN_FIFO, load_average, normal_priority, realtime_stand_in
+from ._cpu import STAND_IN_FIFO, load_average, normal_priority, realtime_stand_in, timer_floor
 
 HOG = [sys.executable, "-c", "while 1: pass"]
 
@@ -66,7 +91,8 @@ class _EmulatorStandIn:
     """The Python emulator (pymodbus server) in another process; its own pacing as counters."""
 
     def __init__(self, regmap: str, lockstep: bool):
-        self.proc, self.port = _start_server(regmap, lockstep)
+        self.proc, port = _start_server(regmap, lockstep)
+        self.ports = (port, port)             # one endpoint, both unit ids: one connection
         self.pid = self.proc.pid
         self.kind = "emulator, " + (realtime_stand_in(self.proc.pid) if not lockstep else "normal")
         self.own: dict = {}
@@ -105,10 +131,10 @@ def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3,
     hogs: list[subprocess.Popen] = []
     own0 = own1 = {}
     try:
-        net = ModbusNetwork(port=srv.port, lockstep=lockstep, timeout_s=2.0)
+        net = ModbusNetwork(port=srv.ports[0], lockstep=lockstep, timeout_s=2.0)
         with net:
             d_in = net.add_drive(AxisConfig("in", 1, regmap))
-            d_out = net.add_drive(AxisConfig("out", 2, regmap))
+            d_out = net.add_drive(AxisConfig("out", 2, regmap, extra={"port": srv.ports[1]}))
             net.start(1e-3 if lockstep else period_s)
             d_in.enable(Mode.VELOCITY)
             d_out.enable(Mode.TORQUE)
@@ -173,7 +199,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stand-in", default="compiled", choices=["compiled", "emulator"],
                     help="free-running: what answers (the compiled stand-in, or the Python emulator at SCHED_FIFO)")
     args = ap.parse_args(argv)
-    print(f"Modbus TCP, 2 drives (unit ids 1, 2), loopback, emulator in another process, map {args.map}")
+    print(f"Modbus TCP, 2 drives (unit ids 1, 2), loopback, drives' stand-in in another process, map {args.map}")
+    if "free" in args.modes:
+        slack = (1 - PollSchedule(1.0, 1).lead_s) * args.period_s     # a regular read's slack in its cell
+        f = timer_floor(args.period_s, min(10.0, args.seconds), slack_s=slack)
+        print(f"load {load_average()}; host timer floor (a SCHED_FIFO process only sleeping to {args.period_s * 1e3:g} ms "
+              f"deadlines, {f['n']} wake-ups): {f['over_slack']} later than a read's slack in its cell "
+              f"({slack * 1e3:.2f} ms: such a read would miss its cell), p99 {f['p99_s'] * 1e6:.0f} us, "
+              f"max {f['max_s'] * 1e6:.0f} us", flush=True)
     for mode, hog in ((m, h) for m in args.modes for h in args.hog):
         r = measure(args.map, args.seconds, mode == "lockstep", args.period_s, hog, args.stand_in)
         own = r["stand_in_own"]

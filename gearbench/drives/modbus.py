@@ -18,10 +18,12 @@ Options: ``host`` ("127.0.0.1"), ``port`` (502), ``timeout_s`` (1.0),
 Free-running (real drives): a Modbus drive keeps no history, so a sample the master
 does not read within its sampling period (a "cell": ``period_s`` of the first drive's
 sample counter) is lost. The master reads every drive's sample block ONCE per cell, at
-a time on the wall clock locked to the first drive's counter (``PollSchedule``), all
-requests sent before any answer is awaited (pipelined: one instant for every drive),
+a time on the wall clock locked to the first drive's counter (``PollSchedule``),
 with TCP_NODELAY, on the client's own socket (pymodbus costs ~150-300 us of CPU per
-request, the raw read ~30 us). Lost, defined: a cell of the first drive's counter
+request, the raw read ~30 us). Drives with their own connection (one IP each) are read at
+once; drives sharing one connection in turn (one request outstanding per connection).
+The answer to a connection's last read is taken at the next read's wake-up, so the
+master wakes once per sample. Lost, defined: a cell of the first drive's counter
 between two samples taken that no read fell in (``lost_samples``).
 
 A tester PC that dies stops its drives: where the map declares the drive's
@@ -89,6 +91,7 @@ class ModbusDrive(Drive):
 
     # --- low level: every request goes through _call -------------------------
     def _call(self, what: str, fn, *args, **kwargs):
+        self.network._drain()     # an outstanding sample read's answer first: one connection, in order
         try:
             rr = fn(*args, device_id=self.unit, **kwargs)
         except ModbusException as exc:
@@ -308,6 +311,11 @@ class ModbusNetwork(DriveNetwork):
         self._cell: int | None = None  # the next cell to read
         self._tid = 0
         self._buf = bytearray(4096)
+        self._pending: tuple | None = None   # (cell, due, sent) of the read whose answer is not yet taken
+        self._held: list = []          # samples taken (by _drain or a late read) but not yet returned
+        self._sent: list = []
+        self._words: dict = {}
+        self._t_sent = 0.0
         self.polls_late = 0            # reads that fell in a later cell than scheduled (a loss each)
         self.poll_late_max_s = 0.0     # the latest a read was sent after its due time
         self.repolls = 0               # reads that came too early (a probe before the cell) and were repeated
@@ -354,7 +362,9 @@ class ModbusNetwork(DriveNetwork):
         self.period_s = period_s
         self._last_index = None
         self._last_counter = None
+        self._drain()
         self._cell = None
+        self._held.clear()
         for d in self.drives.values():
             d.watch_master(0 if self.lockstep else self.master_timeout_ms / 1000.0)
         if not self.lockstep:
@@ -421,51 +431,94 @@ class ModbusNetwork(DriveNetwork):
     def _next_free_running(self) -> dict[str, Sample]:
         """Every drive's sample block in the next cell of the first drive's counter, read when
         ``schedule`` says (see the module docstring); a cell passed while the master was not run
-        is lost (counted by ``sample()`` from the counter gap)."""
-        first = next(iter(self.drives.values()))
-        sched, k = self.schedule, first._k
-        if self._cell is None:                      # lock on the counter's next edge
-            words, t_sent = self._read_all()
-            c0 = self._counter(first, words[first.name])
-            deadline = time.monotonic() + max(0.1, 50 * self.period_s)
-            while True:
-                time.sleep(sched.cp / 8)
-                words, t_sent = self._read_all()
-                c = self._counter(first, words[first.name])
-                if c != c0:
-                    break
-                if time.monotonic() > deadline:
-                    raise DriveError(f"{first!r}: sample counter stuck at {c}; the drive is not running its "
-                                     f"cycle (or, emulated, needs lockstep=True)")
-            sched.lock(c, t_sent)
-            self._cell = c // k + 1
-            return self._samples(words)
+        is lost (counted by ``sample()`` from the counter gap).
+
+        One wake-up per sample: the answer to a read is taken at the next read's due time (it
+        arrived long before), just before that read is sent; so a sample is returned one period
+        after its read. A request of pymodbus's on the same connection first takes the answer
+        outstanding (``_drain``) and keeps its sample for the next call."""
+        if self._held:
+            return self._held.pop(0)
+        sched = self.schedule
+        if self._cell is None:
+            return self._lock()
         while True:
             due = sched.due_s(self._cell)
             now = time.monotonic()
             if due > now:
                 time.sleep(due - now)
-            words, t_sent = self._read_all()
-            self.poll_late_max_s = max(self.poll_late_max_s, t_sent - due)
-            c = self._counter(first, words[first.name])
-            cell = c // k
-            if cell < self._cell:                   # before the cell (a probe on its start edge): again
-                sched.observe(self._cell, c)
-                self.repolls += 1
-                time.sleep(sched.cp / 16)
+            result = self._take_pending()
+            if result is not None and sched.due_s(self._cell) > time.monotonic() + sched.cp / 8:
+                self._held.append(result)        # the read fell in a later cell: the next is later too
                 continue
-            if cell == self._cell:
-                sched.observe(cell, c)
+            due = max(due, sched.due_s(self._cell))  # a cell read again goes out now, not "late"
+            self._send_reads()
+            self._pending = (self._cell, due, self._t_sent)
+            self._cell += 1
+            if result is not None:
+                return result
+            if self._held:
+                return self._held.pop(0)
+
+    def _lock(self) -> dict[str, Sample]:
+        """Lock the schedule on the first drive's next counter edge (reads every 1/8 counter period)."""
+        first, sched = next(iter(self.drives.values())), self.schedule
+        words = self._read_all()
+        c0 = self._counter(first, words[first.name])
+        deadline = time.monotonic() + max(0.1, 50 * self.period_s)
+        while True:
+            time.sleep(sched.cp / 8)
+            words = self._read_all()
+            c = self._counter(first, words[first.name])
+            if c != c0:
+                break
+            if time.monotonic() > deadline:
+                raise DriveError(f"{first!r}: sample counter stuck at {c}; the drive is not running its "
+                                 f"cycle (or, emulated, needs lockstep=True)")
+        sched.lock(c, self._t_sent)
+        self._cell = c // first._k + 1
+        return self._samples(words)
+
+    def _take_pending(self) -> dict[str, Sample] | None:
+        """The outstanding read's samples, checked against its cell; None if there is none or it
+        fell before its cell (a probe on the cell's start edge: the cell is read again)."""
+        if self._pending is None:
+            return None
+        expected, due, t_sent = self._pending
+        self._pending = None
+        words = self._receive_reads()
+        first, sched = next(iter(self.drives.values())), self.schedule
+        self.poll_late_max_s = max(self.poll_late_max_s, t_sent - due)
+        c = self._counter(first, words[first.name])
+        cell = c // first._k
+        if cell < expected:
+            sched.observe(expected, c)
+            self.repolls += 1
+            self._cell = expected
+            return None
+        if cell == expected:
+            sched.observe(cell, c)
+        else:
+            self.polls_late += 1
+            # sent after its cell had ended: the master was not run in time (a host stall, as the
+            # host timer floor shows); else the schedule was wrong (the master's own fault)
+            if t_sent >= sched.cell_end_s(expected):
+                self.lost_sent_late += cell - expected
             else:
-                self.polls_late += 1
-                # sent after its cell had ended: the master was not run in time (a host stall, as the
-                # host timer floor shows); else the schedule was wrong (the master's own fault)
-                if t_sent >= sched.cell_end_s(self._cell):
-                    self.lost_sent_late += cell - self._cell
-                else:
-                    self.lost_misplaced += cell - self._cell
-            self._cell = cell + 1
-            return self._samples(words)
+                self.lost_misplaced += cell - expected
+        self._cell = max(self._cell, cell + 1)
+        return self._samples(words)
+
+    def _drain(self) -> None:
+        """Take the outstanding sample read's answer (before any other request on the connection)."""
+        if self._pending is not None:
+            result = self._take_pending()
+            if result is not None:
+                self._held.append(result)
+
+    def _discard_backlog(self) -> None:
+        self._drain()
+        self._held.clear()
 
     def _counter(self, drive: ModbusDrive, words) -> int:
         reg = drive.map.registers["sample_counter"]
@@ -475,10 +528,19 @@ class ModbusNetwork(DriveNetwork):
     def _samples(self, words: dict) -> dict[str, Sample]:
         return {d.name: d._to_sample(words[d.name]) for d in self.drives.values()}
 
-    def _read_all(self) -> tuple[dict[str, tuple], float]:
-        """Every drive's sample block: all requests sent (one send per endpoint), then every answer
-        read; returns {drive: words}, the host time the requests went out."""
-        sent, t_sent = [], time.monotonic()
+    def _read_all(self) -> dict[str, tuple]:
+        """Every drive's sample block, now (send, then wait for the answers)."""
+        self._send_reads()
+        return self._receive_reads()
+
+    def _send_reads(self) -> None:
+        """Every drive's sample read; ``_t_sent`` = when. One request outstanding per connection (a
+        Modbus TCP server may take one at a time: pymodbus's answers only the first of two sent
+        together), so the reads of drives on different connections (real drives: one IP each) go
+        out together, those sharing one are read in turn, and only each connection's last read is
+        left outstanding (``_receive_reads`` takes its answer)."""
+        self._t_sent = time.monotonic()
+        sent, self._words = [], {}
         for sock, drives in self._groups:
             if sock.gettimeout() is not None:
                 # blocking, with the timeout in the kernel (SO_RCVTIMEO): one recv per answer, where a
@@ -486,56 +548,57 @@ class ModbusNetwork(DriveNetwork):
                 sock.settimeout(None)
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO,
                                 struct.pack("ll", int(self.timeout_s), int(self.timeout_s % 1 * 1e6)))
-            tids, req = [], b""
-            for d in drives:
-                self._tid = (self._tid + 1) & 0x7FFF
-                tid = 0x8000 | self._tid            # apart from pymodbus's own transaction ids
-                req += struct.pack(">HHHBBHH", tid, 0, 6, d.unit, 3, d.block_start, d.block_words)
-                tids.append(tid)
-            try:
-                sock.sendall(req)
-            except OSError as exc:
-                raise DriveError(f"{drives[0]!r}: cannot send the sample read ({exc}); check the cable and "
-                                 f"that the drive is powered") from None
-            sent.append((sock, drives, tids))
-        words = {}
-        for sock, drives, tids in sent:
-            words.update(self._receive(sock, drives, tids))
-        return words, t_sent
+            for d in drives[:-1]:
+                self._words[d.name] = self._receive(sock, d, self._request(sock, d))
+            sent.append((sock, drives[-1], self._request(sock, drives[-1])))
+        self._sent = sent
 
-    def _receive(self, sock: socket.socket, drives: list[ModbusDrive], tids: list[int]) -> dict[str, tuple]:
-        """The answers to ``tids`` (in order, as a Modbus TCP server sends them on one connection)."""
-        buf, view, got, at, out = self._buf, memoryview(self._buf), 0, 0, {}
-        for d, tid in zip(drives, tids):
-            need = at + 7
-            while True:
-                if got >= at + 7:
-                    need = at + 6 + (buf[at + 4] << 8 | buf[at + 5])
-                    if need - at <= 8 or need > len(buf):
-                        raise DriveError(f"{d!r}: malformed Modbus TCP answer (length {need - at - 6})")
-                if got >= need:
-                    break
-                try:
-                    n = sock.recv_into(view[got:], len(buf) - got)
-                except (BlockingIOError, socket.timeout):
-                    raise DriveError(f"{d!r}: no answer to the sample read within {self.timeout_s:g} s; check the "
-                                     f"drive is powered, the address/unit id and the cable") from None
-                if n == 0:
-                    raise DriveError(f"{d!r}: the drive closed the connection during a sample read; check the "
-                                     f"drive (a watchdog, a reboot) and the cable")
-                got += n
-            r_tid, _, _, unit, fc = struct.unpack_from(">HHHBB", buf, at)
-            if r_tid != tid or unit != d.unit:
-                raise DriveError(f"{d!r}: answer to another request (transaction {r_tid}, unit {unit}; expected "
-                                 f"{tid}, unit {d.unit}); a second master on the same connection?")
-            if fc & 0x80:
-                code = buf[at + 8]
-                raise DriveError(f"{d!r}: Modbus exception {code} ({EXCEPTION_NAMES.get(code, 'unknown')}) to the "
-                                 f"sample read at {d.block_start}; check the register map {d.map.path} against the "
-                                 f"drive manual")
-            out[d.name] = struct.unpack_from(f">{d.block_words}H", buf, at + 9)
-            at = need
-        return out
+    def _request(self, sock: socket.socket, d: ModbusDrive) -> int:
+        self._tid = (self._tid + 1) & 0x7FFF
+        tid = 0x8000 | self._tid                    # apart from pymodbus's own transaction ids
+        try:
+            sock.sendall(struct.pack(">HHHBBHH", tid, 0, 6, d.unit, 3, d.block_start, d.block_words))
+        except OSError as exc:
+            raise DriveError(f"{d!r}: cannot send the sample read ({exc}); check the cable and "
+                             f"that the drive is powered") from None
+        return tid
+
+    def _receive_reads(self) -> dict[str, tuple]:
+        words, sent, self._sent = self._words, self._sent, []
+        for sock, d, tid in sent:
+            words[d.name] = self._receive(sock, d, tid)
+        return words
+
+    def _receive(self, sock: socket.socket, d: ModbusDrive, tid: int) -> tuple:
+        """The answer to request ``tid``: the words of ``d``'s sample block."""
+        buf, view, got = self._buf, memoryview(self._buf), 0
+        need = 7
+        while True:
+            if got >= 7:
+                need = 6 + (buf[4] << 8 | buf[5])
+                if need <= 8 or need > len(buf):
+                    raise DriveError(f"{d!r}: malformed Modbus TCP answer (length {need - 6})")
+            if got >= need:
+                break
+            try:
+                n = sock.recv_into(view[got:need], need - got)
+            except (BlockingIOError, socket.timeout):
+                raise DriveError(f"{d!r}: no answer to the sample read within {self.timeout_s:g} s; check the "
+                                 f"drive is powered, the address/unit id and the cable") from None
+            if n == 0:
+                raise DriveError(f"{d!r}: the drive closed the connection during a sample read; check the "
+                                 f"drive (a watchdog, a reboot) and the cable")
+            got += n
+        r_tid, _, _, unit, fc = struct.unpack_from(">HHHBB", buf)
+        if r_tid != tid or unit != d.unit:
+            raise DriveError(f"{d!r}: answer to another request (transaction {r_tid}, unit {unit}; expected "
+                             f"{tid}, unit {d.unit}); a second master on the same connection?")
+        if fc & 0x80:
+            code = buf[8]
+            raise DriveError(f"{d!r}: Modbus exception {code} ({EXCEPTION_NAMES.get(code, 'unknown')}) to the "
+                             f"sample read at {d.block_start}; check the register map {d.map.path} against the "
+                             f"drive manual")
+        return struct.unpack_from(f">{d.block_words}H", buf, 9)
 
     def _close(self) -> None:
         for d in self.drives.values():

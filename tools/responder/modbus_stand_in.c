@@ -8,7 +8,8 @@
    current are functions of that instant (velocity mode: velocity = target, position its
    integral; torque mode: current = target), taken at the kernel's receive time of the request
    (SO_TIMESTAMPNS): a stand-in the host does not run for a while still answers with the instant
-   the request reached it, as drive hardware would. It runs at SCHED_FIFO above the master with its
+   the request reached it, as drive hardware would. It listens on two loopback ports (both
+   answer both unit ids): a bench with one IP per drive has one connection per drive. It runs at SCHED_FIFO above the master with its
    memory locked, single-threaded on poll(). Function codes 0x03, 0x06, 0x10, 0x17; CiA 402
    control word 6/7/15 -> READY TO SWITCH ON / SWITCHED ON / OPERATION ENABLED, 0 / 2 / 128 ->
    SWITCH ON DISABLED; the comm_timeout register arms a watchdog that quick-stops a unit no
@@ -17,7 +18,7 @@
    usage: modbus_stand_in COUNTER_PERIOD_S CELL_COUNTS LATE_S FIFO_PRIORITY
           (CELL_COUNTS: counter periods per sampling period of the master: a "cell" is the span
           of one sample index; LATE_S: an answer sent later than this after the kernel received
-          the request (SO_TIMESTAMPNS) is counted late). Prints "ready PORT PRIORITY".
+          the request (SO_TIMESTAMPNS) is counted late). Prints "ready PORT1 PORT2 PRIORITY".
    stdin: "status" -> one JSON line of counters; EOF -> counters, exit.
    Counters: requests; block_reads (reads that include the sample counter); late_answers;
    answer_delay_max_s; cells_unread (per unit, sample cells between two successive block reads
@@ -194,27 +195,33 @@ int main(int argc, char **argv) {
     if (prio > 0 && sched_setscheduler(0, SCHED_FIFO, &sp) == 0) snprintf(granted, sizeof granted, "SCHED_FIFO %d", prio);
     if (mlockall(MCL_CURRENT | MCL_FUTURE) == 0) strncat(granted, ", mlockall", sizeof granted - strlen(granted) - 1);
 
-    int ls = socket(AF_INET, SOCK_STREAM, 0), one = 1;
-    setsockopt(ls, SOL_SOCKET, SO_REUSEADDR, &one, sizeof one);
-    struct sockaddr_in addr = {.sin_family = AF_INET, .sin_addr.s_addr = htonl(INADDR_LOOPBACK)};
-    socklen_t alen = sizeof addr;
-    if (bind(ls, (struct sockaddr *)&addr, sizeof addr) || listen(ls, 4) || getsockname(ls, (struct sockaddr *)&addr, &alen)) {
-        perror("listen");
-        return 1;
+    int ls[2], port[2], one = 1;
+    for (int i = 0; i < 2; i++) {
+        ls[i] = socket(AF_INET, SOCK_STREAM, 0);
+        setsockopt(ls[i], SOL_SOCKET, SO_REUSEADDR, &one, sizeof one);
+        struct sockaddr_in addr = {.sin_family = AF_INET, .sin_addr.s_addr = htonl(INADDR_LOOPBACK)};
+        socklen_t alen = sizeof addr;
+        if (bind(ls[i], (struct sockaddr *)&addr, sizeof addr) || listen(ls[i], 4) ||
+            getsockname(ls[i], (struct sockaddr *)&addr, &alen)) {
+            perror("listen");
+            return 1;
+        }
+        port[i] = ntohs(addr.sin_port);
     }
     t0_s = now_s();
     for (int i = 0; i <= UNITS; i++) { unit[i].reg[STATUS] = 0x40; unit[i].last_cell = -1; unit[i].since_s = t0_s; }
     for (int i = 0; i < MAX_CONN; i++) conn[i].fd = -1;
-    printf("ready %d %s\n", ntohs(addr.sin_port), granted);
+    printf("ready %d %d %s\n", port[0], port[1], granted);
     fflush(stdout);
 
     uint8_t out[8192], ctrl[256];
     char line[256];
     for (;;) {
-        struct pollfd fds[2 + MAX_CONN];
-        int map[2 + MAX_CONN], nf = 0;
+        struct pollfd fds[3 + MAX_CONN];
+        int map[3 + MAX_CONN], nf = 0;
         fds[nf] = (struct pollfd){.fd = 0, .events = POLLIN}; map[nf++] = -1;
-        fds[nf] = (struct pollfd){.fd = ls, .events = POLLIN}; map[nf++] = -2;
+        fds[nf] = (struct pollfd){.fd = ls[0], .events = POLLIN}; map[nf++] = -2;
+        fds[nf] = (struct pollfd){.fd = ls[1], .events = POLLIN}; map[nf++] = -2;
         for (int i = 0; i < MAX_CONN; i++)
             if (conn[i].fd >= 0) { fds[nf] = (struct pollfd){.fd = conn[i].fd, .events = POLLIN}; map[nf++] = i; }
         if (poll(fds, nf, 10) < 0) { if (errno == EINTR) continue; break; }
@@ -224,8 +231,9 @@ int main(int argc, char **argv) {
             if (r <= 0) break;
             print_counters();
         }
-        if (fds[1].revents & POLLIN) {
-            int fd = accept(ls, NULL, NULL);
+        for (int l = 1; l <= 2; l++) {
+            if (!(fds[l].revents & POLLIN)) continue;
+            int fd = accept(fds[l].fd, NULL, NULL);
             for (int i = 0; fd >= 0 && i < MAX_CONN; i++)
                 if (conn[i].fd < 0) {
                     setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
@@ -234,7 +242,7 @@ int main(int argc, char **argv) {
                 }
             if (fd >= 0) close(fd);                  /* no free slot */
         }
-        for (int k = 2; k < nf; k++) {
+        for (int k = 3; k < nf; k++) {
             if (!fds[k].revents) continue;
             Conn *c = &conn[map[k]];
             struct iovec iov = {c->buf + c->len, sizeof c->buf - c->len};
