@@ -125,8 +125,9 @@ def _stand_in(regmap: str, lockstep: bool, period_s: float, which: str):
 
 
 def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3, hog: int = 0,
-            stand_in: str = "compiled") -> dict:
-    """Sample both drives for ``seconds``; returns figures (see module docstring)."""
+            stand_in: str = "compiled", latency_reads: int = 2000) -> dict:
+    """Sample both drives for ``seconds``, then time ``latency_reads`` single reads (pymodbus, normal
+    priority); returns figures (see module docstring)."""
     srv, why_not = _stand_in(regmap, lockstep, period_s, stand_in)
     hogs: list[subprocess.Popen] = []
     own0 = own1 = {}
@@ -161,9 +162,10 @@ def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3,
             cpu, srv_cpu = sum(_cpu.delta(cpu0, cpu1).values()), sum(_cpu.delta(srv0, srv1).values())
             lost, span = net.lost_samples - lost0, samples["in"].index - first_index
             wakeups = _cpu.wakeups(cpu0, cpu1)
+            sup = net.supervision()
             # latency of single requests: one read of one drive's sample block
-            lat = []
-            for _ in range(2000):
+            lat = [np.nan]
+            for _ in range(latency_reads):
                 t = time.perf_counter()
                 d_out.read_sample()
                 lat.append(time.perf_counter() - t)
@@ -175,17 +177,17 @@ def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3,
     own = {k: own1[k] - own0.get(k, 0) for k in own1 if k not in ("answer_delay_max_s", "priority")} if own1 else last
     if own1:
         own["answer_delay_max_s"] = own1["answer_delay_max_s"]
-    lat_ms, per_ms = np.array(lat) * 1e3, np.array(per_sample) * 1e3
+    lat_ms, per_ms = np.array(lat[1:] or lat) * 1e3, np.array(per_sample) * 1e3
     return {"mode": "lockstep" if lockstep else "free-running", "samples": n,
             "samples_per_s_per_drive": n / wall, "lost": lost, "lost_fraction": lost / max(span, 1),
             "request_p50_ms": float(np.percentile(lat_ms, 50)), "request_p99_ms": float(np.percentile(lat_ms, 99)),
-            "request_max_ms": float(lat_ms.max()),
+            "request_max_ms": float(lat_ms.max()), "syncs_or_cells": span,
             "sample_p50_ms": float(np.percentile(per_ms, 50)), "sample_p99_ms": float(np.percentile(per_ms, 99)),
             "client_cpu": cpu / wall, "server_cpu": srv_cpu / wall, "client_cpu_us": cpu / n * 1e6,
             "server_cpu_us": srv_cpu / n * 1e6, "wakeups_per_sample": wakeups / n, "priority": granted,
             "stand_in": srv.kind + (f" (no compiled stand-in: {why_not})" if why_not else ""),
             "stand_in_own": own, "load": f"{load0} -> {load1}", "period_s": period_s,
-            "supervision": net.supervision()}
+            "supervision": sup}
 
 
 def main(argv: list[str] | None = None) -> int:
