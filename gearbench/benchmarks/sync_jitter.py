@@ -194,6 +194,8 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             print(f"{r['producer']:<10}{r['syncs_seen']:>7}{r['rate_hz']:>9.1f}{r['p50_us']:>15.0f}"
                   f"{r['p99_us']:>9.0f}{r['max_us']:>9.0f}{r['samples']:>9}{r['lost']:>7}")
+        if args.lockstep_samples <= 0:
+            return 0
         r = lockstep(bus, args.period_s, args.lockstep_samples)
         print(f"lockstep on {bus}: {r['samples']} samples of both drives in {r['wall_s']:.1f} s = "
               f"{r['samples_per_s']:.0f} samples/s, lost {r['lost']}")
