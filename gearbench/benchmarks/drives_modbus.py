@@ -35,8 +35,9 @@ stepped by a pacer thread) at SCHED_FIFO 20, with its pacing counters.
 Lost, defined: a cell (one sampling period of the first drive's sample counter) between two
 samples taken that no read fell in: the drive's value for that period is gone. Each lost
 cell is attributed: its read was sent after the cell had ended (the master was not run in
-time: a host stall, which the host timer floor printed first shows for a process that does
-nothing but sleep), or sent in time and still late (the master's schedule: 0 expected).
+time: a host stall, which the host timer floor measured just before, under the same hogs,
+shows for a process that does nothing but sleep), or sent in time and still missed (the
+master's schedule: 0 expected).
 
 CPU is measured from Linux's schedstat (time on a CPU, not inflated by a busy host) as
 microseconds per sample of both drives, with the master's thread wake-ups per sample; ``--hog
@@ -132,6 +133,10 @@ def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3,
     hogs: list[subprocess.Popen] = []
     own0 = own1 = {}
     try:
+        hogs = [subprocess.Popen(HOG, preexec_fn=normal_priority) for _ in range(hog)]
+        floor = None
+        if not lockstep:   # the host's floor under this run's conditions (the hogs running), just before
+            floor = timer_floor(period_s, min(10.0, seconds), slack_s=(1 - PollSchedule(1.0, 1).lead_s) * period_s)
         net = ModbusNetwork(port=srv.ports[0], lockstep=lockstep, timeout_s=2.0)
         with net:
             d_in = net.add_drive(AxisConfig("in", 1, regmap))
@@ -141,14 +146,13 @@ def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3,
             d_out.enable(Mode.TORQUE)
             d_in.set_setpoint(50.0)
             d_out.set_setpoint(0.1)
-            hogs = [subprocess.Popen(HOG, preexec_fn=normal_priority) for _ in range(hog)]
-            time.sleep(0.05 * hog)             # the hogs running before the figures start
             load0 = load_average()
             with acquisition_priority(realtime=not lockstep) as granted:
                 samples = net.sample()
                 own0 = srv.counters()
                 samples = net.sample()         # the window starts after the stand-in's counters were read
                 lost0, first_index = net.lost_samples, samples["in"].index
+                late0 = (net.polls_late, net.lost_sent_late, net.lost_misplaced) if not lockstep else (0, 0, 0)
                 cpu0, srv0, t0 = _cpu.threads(), _cpu.threads(srv.pid), time.perf_counter()
                 per_sample, n = [], 0
                 while (now := time.perf_counter()) - t0 < seconds:
@@ -163,6 +167,9 @@ def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3,
             lost, span = net.lost_samples - lost0, samples["in"].index - first_index
             wakeups = _cpu.wakeups(cpu0, cpu1)
             sup = net.supervision()
+            if not lockstep:   # this window's
+                sup.update(polls_late=net.polls_late - late0[0], lost_sent_late=net.lost_sent_late - late0[1],
+                           lost_misplaced=net.lost_misplaced - late0[2])
             # latency of single requests: one read of one drive's sample block
             lat = [np.nan]
             for _ in range(latency_reads):
@@ -187,7 +194,7 @@ def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3,
             "server_cpu_us": srv_cpu / n * 1e6, "wakeups_per_sample": wakeups / n, "priority": granted,
             "stand_in": srv.kind + (f" (no compiled stand-in: {why_not})" if why_not else ""),
             "stand_in_own": own, "load": f"{load0} -> {load1}", "period_s": period_s,
-            "supervision": sup}
+            "supervision": sup, "floor": floor}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -202,13 +209,6 @@ def main(argv: list[str] | None = None) -> int:
                     help="free-running: what answers (the compiled stand-in, or the Python emulator at SCHED_FIFO)")
     args = ap.parse_args(argv)
     print(f"Modbus TCP, 2 drives (unit ids 1, 2), loopback, drives' stand-in in another process, map {args.map}")
-    if "free" in args.modes:
-        slack = (1 - PollSchedule(1.0, 1).lead_s) * args.period_s     # a regular read's slack in its cell
-        f = timer_floor(args.period_s, min(10.0, args.seconds), slack_s=slack)
-        print(f"load {load_average()}; host timer floor (a SCHED_FIFO process only sleeping to {args.period_s * 1e3:g} ms "
-              f"deadlines, {f['n']} wake-ups): {f['over_slack']} later than a read's slack in its cell "
-              f"({slack * 1e3:.2f} ms: such a read would miss its cell), p99 {f['p99_s'] * 1e6:.0f} us, "
-              f"max {f['max_s'] * 1e6:.0f} us", flush=True)
     for mode, hog in ((m, h) for m in args.modes for h in args.hog):
         r = measure(args.map, args.seconds, mode == "lockstep", args.period_s, hog, args.stand_in)
         own = r["stand_in_own"]
@@ -229,9 +229,15 @@ def main(argv: list[str] | None = None) -> int:
         else:
             ownt = (f"{own.get('overruns', '?')} overruns, lag max {1e3 * own.get('lag_max_s', float('nan')):.1f} ms, "
                     f"{own.get('late_periods', '?')} of {own.get('periods', '?')} periods stepped over a period late")
-        sup = r["supervision"]
-        extra = (f"; reads in a later cell {sup['polls_late']}, latest send {sup['poll_late_max_s'] * 1e3:.2f} ms after "
-                 f"due; lost: {sup['lost_sent_late']} read sent after its cell had ended (master not run), "
+        sup, f = r["supervision"], r["floor"]
+        if f:
+            slack = (1 - PollSchedule(1.0, 1).lead_s) * r["period_s"]
+            print(f"{'':>30}host timer floor just before, same hogs (a SCHED_FIFO 10 process only sleeping to "
+                  f"{r['period_s'] * 1e3:g} ms deadlines): {f['over_slack']} of {f['n']} wake-ups later than a read's "
+                  f"slack ({slack * 1e3:.2f} ms), p99 {f['p99_s'] * 1e6:.0f} us, max {f['max_s'] * 1e6:.0f} us; "
+                  f"the master: {sup['polls_late']} of {r['samples']} reads in a later cell")
+        extra = (f"; latest send {sup['poll_late_max_s'] * 1e3:.2f} ms after due; lost: {sup['lost_sent_late']} "
+                 f"read sent after its cell had ended (master not run), "
                  f"{sup['lost_misplaced']} sent in time" if "polls_late" in sup else "")
         print(f"{'':>30}master {r['priority']}{extra}; stand-in {r['stand_in']}, its own counters: {ownt}; "
               f"load {r['load']}", flush=True)

@@ -19,8 +19,8 @@ Free-running (real drives): a Modbus drive keeps no history, so a sample the mas
 does not read within its sampling period (a "cell": ``period_s`` of the first drive's
 sample counter) is lost. The master reads every drive's sample block ONCE per cell, at
 a time on the wall clock locked to the first drive's counter (``PollSchedule``),
-with TCP_NODELAY, on the client's own socket (pymodbus costs ~150-300 us of CPU per
-request, the raw read ~30 us). Drives with their own connection (one IP each) are read at
+with TCP_NODELAY, raw on the client's own socket (a pymodbus request costs ~150-300 us
+of CPU, a raw one tens of us). Drives with their own connection (one IP each) are read at
 once; drives sharing one connection in turn (one request outstanding per connection).
 The answer to a connection's last read is taken at the next read's wake-up, so the
 master wakes once per sample. Lost, defined: a cell of the first drive's counter
@@ -233,7 +233,6 @@ class ModbusDrive(Drive):
             return f", error code 0x{int(self.read('error_code')):04X}"
         except DriveError:
             return ""
-
 
 
 class PollSchedule:
