@@ -516,8 +516,12 @@ class ModbusNetwork(DriveNetwork):
                 self._held.append(result)
 
     def _discard_backlog(self) -> None:
+        """Samples read before now are not the next acquisition's; it starts at the next cell."""
         self._drain()
         self._held.clear()
+        if self._cell is not None:     # the cells between (a pause between segments) were never due
+            sched = self.schedule
+            self._cell = max(self._cell, int((time.monotonic() - sched.phase_s) // sched.period_s) + 1)
 
     def _counter(self, drive: ModbusDrive, words) -> int:
         reg = drive.map.registers["sample_counter"]
