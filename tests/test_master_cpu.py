@@ -51,7 +51,8 @@ MODBUS_SAMPLES_S = 2.0          # 1,000 samples of both drives at the rated 2 ms
 # Measured 143-239 us per sample at load 5-6 on the shared 2-core VM (the master and the stand-in
 # at SCHED_FIFO on the same two cores; the pymodbus polling master it replaced: 326 us, 3.9 wake-ups).
 MODBUS_MAX_CPU_PER_SAMPLE_S = 350e-6
-MODBUS_MAX_WAKEUPS_PER_SAMPLE = 1.3     # one per sample (sleep to the due time); the polling master: 1.8-3.9
+MODBUS_MAX_WAKEUPS_PER_SAMPLE = 1.3     # one per sample (sleep to the due time) + the probes' answers and
+                                        # re-reads (1 cell in 16): 1.1-1.2; the polling master: 1.8-3.9
 
 
 @pytest.mark.skipif(_responder.available(_responder.MODBUS_SOURCE) is not None,
@@ -63,9 +64,11 @@ def test_free_running_modbus_master_reads_each_drive_once_per_sample_at_a_bounde
     print(f"Modbus master: {r['client_cpu_us']:.0f} us CPU and {r['wakeups_per_sample']:.2f} wake-ups per sample "
           f"over {r['samples']} samples ({r['lost']} lost; stand-in {r['stand_in']}: {own}; {sup}; load {r['load']})")
     assert own["exceptions"] == 0
-    # one read per drive per cell: requests are the cells read twice (2 drives), nothing more
-    assert own["requests"] <= 2 * (r["samples"] + 2), own
-    assert own["repeat_reads"] <= 2
+    # one read per drive per cell, and a probe (1 cell in 16) that came before its cell's start edge
+    # read again: about one repeat per probe (the edge tracking's balance), never more than two
+    probes = r["samples"] / 16 + 2
+    assert own["repeat_reads"] <= 2 * 2 * probes, own
+    assert own["requests"] <= 2 * (r["samples"] + 2) + own["repeat_reads"], own
     # a lost cell is only ever one whose read went out after the cell had ended (the host did not run
     # the master: a stall no schedule avoids); a read sent in time always falls in its cell
     assert sup["lost_misplaced"] == 0 and sup["lost_sent_late"] >= r["lost"]

@@ -242,10 +242,11 @@ class PollSchedule:
     period) spans drive time ``[i*k, (i+1)*k) * counter_period_s``; the drive's clock is
     ``phase_s`` on the host clock (host time of drive time 0, minus the request's transit).
     Regular reads are sent ``lead`` into their cell, where a late wake-up has the rest of
-    the cell before the read misses it. Every ``probe_every``-th read (every one while
-    locking) is a probe sent on a counter edge inside the cell (count ``k // 2``; the cell's
-    start when ``k`` = 1): whether the drive saw the count before or after the edge moves
-    ``phase_s`` by ``step_s`` toward the edge, so the schedule follows the drive's crystal
+    the cell before the read misses it and reads the cell's first count (the sample is
+    stamped on the grid). Every ``probe_every``-th read (every one while locking) is a probe
+    sent on the cell's start edge: whether the drive was still in the previous cell (the
+    master reads again at once) or already in this one moves ``phase_s`` by ``step_s``
+    toward the edge, so the schedule follows the drive's crystal
     (bang-bang phase tracking; ``step_s / (probe_every * period)`` is the drift it follows:
     625 ppm at the defaults) with no clock exchange the protocol does not have.
 
@@ -257,9 +258,9 @@ class PollSchedule:
         self.cp, self.k = counter_period_s, k
         self.period_s = k * counter_period_s
         self.lead_s = lead * self.period_s
-        self.edge_counts = k // 2                   # the probed edge, in counts into the cell
         self.probe_every, self.step_s = probe_every, step_s
         self.phase_s: float | None = None
+        self.lock_probes = lock_probes
         self._lock_left = lock_probes
 
     def lock(self, counter: int, t_sent_s: float) -> None:
@@ -267,13 +268,20 @@ class PollSchedule:
         count lies between the previous read and this one)."""
         self.phase_s = t_sent_s - counter * self.cp
 
+    def relock(self, counter: int, t_sent_s: float) -> None:
+        """A read sent in time fell outside its cell: the drive's clock is not where the schedule
+        has it (a drive whose clock jumped: the Python emulator catching up, a drive reset). Take
+        the phase from this read (to within a counter period) and lock again with probes."""
+        self.phase_s = t_sent_s - (counter + 0.5) * self.cp
+        self._lock_left = max(self._lock_left, self.lock_probes)
+
     def is_probe(self, cell: int) -> bool:
         return self._lock_left > 0 or cell % self.probe_every == 0
 
     def due_s(self, cell: int) -> float:
         """Host time to send the read of ``cell``."""
         start = self.phase_s + cell * self.period_s
-        return start + (self.edge_counts * self.cp if self.is_probe(cell) else self.lead_s)
+        return start if self.is_probe(cell) else start + self.lead_s
 
     def cell_end_s(self, cell: int) -> float:
         """Host time the drive's ``cell`` ends (a read sent later cannot fall in it)."""
@@ -284,7 +292,7 @@ class PollSchedule:
         if not self.is_probe(cell):
             return
         self._lock_left = max(0, self._lock_left - 1)
-        before_edge = counter < cell * self.k + self.edge_counts
+        before_edge = counter < cell * self.k
         self.phase_s += self.step_s if before_edge else -self.step_s
 
 class ModbusNetwork(DriveNetwork):
@@ -432,10 +440,11 @@ class ModbusNetwork(DriveNetwork):
         ``schedule`` says (see the module docstring); a cell passed while the master was not run
         is lost (counted by ``sample()`` from the counter gap).
 
-        One wake-up per sample: the answer to a read is taken at the next read's due time (it
-        arrived long before), just before that read is sent; so a sample is returned one period
-        after its read. A request of pymodbus's on the same connection first takes the answer
-        outstanding (``_drain``) and keeps its sample for the next call."""
+        One wake-up per sample: the answer to a regular read is taken at the next read's due time
+        (it arrived long before), just before that read is sent; so its sample is returned one
+        period after the read. A probe's answer is awaited (one read in 16: a probe that came
+        before its cell is repeated at once). A request of pymodbus's on the same connection first
+        takes the answer outstanding (``_drain``) and keeps its sample for the next call."""
         if self._held:
             return self._held.pop(0)
         sched = self.schedule
@@ -451,6 +460,11 @@ class ModbusNetwork(DriveNetwork):
                 self._held.append(result)        # the read fell in a later cell: the next is later too
                 continue
             due = max(due, sched.due_s(self._cell))  # a cell read again goes out now, not "late"
+            if sched.is_probe(self._cell):
+                self._held.extend(r for r in (result, self._probe(due)) if r is not None)
+                if self._held:
+                    return self._held.pop(0)
+                continue
             self._send_reads()
             self._pending = (self._cell, due, self._t_sent)
             self._cell += 1
@@ -478,20 +492,44 @@ class ModbusNetwork(DriveNetwork):
         self._cell = c // first._k + 1
         return self._samples(words)
 
+    def _probe(self, due: float) -> dict[str, Sample] | None:
+        """Read the probe cell on its start edge and wait for the answer; a read that came before
+        the edge (the drive still in the previous cell) is repeated after 1/16 counter period."""
+        expected, sched = self._cell, self.schedule
+        deadline = time.monotonic() + max(0.1, 50 * self.period_s)
+        while True:
+            self._send_reads()
+            t_sent = self._t_sent
+            out = self._account(expected, due, t_sent, self._receive_reads())
+            if out is not None or self._cell != expected:
+                return out
+            if time.monotonic() > deadline:
+                first = next(iter(self.drives.values()))
+                raise DriveError(f"{first!r}: sample counter does not reach cell {expected}; the drive is not "
+                                 f"running its cycle")
+            time.sleep(sched.cp / 16)
+            due = time.monotonic()
+
     def _take_pending(self) -> dict[str, Sample] | None:
-        """The outstanding read's samples, checked against its cell; None if there is none or it
-        fell before its cell (a probe on the cell's start edge: the cell is read again)."""
+        """The outstanding regular read's samples, checked against its cell (``_account``)."""
         if self._pending is None:
             return None
         expected, due, t_sent = self._pending
         self._pending = None
-        words = self._receive_reads()
+        return self._account(expected, due, t_sent, self._receive_reads())
+
+    def _account(self, expected: int, due: float, t_sent: float, words: dict) -> dict[str, Sample] | None:
+        """The samples of a read meant for cell ``expected``, sent at ``t_sent`` (due ``due``); None
+        when it fell before that cell (it is read again). Lateness and losses are counted."""
         first, sched = next(iter(self.drives.values())), self.schedule
         self.poll_late_max_s = max(self.poll_late_max_s, t_sent - due)
         c = self._counter(first, words[first.name])
         cell = c // first._k
         if cell < expected:
-            sched.observe(expected, c)
+            if sched.is_probe(expected):
+                sched.observe(expected, c)       # a probe on the cell's start edge, just early
+            else:
+                sched.relock(c, t_sent)          # the drive's clock is behind the schedule
             self.repolls += 1
             self._cell = expected
             return None
@@ -500,11 +538,12 @@ class ModbusNetwork(DriveNetwork):
         else:
             self.polls_late += 1
             # sent after its cell had ended: the master was not run in time (a host stall, as the
-            # host timer floor shows); else the schedule was wrong (the master's own fault)
+            # host timer floor shows); else the drive's clock was ahead of the schedule
             if t_sent >= sched.cell_end_s(expected):
                 self.lost_sent_late += cell - expected
             else:
                 self.lost_misplaced += cell - expected
+                sched.relock(c, t_sent)
         self._cell = max(self._cell, cell + 1)
         return self._samples(words)
 
