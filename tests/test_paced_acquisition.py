@@ -66,16 +66,21 @@ def test_an_answer_older_than_the_window_is_not_taken():
 def _producer_run(catch_up_s: float, stall_s: float = 0.03) -> tuple[list, ThreadSyncProducer]:
     bus = can.Bus(interface="virtual", channel=uuid.uuid4().hex)
     network = types.SimpleNamespace(bus=bus, subscribe=lambda *a: None, unsubscribe=lambda *a: None)
-    begun, done = [], threading.Event()
+    begun, done, at_80 = [], threading.Event(), {}
 
     def begin(number, counter, wall_s):
+        if done.is_set():
+            return
         begun.append(number)
         if number == 20:
             time.sleep(stall_s)                    # the producer's thread is not run for a while
-        if number >= 80:
+        if number >= 80:                           # its counts as of this slot, in its own thread (a
+            at_80.update(skipped=p.skipped, sent_late=p.sent_late)   # later stall adds to both)
             done.set()
 
-    p = ThreadSyncProducer(network, 1e-3, 240, begin, receive=False, catch_up_s=catch_up_s).start()
+    p = ThreadSyncProducer(network, 1e-3, 240, begin, receive=False, catch_up_s=catch_up_s)
+    p.at_80 = at_80
+    p.start()
     try:
         assert done.wait(5.0)
     finally:
@@ -88,7 +93,7 @@ def _producer_run(catch_up_s: float, stall_s: float = 0.03) -> tuple[list, Threa
 def test_a_late_producer_catches_up_instead_of_skipping():
     begun, p = _producer_run(catch_up_s=0.05)
     assert begun[:80] == list(range(1, 81))        # every SYNC sent, none skipped
-    assert p.skipped == 0 and p.sent_late >= 20 and p.sent_late_max_s >= 0.025
+    assert p.at_80["skipped"] == 0 and p.at_80["sent_late"] >= 20 and p.sent_late_max_s >= 0.025
     # each SYNC sent late says by how much: its sample is stamped then, off the grid
     assert len(p.sent_late_by) == p.sent_late and max(p.sent_late_by.values()) >= 0.025
     assert all(v > 0.5e-3 for v in p.sent_late_by.values())
@@ -96,9 +101,9 @@ def test_a_late_producer_catches_up_instead_of_skipping():
 
 def test_slots_further_back_than_catch_up_are_skipped_and_counted():
     begun, p = _producer_run(catch_up_s=0.005)
-    gaps = sum(b - a - 1 for a, b in zip(begun, begun[1:]))
-    assert p.skipped == gaps >= 20                 # ~30 slots owed, at most 5 sent late
-    assert p.sent_late >= 1
+    gaps = begun[0] - 1 + sum(b - a - 1 for a, b in zip(begun, begun[1:]))   # slots are numbered from 1
+    assert p.at_80["skipped"] == gaps >= 20        # ~30 slots owed, at most 5 sent late
+    assert p.at_80["sent_late"] >= 1
 
 
 # --- Modbus TCP, free-running: the read schedule (pure, simulated clocks) ---------------------
