@@ -98,19 +98,21 @@ for _ in range(n):
     late.append(time.perf_counter() - due)
 late.sort()
 print(json.dumps(dict(n=n, over_half=sum(v > period / 2 for v in late), p99_s=late[int(0.99 * (n - 1))],
-                      max_s=late[-1])))
+                      max_s=late[-1], over_slack=sum(v > {slack_s} for v in late))))
 """
 
 
-def timer_floor(period_s: float = 1e-3, seconds: float = 2.0, priority: int = 10) -> dict:
+def timer_floor(period_s: float = 1e-3, seconds: float = 2.0, priority: int = 10, slack_s: float | None = None) -> dict:
     """What this host allows at best: a process that does nothing but sleep to absolute
     deadlines every ``period_s`` at SCHED_FIFO ``priority`` (the master's), how often it
-    wakes more than half a period late (a SYNC slot any user-space producer would miss)
+    wakes more than half a period late (a SYNC slot any user-space producer would miss),
+    more than ``slack_s`` late (``over_slack``: a Modbus read that would miss its cell)
     and its p99/max lateness. On a virtual machine this is the hypervisor's floor."""
     import json
     import subprocess
     import sys
-    code = _PROBE.format(priority=priority, period_s=period_s, n=max(1, round(seconds / period_s)))
+    code = _PROBE.format(priority=priority, period_s=period_s, n=max(1, round(seconds / period_s)),
+                         slack_s=period_s / 2 if slack_s is None else slack_s)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=seconds + 30)
     return json.loads(out.stdout)
 

@@ -1,9 +1,12 @@
-"""The compiled drives' stand-in of the paced benchmarks (``tools/responder/responder.c``).
+"""The compiled drives' stand-ins of the real-time benchmarks (``tools/responder/``).
 
-Built with the host's C compiler on first use (a few hundred ms; cached by the source's
-hash), started at SCHED_FIFO above the master with its memory locked, fed the TPDO
-payloads the emulated drives sent last (their SYNC counter echo is rewritten per SYNC),
-and asked for its own counters over stdin. See the C file for what it counts.
+``Responder`` (``responder.c``, CANopen, drives_can --paced): fed the TPDO payloads the
+emulated drives sent last (their SYNC counter echo is rewritten per SYNC).
+``ModbusStandIn`` (``modbus_stand_in.c``, drives_modbus free-running): two Modbus TCP
+drives of the generic register map whose sample counter is the clock at each answer.
+Both are built with the host's C compiler on first use (a few hundred ms; cached by the
+source's hash), started at SCHED_FIFO above the master with their memory locked, and
+asked for their own counters over stdin. See the C files for what they count.
 """
 from __future__ import annotations
 
@@ -20,24 +23,25 @@ import can
 import numpy as np
 
 SOURCE = Path(__file__).resolve().parents[2] / "tools" / "responder" / "responder.c"
+MODBUS_SOURCE = SOURCE.with_name("modbus_stand_in.c")
 
 
-def available() -> str | None:
-    """None when the responder can be built here, else why not (said in the benchmark's table)."""
-    if not SOURCE.exists():
-        return f"{SOURCE} not found (an installed package without the source tree)"
+def available(source: Path = SOURCE) -> str | None:
+    """None when the stand-in can be built here, else why not (said in the benchmark's table)."""
+    if not source.exists():
+        return f"{source} not found (an installed package without the source tree)"
     if shutil.which(os.environ.get("CC", "gcc")) is None:
         return "no C compiler (gcc) on PATH"
     return None
 
 
-def build() -> Path:
-    """The responder executable, compiled once per source version."""
-    digest = hashlib.sha256(SOURCE.read_bytes()).hexdigest()[:12]
-    exe = Path(tempfile.gettempdir()) / f"gearbench-responder-{digest}"
+def build(source: Path = SOURCE) -> Path:
+    """The stand-in's executable, compiled once per source version."""
+    digest = hashlib.sha256(source.read_bytes()).hexdigest()[:12]
+    exe = Path(tempfile.gettempdir()) / f"gearbench-{source.stem.replace('_', '-')}-{digest}"
     if not exe.exists():
         tmp = exe.with_suffix(f".{os.getpid()}")
-        subprocess.run([os.environ.get("CC", "gcc"), "-O2", "-Wall", "-o", str(tmp), str(SOURCE)],
+        subprocess.run([os.environ.get("CC", "gcc"), "-O2", "-Wall", "-o", str(tmp), str(source), "-lm"],
                        check=True, capture_output=True, text=True)
         tmp.replace(exe)
     return exe
@@ -90,3 +94,34 @@ class Responder:
             else np.zeros((0, 2), np.int64)
         shutil.rmtree(self.stamps_path.parent, ignore_errors=True)
         return np.column_stack([raw[:, 0] * 1e-9, raw[:, 1]])
+
+
+class ModbusStandIn:
+    """Two Modbus TCP drives (unit ids 1, 2, the generic register map) on two loopback ports the OS
+    picks (``ports``: one connection per drive, as drives with an IP each); ``counters()`` while it
+    runs, ``stop()`` returns the last ones."""
+
+    def __init__(self, counter_period_s: float, cell_counts: int, late_s: float, priority: int):
+        self.proc = subprocess.Popen([str(build(MODBUS_SOURCE)), repr(counter_period_s), str(cell_counts),
+                                      repr(late_s), str(priority)],
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        words = self.proc.stdout.readline().split(maxsplit=3)
+        if words[:1] != ["ready"] or len(words) < 3:
+            self.proc.kill()
+            raise RuntimeError(f"Modbus stand-in did not start: {' '.join(words)!r}")
+        self.ports = (int(words[1]), int(words[2]))
+        self.priority = words[3].strip() if len(words) > 3 else "normal"
+        self.pid = self.proc.pid
+
+    def counters(self) -> dict:
+        self.proc.stdin.write("status\n")
+        self.proc.stdin.flush()
+        return json.loads(self.proc.stdout.readline())
+
+    def stop(self) -> dict:
+        if self.proc.poll() is not None:
+            return {}
+        self.proc.stdin.close()
+        out = self.proc.stdout.readline()
+        self.proc.wait(5)
+        return json.loads(out) if out.strip() else {}

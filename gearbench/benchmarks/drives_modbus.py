@@ -1,28 +1,53 @@
-"""Benchmark: Modbus TCP sampling of two emulated drives, server in another process.
+"""Benchmark: Modbus TCP sampling of two drives, their stand-in in another process.
 
-Reports samples/s per drive (goal >= 500/s on loopback), request latency
-percentiles (one multi-register read of one drive's sample block) and CPU use, for
-  - lockstep: each sample = sync write + read of drive 1 (one 0x17 request) + read
-    of drive 2; throughput is what the link and both ends allow;
-  - free-running: the emulator runs the bench at 1 kHz real time; the master
-    takes the next sample every ``--period-s`` (default 2 ms: the rated 500 samples/s
-    per drive over Modbus TCP) at real-time priority, gaps are counted as lost samples.
-    The emulator (the drives' stand-in) runs at real-time priority above the master
-    (SCHED_FIFO 20 against 10) and reports its own pacing: world periods it could not
-    keep (overruns) and the furthest it fell behind the wall clock.
+    python -m gearbench.benchmarks drives_modbus [--seconds 10] [--period-s 0.002] [--hog 0 2]
+        [--modes lockstep free] [--stand-in compiled|emulator] [--map drivers/generic-modbus-servo.yaml]
+
+The 10-minute acceptance run (free-running at the rated period, quiet and with both cores hogged):
+
+    python -m gearbench.benchmarks drives_modbus --seconds 600 --modes free --hog 0 2
+
+Modes:
+  - lockstep: each sample = sync write + read of drive 1 (one 0x17 request) + read of drive 2,
+    against the Python emulator; throughput is what the link and both ends allow;
+  - free-running (a real bench): the drives run on their own clock; the master reads each
+    drive's sample block once per sampling period (``--period-s``, default 2 ms: the rated
+    rate, 500 samples/s per drive; README "Modbus: rated rate") at SCHED_FIFO 10.
+
+Rated rate: 2 ms. Modbus has no SYNC and no drive-side history: the master's read *is* the
+sample, so the rate is bounded by the drive's answer time. Vendors document plain register
+reads answered within about 1-2 ms (IAI ROBO Cylinder: 1 ms max internal processing;
+Oriental Motor BLH/BLV over RTU: silent interval + 2 ms or less), and Kollmorgen says of the
+AKD that Modbus TCP "is not deterministic" (the AKD2G throttles high message rates). A 2 ms
+period is the fastest at which such a drive answers inside the period; with real drives use
+at least twice their documented answer time.
+
+The master is measured, not the stand-in. Free-running, the default stand-in is compiled
+(``tools/responder/modbus_stand_in.c``, built with gcc on first use): two drives of the
+generic map on two ports (one connection per drive, as drives with an IP each), at
+SCHED_FIFO 20 above the master with its memory locked, whose sample counter is the kernel's
+receive time of each request (a stand-in the host does not run for a while still answers with
+the instant the request reached it, as hardware). Its own counters are printed: requests,
+answers later than 0.2 ms, cells of its counter no read fell in (the loss as the drive sees
+it), cells read twice. ``--stand-in emulator``: the Python emulator (pymodbus server, world
+stepped by a pacer thread) at SCHED_FIFO 20, with its pacing counters.
+
+Lost, defined: a cell (one sampling period of the first drive's sample counter) between two
+samples taken that no read fell in: the drive's value for that period is gone. Each lost
+cell is attributed: its read was sent after the cell had ended (the master was not run in
+time: a host stall, which the host timer floor measured just before, under the same hogs,
+shows for a process that does nothing but sleep), or sent in time and still missed (the
+master's schedule: 0 expected).
 
 CPU is measured from Linux's schedstat (time on a CPU, not inflated by a busy host) as
-microseconds per sample of both drives; ``--hog N`` runs N ``python3 -c "while 1: pass"``
-meanwhile; the host's load average is printed with each figure.
-
-    python -m gearbench.benchmarks.drives_modbus [--seconds 10] [--period-s 0.002] [--hog 2]
-        [--modes lockstep free] [--map drivers/generic-modbus-servo.yaml]    (--hog 0 2: one run each)
+microseconds per sample of both drives, with the master's thread wake-ups per sample; ``--hog
+N`` runs N ``python3 -c "while 1: pass"`` meanwhile; the host's load average is printed with
+each figure.
 """
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import select
 import subprocess
 import sys
@@ -31,14 +56,17 @@ import time
 import numpy as np
 
 from ..drives.base import AxisConfig, Mode
-from ..drives.modbus import ModbusNetwork
+from ..drives.modbus import ModbusNetwork, PollSchedule
 from ..drives.realtime import acquisition_priority
-from . import _cpu
-from ._cpu import load_average, normal_priority, realtime_stand_in
+from ..drives.register_map import load_register_map
+from . import _cpu, _responder
+from ._cpu import STAND_IN_FIFO, load_average, normal_priority, realtime_stand_in, timer_floor
 
 HOG = [sys.executable, "-c", "while 1: pass"]
 
 DEFAULT_MAP = "drivers/generic-modbus-servo.yaml"
+COMPILED_MODEL = "generic-modbus-servo"   # the layout tools/responder/modbus_stand_in.c answers
+LATE_ANSWER_S = 2e-4     # the compiled stand-in counts answers sent later than this after the request arrived
 SERVER = ("import sys, json; from gearbench.emulate.bench import EmulatedBench; "
           "from gearbench.emulate.modbus_server import start_modbus_server; "
           "b = EmulatedBench(); b.advance(); "       # compile the physics before 'ready'
@@ -47,12 +75,6 @@ SERVER = ("import sys, json; from gearbench.emulate.bench import EmulatedBench; 
           "print(json.dumps(dict(overruns=h.overruns, lag_max_s=h.lag_max_s, late_periods=h.late_periods, "
           "periods=b.sample_index)), flush=True); "
           "h.stop()")
-
-
-def _cpu_s(pid: int) -> float:
-    """user + system CPU seconds of a process (Linux /proc)."""
-    fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def _start_server(regmap: str, lockstep: bool) -> tuple[subprocess.Popen, int]:
@@ -66,40 +88,92 @@ def _start_server(regmap: str, lockstep: bool) -> tuple[subprocess.Popen, int]:
     return proc, int(words[1])
 
 
-def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3, hog: int = 0) -> dict:
-    """Sample both drives for ``seconds``; returns figures (see module docstring)."""
-    proc, port = _start_server(regmap, lockstep)
-    stand_in = realtime_stand_in(proc.pid) if not lockstep else "normal"
+class _EmulatorStandIn:
+    """The Python emulator (pymodbus server) in another process; its own pacing as counters."""
+
+    def __init__(self, regmap: str, lockstep: bool):
+        self.proc, port = _start_server(regmap, lockstep)
+        self.ports = (port, port)             # one endpoint, both unit ids: one connection
+        self.pid = self.proc.pid
+        self.kind = "emulator, " + (realtime_stand_in(self.proc.pid) if not lockstep else "normal")
+        self.own: dict = {}
+
+    def counters(self) -> dict:
+        return {}
+
+    def stop(self) -> dict:
+        self.proc.stdin.close()
+        line = self.proc.stdout.readline()
+        self.own = json.loads(line) if line.startswith("{") else {}
+        self.proc.terminate()
+        self.proc.wait(5)
+        return self.own
+
+
+def _stand_in(regmap: str, lockstep: bool, period_s: float, which: str):
+    """The drives' stand-in: the compiled one (free-running, the generic map) or the emulator.
+    Returns (stand-in, why the compiled one was not used or None)."""
+    if lockstep or which == "emulator":
+        return _EmulatorStandIn(regmap, lockstep), None
+    m = load_register_map(regmap)
+    why = _responder.available(_responder.MODBUS_SOURCE) or \
+        (None if m.model == COMPILED_MODEL else f"map {regmap} is not the {COMPILED_MODEL} it lays out")
+    if why:
+        return _EmulatorStandIn(regmap, lockstep), why
+    s = _responder.ModbusStandIn(m.counter_period_s, round(period_s / m.counter_period_s), LATE_ANSWER_S, STAND_IN_FIFO)
+    s.kind = f"compiled stand-in, {s.priority}"
+    return s, None
+
+
+def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3, hog: int = 0,
+            stand_in: str = "compiled", latency_reads: int = 2000) -> dict:
+    """Sample both drives for ``seconds``, then time ``latency_reads`` single reads (pymodbus, normal
+    priority); returns figures (see module docstring)."""
+    srv, why_not = _stand_in(regmap, lockstep, period_s, stand_in)
     hogs: list[subprocess.Popen] = []
+    own0 = own1 = {}
     try:
-        net = ModbusNetwork(port=port, lockstep=lockstep, timeout_s=2.0)
+        hogs = [subprocess.Popen(HOG, preexec_fn=normal_priority) for _ in range(hog)]
+        floor = None
+        if not lockstep:   # the host's floor under this run's conditions (the hogs running), just before
+            floor = timer_floor(period_s, min(10.0, seconds), slack_s=(1 - PollSchedule(1.0, 1).lead_s) * period_s)
+        net = ModbusNetwork(port=srv.ports[0], lockstep=lockstep, timeout_s=2.0)
         with net:
             d_in = net.add_drive(AxisConfig("in", 1, regmap))
-            d_out = net.add_drive(AxisConfig("out", 2, regmap))
+            d_out = net.add_drive(AxisConfig("out", 2, regmap, extra={"port": srv.ports[1]}))
             net.start(1e-3 if lockstep else period_s)
             d_in.enable(Mode.VELOCITY)
             d_out.enable(Mode.TORQUE)
             d_in.set_setpoint(50.0)
             d_out.set_setpoint(0.1)
-            hogs = [subprocess.Popen(HOG, preexec_fn=normal_priority) for _ in range(hog)]
             load0 = load_average()
             with acquisition_priority(realtime=not lockstep) as granted:
-                samples = net.sample()
+                for _ in range(1 if lockstep else 100):    # free-running: the schedule locked (64 probes)
+                    samples = net.sample()
+                own0 = srv.counters()
+                samples = net.sample()         # the window starts after the stand-in's counters were read
                 lost0, first_index = net.lost_samples, samples["in"].index
-                cpu0, srv0, t0 = _cpu.threads(), _cpu.threads(proc.pid), time.perf_counter()
+                late0 = (net.polls_late, net.lost_sent_late, net.lost_misplaced) if not lockstep else (0, 0, 0)
+                cpu0, srv0, t0 = _cpu.threads(), _cpu.threads(srv.pid), time.perf_counter()
                 per_sample, n = [], 0
                 while (now := time.perf_counter()) - t0 < seconds:
                     samples = net.sample()
                     per_sample.append(time.perf_counter() - now)
                     n += 1
                 wall = time.perf_counter() - t0
-                cpu1, srv1 = _cpu.threads(), _cpu.threads(proc.pid)
+                cpu1, srv1 = _cpu.threads(), _cpu.threads(srv.pid)
+                own1 = srv.counters()
             load1 = load_average()
-            cpu, srv = sum(_cpu.delta(cpu0, cpu1).values()), sum(_cpu.delta(srv0, srv1).values())
+            cpu, srv_cpu = sum(_cpu.delta(cpu0, cpu1).values()), sum(_cpu.delta(srv0, srv1).values())
             lost, span = net.lost_samples - lost0, samples["in"].index - first_index
+            wakeups = _cpu.wakeups(cpu0, cpu1)
+            sup = net.supervision()
+            if not lockstep:   # this window's
+                sup.update(polls_late=net.polls_late - late0[0], lost_sent_late=net.lost_sent_late - late0[1],
+                           lost_misplaced=net.lost_misplaced - late0[2])
             # latency of single requests: one read of one drive's sample block
-            lat = []
-            for _ in range(2000):
+            lat = [np.nan]
+            for _ in range(latency_reads):
                 t = time.perf_counter()
                 d_out.read_sample()
                 lat.append(time.perf_counter() - t)
@@ -107,20 +181,21 @@ def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3,
         for h in hogs:
             h.kill()
             h.wait()
-        proc.stdin.close()
-        line = proc.stdout.readline()
-        own = json.loads(line) if line.startswith("{") else {}
-        proc.terminate()
-        proc.wait(5)
-    lat_ms, per_ms = np.array(lat) * 1e3, np.array(per_sample) * 1e3
-    return {"mode": "lockstep" if lockstep else "free-running 1 kHz", "samples": n,
+        last = srv.stop()
+    own = {k: own1[k] - own0.get(k, 0) for k in own1 if k not in ("answer_delay_max_s", "priority")} if own1 else last
+    if own1:
+        own["answer_delay_max_s"] = own1["answer_delay_max_s"]
+    lat_ms, per_ms = np.array(lat[1:] or lat) * 1e3, np.array(per_sample) * 1e3
+    return {"mode": "lockstep" if lockstep else "free-running", "samples": n,
             "samples_per_s_per_drive": n / wall, "lost": lost, "lost_fraction": lost / max(span, 1),
             "request_p50_ms": float(np.percentile(lat_ms, 50)), "request_p99_ms": float(np.percentile(lat_ms, 99)),
-            "request_max_ms": float(lat_ms.max()),
+            "request_max_ms": float(lat_ms.max()), "syncs_or_cells": span,
             "sample_p50_ms": float(np.percentile(per_ms, 50)), "sample_p99_ms": float(np.percentile(per_ms, 99)),
-            "client_cpu": cpu / wall, "server_cpu": srv / wall, "client_cpu_us": cpu / n * 1e6,
-            "server_cpu_us": srv / n * 1e6, "priority": granted, "stand_in": stand_in, "stand_in_own": own,
-            "load": f"{load0} -> {load1}", "period_s": period_s}
+            "client_cpu": cpu / wall, "server_cpu": srv_cpu / wall, "client_cpu_us": cpu / n * 1e6,
+            "server_cpu_us": srv_cpu / n * 1e6, "wakeups_per_sample": wakeups / n, "priority": granted,
+            "stand_in": srv.kind + (f" (no compiled stand-in: {why_not})" if why_not else ""),
+            "stand_in_own": own, "load": f"{load0} -> {load1}", "period_s": period_s,
+            "supervision": sup, "floor": floor}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -131,22 +206,41 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--hog", type=int, nargs="+", default=[0],
                     help="processes spinning meanwhile (2 = both cores busy); several values: one run each")
     ap.add_argument("--modes", nargs="+", default=["lockstep", "free"], choices=["lockstep", "free"])
+    ap.add_argument("--stand-in", default="compiled", choices=["compiled", "emulator"],
+                    help="free-running: what answers (the compiled stand-in, or the Python emulator at SCHED_FIFO)")
     args = ap.parse_args(argv)
-    print(f"Modbus TCP, 2 drives (unit ids 1, 2), loopback, emulator in another process, map {args.map}")
+    print(f"Modbus TCP, 2 drives (unit ids 1, 2), loopback, drives' stand-in in another process, map {args.map}")
     for mode, hog in ((m, h) for m in args.modes for h in args.hog):
-        r = measure(args.map, args.seconds, mode == "lockstep", args.period_s, hog)
+        r = measure(args.map, args.seconds, mode == "lockstep", args.period_s, hog, args.stand_in)
         own = r["stand_in_own"]
         label = (r["mode"] if mode == "lockstep" else f"free-running, {1e3 * r['period_s']:g} ms") + f", {hog} hogs"
         print(f"{label:>28}: "
               f"{r['samples_per_s_per_drive']:7.0f} samples/s per drive "
-              f"({r['samples']} samples, lost {r['lost']} = {100 * r['lost_fraction']:.2f} %); "
+              f"({r['samples']} samples, lost {r['lost']} = {100 * r['lost_fraction']:.3f} %); "
               f"sample (2 drives) p50 {r['sample_p50_ms']:.2f} ms p99 {r['sample_p99_ms']:.2f} ms; "
               f"single read p50 {r['request_p50_ms']:.2f} ms p99 {r['request_p99_ms']:.2f} ms "
               f"max {r['request_max_ms']:.1f} ms; CPU per sample: master {r['client_cpu_us']:.0f} us "
-              f"({100 * r['client_cpu']:.0f} %), stand-in {r['server_cpu_us']:.0f} us ({100 * r['server_cpu']:.0f} %)")
-        print(f"{'':>30}master {r['priority']}; stand-in {r['stand_in']}, its own pacing: "
-              f"{own.get('overruns', '?')} overruns, lag max {1e3 * own.get('lag_max_s', float('nan')):.1f} ms, "
-              f"{own.get('late_periods', '?')} of {own.get('periods', '?')} periods stepped over a period late; "
+              f"({100 * r['client_cpu']:.0f} %, {r['wakeups_per_sample']:.2f} wake-ups), "
+              f"stand-in {r['server_cpu_us']:.0f} us ({100 * r['server_cpu']:.0f} %)")
+        if "requests" in own:
+            ownt = (f"{own['requests']} requests, {own['block_reads']} sample reads, {own['late_answers']} answered "
+                    f"later than {LATE_ANSWER_S * 1e3:g} ms (max {own['answer_delay_max_s'] * 1e3:.3f} ms), cells no "
+                    f"read fell in {own['cells_unread']}, cells read twice {own['repeat_reads']}, "
+                    f"{own['exceptions']} exceptions, {own['watchdog_trips']} watchdog trips")
+        else:
+            ownt = (f"{own.get('overruns', '?')} overruns, lag max {1e3 * own.get('lag_max_s', float('nan')):.1f} ms, "
+                    f"{own.get('late_periods', '?')} of {own.get('periods', '?')} periods stepped over a period late")
+        sup, f = r["supervision"], r["floor"]
+        if f:
+            slack = (1 - PollSchedule(1.0, 1).lead_s) * r["period_s"]
+            print(f"{'':>30}host timer floor just before, same hogs (a SCHED_FIFO 10 process only sleeping to "
+                  f"{r['period_s'] * 1e3:g} ms deadlines): {f['over_slack']} of {f['n']} wake-ups later than a read's "
+                  f"slack ({slack * 1e3:.2f} ms), p99 {f['p99_s'] * 1e6:.0f} us, max {f['max_s'] * 1e6:.0f} us; "
+                  f"the master: {sup['polls_late']} of {r['samples']} reads in a later cell")
+        extra = (f"; latest send {sup['poll_late_max_s'] * 1e3:.2f} ms after due; lost: {sup['lost_sent_late']} "
+                 f"read sent after its cell had ended (master not run), "
+                 f"{sup['lost_misplaced']} sent in time" if "polls_late" in sup else "")
+        print(f"{'':>30}master {r['priority']}{extra}; stand-in {r['stand_in']}, its own counters: {ownt}; "
               f"load {r['load']}", flush=True)
     return 0
 

@@ -13,6 +13,12 @@ the master got and lost. Then lockstep (SYNC as fast as the drives answer): samp
 On socketcan run it where vcan0 exists, e.g. ``.ci/vcan -- .venv/bin/python -m
 gearbench.benchmarks sync_jitter`` in the CI guest (software-emulated: its figures are
 the emulator's, not a real kernel's).
+
+``--candump-log FILE`` adds the kernel broadcast manager's row from a ``candump -L`` log
+of its SYNC frames (kernel receive timestamps), as ``.ci/vcan --sync-jitter`` records it
+on vcan0 in the guest, where the whole benchmark is too slow to run: there it is the
+producer alone, the row beside the others measured here (e.g. ``--bus
+udp_multicast:239.74.163.2:43113 --producers thread``).
 """
 from __future__ import annotations
 
@@ -101,6 +107,32 @@ def paced(bus: str, producer: str, period_s: float, duration_s: float) -> dict:
             "samples": got, "lost": syncs - got}
 
 
+def candump_sync_stamps(lines) -> np.ndarray:
+    """(receive time s, counter) of the SYNC frames (COB-ID 0x080) in ``candump -L`` log lines,
+    ``(1700000000.123456) vcan0 080#2A``; counter -1 where the SYNC carries none."""
+    rows = []
+    for line in lines:
+        parts = line.split()
+        if len(parts) < 3 or not parts[0].startswith("("):
+            continue
+        can_id, _, data = parts[2].partition("#")
+        if int(can_id, 16) != 0x80:
+            continue
+        rows.append((float(parts[0].strip("()")), int(data[:2], 16) if data else -1))
+    return np.array(rows, dtype=float).reshape(-1, 2)
+
+
+def jitter_row(stamps: np.ndarray, period_s: float) -> dict:
+    """|dT - T| p50 / p99 / max (us) of the SYNC intervals one counter step apart, the rate achieved
+    and the SYNCs the receiver never saw (counter gaps)."""
+    intervals = sync_intervals(stamps)
+    dev_us = np.abs(intervals - period_s) * 1e6 if len(intervals) > 1 else np.array([np.nan])
+    span = stamps[-1, 0] - stamps[0, 0] if len(stamps) > 1 else np.nan
+    gaps = int(((np.diff(stamps[:, 1]) - 1) % 240).sum()) if len(stamps) > 1 and (stamps[:, 1] >= 0).all() else 0
+    return {"syncs_seen": len(stamps), "rate_hz": (len(stamps) - 1) / span, "p50_us": np.percentile(dev_us, 50),
+            "p99_us": np.percentile(dev_us, 99), "max_us": dev_us.max(), "unseen": gaps}
+
+
 def lockstep(bus: str, period_s: float, n: int) -> dict:
     with CiA402Network(bus=bus, lockstep=True, **NET) as net:
         _drives(net, period_s)
@@ -121,7 +153,25 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--producers", nargs="+", default=None, choices=["kernel", "thread", "loop"],
                    help="default: kernel (socketcan only), thread, loop")
     p.add_argument("--lockstep-samples", type=int, default=2000)
+    p.add_argument("--candump-log", help="a candump -L log of the broadcast manager's SYNC (.ci/vcan --sync-jitter)")
+    p.add_argument("--where", default="", help="where the candump log was recorded (printed)")
     args = p.parse_args(argv)
+    if args.candump_log:
+        try:
+            with open(args.candump_log) as f:
+                r = jitter_row(candump_sync_stamps(f), args.period_s)
+        except (OSError, ValueError) as exc:
+            print(f"{args.candump_log}: not a candump -L log of SYNC frames ({exc})", file=sys.stderr)
+            return 2
+        print(f"SYNC producers, period {args.period_s * 1e3:g} ms; |dT-T| between SYNCs one counter step apart, "
+              f"kernel receive timestamps; load {load_average()}")
+        print(f"{'producer':<10}{'SYNCs':>7}{'rate Hz':>9}{'|dT-T| p50 us':>15}{'p99 us':>9}{'max us':>9}"
+              f"{'unseen':>8}  where")
+        print(f"{'kernel':<10}{r['syncs_seen']:>7}{r['rate_hz']:>9.1f}{r['p50_us']:>15.0f}{r['p99_us']:>9.0f}"
+              f"{r['max_us']:>9.0f}{r['unseen']:>8}  broadcast manager alone on vcan0 ({args.where or args.candump_log})",
+              flush=True)
+        if not args.producers:
+            return 0
     bus = str(parse_bus(args.bus))
     producers = args.producers or (["kernel"] if bus.startswith("socketcan:") else []) + ["thread", "loop"]
     proc = subprocess.Popen([sys.executable, "-m", "gearbench", "emulate", "--can", bus],
@@ -144,6 +194,8 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             print(f"{r['producer']:<10}{r['syncs_seen']:>7}{r['rate_hz']:>9.1f}{r['p50_us']:>15.0f}"
                   f"{r['p99_us']:>9.0f}{r['max_us']:>9.0f}{r['samples']:>9}{r['lost']:>7}")
+        if args.lockstep_samples <= 0:
+            return 0
         r = lockstep(bus, args.period_s, args.lockstep_samples)
         print(f"lockstep on {bus}: {r['samples']} samples of both drives in {r['wall_s']:.1f} s = "
               f"{r['samples_per_s']:.0f} samples/s, lost {r['lost']}")

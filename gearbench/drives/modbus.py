@@ -15,12 +15,25 @@ Options: ``host`` ("127.0.0.1"), ``port`` (502), ``timeout_s`` (1.0),
 ``lockstep`` (False), ``master_timeout_ms`` (1000; 0 = off). A drive may override
 ``host``/``port`` in ``AxisConfig.extra`` (real drives usually have one IP each).
 
+Free-running (real drives): a Modbus drive keeps no history, so a sample the master
+does not read within its sampling period (a "cell": ``period_s`` of the first drive's
+sample counter) is lost. The master reads every drive's sample block ONCE per cell, at
+a time on the wall clock locked to the first drive's counter (``PollSchedule``),
+with TCP_NODELAY, raw on the client's own socket (a pymodbus request costs ~150-300 us
+of CPU, a raw one tens of us). Drives with their own connection (one IP each) are read at
+once; drives sharing one connection in turn (one request outstanding per connection).
+The answer to a connection's last read is taken at the next read's wake-up, so the
+master wakes once per sample. Lost, defined: a cell of the first drive's counter
+between two samples taken that no read fell in (``lost_samples``).
+
 A tester PC that dies stops its drives: where the map declares the drive's
 communication watchdog (``comm_timeout``, seconds), the master arms it against real
 drives (not lockstep), so a drive that hears no request for that long quick-stops.
 """
 from __future__ import annotations
 
+import socket
+import struct
 import time
 
 from pymodbus.client import ModbusTcpClient
@@ -78,6 +91,7 @@ class ModbusDrive(Drive):
 
     # --- low level: every request goes through _call -------------------------
     def _call(self, what: str, fn, *args, **kwargs):
+        self.network._drain()     # an outstanding sample read's answer first: one connection, in order
         try:
             rr = fn(*args, device_id=self.unit, **kwargs)
         except ModbusException as exc:
@@ -221,6 +235,66 @@ class ModbusDrive(Drive):
             return ""
 
 
+class PollSchedule:
+    """When to read a free-running drive so that each read falls inside its sampling cell.
+
+    Cell ``i`` of the drive's sample counter (``k`` counts of ``counter_period_s`` per sampling
+    period) spans drive time ``[i*k, (i+1)*k) * counter_period_s``; the drive's clock is
+    ``phase_s`` on the host clock (host time of drive time 0, minus the request's transit).
+    Regular reads are sent ``lead`` into their cell, where a late wake-up has the rest of
+    the cell before the read misses it and reads the cell's first count (the sample is
+    stamped on the grid). Every ``probe_every``-th read (every one while locking) is a probe
+    sent on the cell's start edge: whether the drive was still in the previous cell (the
+    master reads again at once) or already in this one moves ``phase_s`` by ``step_s``
+    toward the edge, so the schedule follows the drive's crystal
+    (bang-bang phase tracking; ``step_s / (probe_every * period)`` is the drift it follows:
+    625 ppm at the defaults) with no clock exchange the protocol does not have.
+
+    Pure: no I/O; times in seconds on any monotonic host clock.
+    """
+
+    def __init__(self, counter_period_s: float, k: int, *, lead: float = 0.15, probe_every: int = 16,
+                 step_s: float = 20e-6, lock_probes: int = 64):
+        self.cp, self.k = counter_period_s, k
+        self.period_s = k * counter_period_s
+        self.lead_s = lead * self.period_s
+        self.probe_every, self.step_s = probe_every, step_s
+        self.phase_s: float | None = None
+        self.lock_probes = lock_probes
+        self._lock_left = lock_probes
+
+    def lock(self, counter: int, t_sent_s: float) -> None:
+        """First estimate: a read sent at ``t_sent_s`` saw ``counter`` change (the edge of that
+        count lies between the previous read and this one)."""
+        self.phase_s = t_sent_s - counter * self.cp
+
+    def relock(self, counter: int, t_sent_s: float) -> None:
+        """A read sent in time fell outside its cell: the drive's clock is not where the schedule
+        has it (a drive whose clock jumped: the Python emulator catching up, a drive reset). Take
+        the phase from this read (to within a counter period) and lock again with probes."""
+        self.phase_s = t_sent_s - (counter + 0.5) * self.cp
+        self._lock_left = max(self._lock_left, self.lock_probes)
+
+    def is_probe(self, cell: int) -> bool:
+        return self._lock_left > 0 or cell % self.probe_every == 0
+
+    def due_s(self, cell: int) -> float:
+        """Host time to send the read of ``cell``."""
+        start = self.phase_s + cell * self.period_s
+        return start if self.is_probe(cell) else start + self.lead_s
+
+    def cell_end_s(self, cell: int) -> float:
+        """Host time the drive's ``cell`` ends (a read sent later cannot fall in it)."""
+        return self.phase_s + (cell + 1) * self.period_s
+
+    def observe(self, cell: int, counter: int) -> None:
+        """A probe of ``cell`` read ``counter``: move the phase toward the edge (no-op otherwise)."""
+        if not self.is_probe(cell):
+            return
+        self._lock_left = max(0, self._lock_left - 1)
+        before_edge = counter < cell * self.k
+        self.phase_s += self.step_s if before_edge else -self.step_s
+
 class ModbusNetwork(DriveNetwork):
     """Modbus TCP endpoint(s) with their drives; see the module docstring."""
 
@@ -239,6 +313,21 @@ class ModbusNetwork(DriveNetwork):
         self._k = 1
         self.counter_skew_max = 0      # largest |index difference| between drives in one sample
         self.skewed_samples = 0
+        self.schedule: PollSchedule | None = None
+        self._groups: list = []        # free-running: (socket, request bytes, drives) per endpoint
+        self._cell: int | None = None  # the next cell to read
+        self._tid = 0
+        self._buf = bytearray(4096)
+        self._pending: tuple | None = None   # (cell, due, sent) of the read whose answer is not yet taken
+        self._held: list = []          # samples taken (by _drain or a late read) but not yet returned
+        self._sent: list = []
+        self._words: dict = {}
+        self._t_sent = 0.0
+        self.polls_late = 0            # reads that fell in a later cell than scheduled (a loss each)
+        self.poll_late_max_s = 0.0     # the latest a read was sent after its due time
+        self.repolls = 0               # reads that came too early (a probe before the cell) and were repeated
+        self.lost_sent_late = 0        # cells lost because their read was sent after the cell had ended
+        self.lost_misplaced = 0        # cells lost to a read sent in time that fell in a later cell
 
     def _client(self, host: str, port: int) -> ModbusTcpClient:
         key = (host, port)
@@ -280,8 +369,22 @@ class ModbusNetwork(DriveNetwork):
         self.period_s = period_s
         self._last_index = None
         self._last_counter = None
+        self._drain()
+        self._cell = None
+        self._held.clear()
         for d in self.drives.values():
             d.watch_master(0 if self.lockstep else self.master_timeout_ms / 1000.0)
+        if not self.lockstep:
+            first = next(iter(self.drives.values()))
+            self.schedule = PollSchedule(first.map.counter_period_s, first._k)
+            self._groups = []
+            for client in {id(d.client): d.client for d in self.drives.values()}.values():
+                drives = [d for d in self.drives.values() if d.client is client]
+                sock = client.socket
+                if sock is None:
+                    raise DriveError(f"{drives[0]!r}: not connected; check the drive is powered")
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)   # each request goes out at once
+                self._groups.append((sock, drives))
 
     def _sync(self) -> None:
         d = self._sync_drive or next((d for d in self.drives.values() if "sync" in d.map.registers), None)
@@ -301,10 +404,10 @@ class ModbusNetwork(DriveNetwork):
             else:
                 sync.write("sync", sync._k)
                 samples = {first.name: first.read_sample()}
+            for d in drives[1:]:
+                samples[d.name] = d.read_sample()
         else:
-            samples = {first.name: self._next_free_running(first)}
-        for d in drives[1:]:
-            samples[d.name] = d.read_sample()
+            samples = self._next_free_running()
         # every drive's own counter is checked: one sample must be one instant on every drive
         skew = max(abs(s.index - samples[first.name].index) for s in samples.values())
         if skew:
@@ -325,27 +428,219 @@ class ModbusNetwork(DriveNetwork):
         return samples
 
     def supervision(self) -> dict:
-        return {"skewed_samples": self.skewed_samples, "counter_skew_max": self.counter_skew_max,
-                "if_the_master_dies": {n: d.master_watch for n, d in self.drives.items()}}
+        out = {"skewed_samples": self.skewed_samples, "counter_skew_max": self.counter_skew_max,
+               "if_the_master_dies": {n: d.master_watch for n, d in self.drives.items()}}
+        if not self.lockstep:
+            out.update(polls_late=self.polls_late, poll_late_max_s=self.poll_late_max_s, repolls=self.repolls,
+                       lost_sent_late=self.lost_sent_late, lost_misplaced=self.lost_misplaced)
+        return out
 
-    def _next_free_running(self, drive: ModbusDrive) -> Sample:
-        """Poll until the drive's counter reaches the next sampling instant."""
+    def _next_free_running(self) -> dict[str, Sample]:
+        """Every drive's sample block in the next cell of the first drive's counter, read when
+        ``schedule`` says (see the module docstring); a cell passed while the master was not run
+        is lost (counted by ``sample()`` from the counter gap).
+
+        One wake-up per sample: the answer to a regular read is taken at the next read's due time
+        (it arrived long before), just before that read is sent; so its sample is returned one
+        period after the read. A probe's answer is awaited (one read in 16: a probe that came
+        before its cell is repeated at once). A request of pymodbus's on the same connection first
+        takes the answer outstanding (``_drain``) and keeps its sample for the next call."""
+        if self._held:
+            return self._held.pop(0)
+        sched = self.schedule
+        if self._cell is None:
+            return self._lock()
+        while True:
+            due = sched.due_s(self._cell)
+            now = time.monotonic()
+            if due > now:
+                time.sleep(due - now)
+            result = self._take_pending()
+            if result is not None and sched.due_s(self._cell) > time.monotonic() + sched.cp / 8:
+                self._held.append(result)        # the read fell in a later cell: the next is later too
+                continue
+            due = max(due, sched.due_s(self._cell))  # a cell read again goes out now, not "late"
+            if sched.is_probe(self._cell):
+                self._held.extend(r for r in (result, self._probe(due)) if r is not None)
+                if self._held:
+                    return self._held.pop(0)
+                continue
+            self._send_reads()
+            self._pending = (self._cell, due, self._t_sent)
+            self._cell += 1
+            if result is not None:
+                return result
+            if self._held:
+                return self._held.pop(0)
+
+    def _lock(self) -> dict[str, Sample]:
+        """Lock the schedule on the first drive's next counter edge (reads every 1/8 counter period)."""
+        first, sched = next(iter(self.drives.values())), self.schedule
+        words = self._read_all()
+        c0 = self._counter(first, words[first.name])
         deadline = time.monotonic() + max(0.1, 50 * self.period_s)
         while True:
-            raw = drive.map.decode_block(drive.block_start, words := drive._read_block(), ("sample_counter",))
-            counter = raw["sample_counter"]
-            if self._last_counter is None or counter // drive._k > self._last_counter // drive._k or \
-                    counter < self._last_counter:
-                self._last_counter = counter
-                return drive._to_sample(words)
+            time.sleep(sched.cp / 8)
+            words = self._read_all()
+            c = self._counter(first, words[first.name])
+            if c != c0:
+                break
             if time.monotonic() > deadline:
-                raise DriveError(f"{drive!r}: sample counter stuck at {counter}; the drive is not running its "
+                raise DriveError(f"{first!r}: sample counter stuck at {c}; the drive is not running its "
                                  f"cycle (or, emulated, needs lockstep=True)")
-            # sleep until the drive's clock enters the next sampling period (each read costs the
-            # master ~150-300 us of CPU: polling every period/8 made it ~700 us per sample at 2 ms),
-            # then poll finely; never spin: the other core has work too
-            k, cp = drive._k, drive.map.counter_period_s
-            time.sleep(max(self.period_s / 8, ((counter // k + 1) * k - counter) * cp))
+        sched.lock(c, self._t_sent)
+        self._cell = c // first._k + 1
+        return self._samples(words)
+
+    def _probe(self, due: float) -> dict[str, Sample] | None:
+        """Read the probe cell on its start edge and wait for the answer; a read that came before
+        the edge (the drive still in the previous cell) is repeated after 1/16 counter period."""
+        expected, sched = self._cell, self.schedule
+        deadline = time.monotonic() + max(0.1, 50 * self.period_s)
+        while True:
+            self._send_reads()
+            t_sent = self._t_sent
+            out = self._account(expected, due, t_sent, self._receive_reads())
+            if out is not None or self._cell != expected:
+                return out
+            if time.monotonic() > deadline:
+                first = next(iter(self.drives.values()))
+                raise DriveError(f"{first!r}: sample counter does not reach cell {expected}; the drive is not "
+                                 f"running its cycle")
+            time.sleep(sched.cp / 16)
+            due = time.monotonic()
+
+    def _take_pending(self) -> dict[str, Sample] | None:
+        """The outstanding regular read's samples, checked against its cell (``_account``)."""
+        if self._pending is None:
+            return None
+        expected, due, t_sent = self._pending
+        self._pending = None
+        return self._account(expected, due, t_sent, self._receive_reads())
+
+    def _account(self, expected: int, due: float, t_sent: float, words: dict) -> dict[str, Sample] | None:
+        """The samples of a read meant for cell ``expected``, sent at ``t_sent`` (due ``due``); None
+        when it fell before that cell (it is read again). Lateness and losses are counted."""
+        first, sched = next(iter(self.drives.values())), self.schedule
+        self.poll_late_max_s = max(self.poll_late_max_s, t_sent - due)
+        c = self._counter(first, words[first.name])
+        cell = c // first._k
+        if cell < expected:
+            if sched.is_probe(expected):
+                sched.observe(expected, c)       # a probe on the cell's start edge, just early
+            else:
+                sched.relock(c, t_sent)          # the drive's clock is behind the schedule
+            self.repolls += 1
+            self._cell = expected
+            return None
+        if cell == expected:
+            sched.observe(cell, c)
+        else:
+            self.polls_late += 1
+            # sent after its cell had ended: the master was not run in time (a host stall, as the
+            # host timer floor shows); else the drive's clock was ahead of the schedule
+            if t_sent >= sched.cell_end_s(expected):
+                self.lost_sent_late += cell - expected
+            else:
+                self.lost_misplaced += cell - expected
+                sched.relock(c, t_sent)
+        self._cell = max(self._cell, cell + 1)
+        return self._samples(words)
+
+    def _drain(self) -> None:
+        """Take the outstanding sample read's answer (before any other request on the connection)."""
+        if self._pending is not None:
+            result = self._take_pending()
+            if result is not None:
+                self._held.append(result)
+
+    def _discard_backlog(self) -> None:
+        """Samples read before now are not the next acquisition's; it starts at the next cell."""
+        self._drain()
+        self._held.clear()
+        if self._cell is not None:     # the cells between (a pause between segments) were never due
+            sched = self.schedule
+            self._cell = max(self._cell, int((time.monotonic() - sched.phase_s) // sched.period_s) + 1)
+
+    def _counter(self, drive: ModbusDrive, words) -> int:
+        reg = drive.map.registers["sample_counter"]
+        off = reg.address - drive.block_start
+        return int(drive.map.decode_raw("sample_counter", words[off:off + reg.words]))
+
+    def _samples(self, words: dict) -> dict[str, Sample]:
+        return {d.name: d._to_sample(words[d.name]) for d in self.drives.values()}
+
+    def _read_all(self) -> dict[str, tuple]:
+        """Every drive's sample block, now (send, then wait for the answers)."""
+        self._send_reads()
+        return self._receive_reads()
+
+    def _send_reads(self) -> None:
+        """Every drive's sample read; ``_t_sent`` = when. One request outstanding per connection (a
+        Modbus TCP server may take one at a time: pymodbus's answers only the first of two sent
+        together), so the reads of drives on different connections (real drives: one IP each) go
+        out together, those sharing one are read in turn, and only each connection's last read is
+        left outstanding (``_receive_reads`` takes its answer)."""
+        self._t_sent = time.monotonic()
+        sent, self._words = [], {}
+        for sock, drives in self._groups:
+            if sock.gettimeout() is not None:
+                # blocking, with the timeout in the kernel (SO_RCVTIMEO): one recv per answer, where a
+                # Python timeout is a poll() and a recv; pymodbus leaves its socket non-blocking
+                sock.settimeout(None)
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO,
+                                struct.pack("ll", int(self.timeout_s), int(self.timeout_s % 1 * 1e6)))
+            for d in drives[:-1]:
+                self._words[d.name] = self._receive(sock, d, self._request(sock, d))
+            sent.append((sock, drives[-1], self._request(sock, drives[-1])))
+        self._sent = sent
+
+    def _request(self, sock: socket.socket, d: ModbusDrive) -> int:
+        self._tid = (self._tid + 1) & 0x7FFF
+        tid = 0x8000 | self._tid                    # apart from pymodbus's own transaction ids
+        try:
+            sock.sendall(struct.pack(">HHHBBHH", tid, 0, 6, d.unit, 3, d.block_start, d.block_words))
+        except OSError as exc:
+            raise DriveError(f"{d!r}: cannot send the sample read ({exc}); check the cable and "
+                             f"that the drive is powered") from None
+        return tid
+
+    def _receive_reads(self) -> dict[str, tuple]:
+        words, sent, self._sent = self._words, self._sent, []
+        for sock, d, tid in sent:
+            words[d.name] = self._receive(sock, d, tid)
+        return words
+
+    def _receive(self, sock: socket.socket, d: ModbusDrive, tid: int) -> tuple:
+        """The answer to request ``tid``: the words of ``d``'s sample block."""
+        buf, view, got = self._buf, memoryview(self._buf), 0
+        need = 7
+        while True:
+            if got >= 7:
+                need = 6 + (buf[4] << 8 | buf[5])
+                if need <= 8 or need > len(buf):
+                    raise DriveError(f"{d!r}: malformed Modbus TCP answer (length {need - 6})")
+            if got >= need:
+                break
+            try:
+                n = sock.recv_into(view[got:need], need - got)
+            except (BlockingIOError, socket.timeout):
+                raise DriveError(f"{d!r}: no answer to the sample read within {self.timeout_s:g} s; check the "
+                                 f"drive is powered, the address/unit id and the cable") from None
+            if n == 0:
+                raise DriveError(f"{d!r}: the drive closed the connection during a sample read; check the "
+                                 f"drive (a watchdog, a reboot) and the cable")
+            got += n
+        r_tid, _, _, unit, fc = struct.unpack_from(">HHHBB", buf)
+        if r_tid != tid or unit != d.unit:
+            raise DriveError(f"{d!r}: answer to another request (transaction {r_tid}, unit {unit}; expected "
+                             f"{tid}, unit {d.unit}); a second master on the same connection?")
+        if fc & 0x80:
+            code = buf[8]
+            raise DriveError(f"{d!r}: Modbus exception {code} ({EXCEPTION_NAMES.get(code, 'unknown')}) to the "
+                             f"sample read at {d.block_start}; check the register map {d.map.path} against the "
+                             f"drive manual")
+        return struct.unpack_from(f">{d.block_words}H", buf, 9)
 
     def _close(self) -> None:
         for d in self.drives.values():

@@ -404,17 +404,23 @@ class CanopenServer:
         self.network.subscribe(0x80, self.on_sync)
         self.network.NOTIFIER_CYCLE = 0.1    # stop() waits for one notifier cycle
         self.network.connect()
-        self._receive_lag = _ReceiveLag()
-        self.network.notifier.add_listener(self._receive_lag)
-        self._heard: dict[int, float] = {}                 # producer node id -> last heartbeat (monotonic)
-        self._listening: set[int] = set()
-        self._lost: dict[tuple[int, int], float] = {}     # (node, producer) -> the heartbeat it timed out after
-        self._stop = threading.Event()
-        self._heartbeat = threading.Thread(target=self._heartbeat_loop, name="emulate-heartbeat", daemon=True)
-        for node in self.nodes:   # power-up: boot-up message, then PRE-OPERATIONAL
-            self.network.send_message(0x700 + node.id, [0])
-            node.nmt.state = "PRE-OPERATIONAL"
-        self._heartbeat.start()
+        try:
+            self._receive_lag = _ReceiveLag()
+            self.network.notifier.add_listener(self._receive_lag)
+            self._heard: dict[int, float] = {}                 # producer node id -> last heartbeat (monotonic)
+            self._listening: set[int] = set()
+            self._lost: dict[tuple[int, int], float] = {}     # (node, producer) -> the heartbeat it timed out after
+            self._stop = threading.Event()
+            self._heartbeat = threading.Thread(target=self._heartbeat_loop, name="emulate-heartbeat", daemon=True)
+            for node in self.nodes:   # power-up: boot-up message, then PRE-OPERATIONAL
+                self.network.send_message(0x700 + node.id, [0])
+                node.nmt.state = "PRE-OPERATIONAL"
+            self._heartbeat.start()
+        except Exception:
+            # the notifier stops before the bus closes (closed under it, its thread raised "Cannot
+            # operate on a closed bus")
+            self.network.disconnect()
+            raise
 
     def _sdo_filter(self, node: DriveNode):
         def on_request(can_id, data, timestamp):
