@@ -133,7 +133,8 @@ def sampler_holds(ctx: Context, base: Base, nom_folds, mse_nom) -> list[float]:
     list of float
         The hold fraction per fold, in [0, 1].
     """
-    eps = _eps_grid(ctx.sig)[len(EPS_FRACTIONS) // 2]
+    grid = _eps_grid(ctx.sig)
+    eps = grid[len(grid) // 2]
     terms = base.terms() + [CoulombTerm(eps=eps)]
     folds = _refined(ctx, [fit_model(ctx.sig, terms, w)[0] for w in ctx.wins])
     ok = all(m.params()["tc_over_j"] > 0 for m in folds)     # friction opposes motion
