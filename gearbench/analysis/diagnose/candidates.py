@@ -189,7 +189,8 @@ def fit_effect(sig, base, effect: Effect, win, hp0: dict | None = None, sim=None
 
 def n_settings(effect: Effect, sig, base) -> int:
     grid = effect.grid(sig, base)
-    return len([k for k in grid[0] if len({g[k] for g in grid}) > 1])
+    keys = dict.fromkeys(k for g in grid for k in g)     # a setting some points leave out
+    return len([k for k in keys if len({g.get(k) for g in grid}) > 1])
 
 
 def _n_free(model: Model, base: Base, effect: Effect | None) -> int:

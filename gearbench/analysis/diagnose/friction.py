@@ -183,6 +183,31 @@ def _mid_eps(sig: Signals) -> float:
     return grid[len(grid) // 2]
 
 
+def narrower_widths(sig: Signals, base: Base) -> list[float | None]:
+    """Coulomb widths a position-periodic candidate is fitted with: the narrowest
+    scanned one (closest to static friction's sign) when the chain chose a wider one,
+    else the chain's own (None).
+
+    A wide width creeps at low speed and so stands in for a torque that pulls the
+    rotor there (cogging at a slow roll-back): chosen before cogging, 2.3 rad/s on our
+    own --sim disk calibration left cogging nothing to close (shrink 0), and cogging
+    never entered to let the width be re-chosen (retune does so once it is in)."""
+    eps = _chosen_eps(sig, base) if "coulomb_friction" in base.chosen_names else None
+    if eps is None:
+        return [None]
+    narrow = min(_eps_grid(sig))
+    return [narrow] if narrow < 0.5 * eps else [None]
+
+
+def with_width(base: Base, hp: dict) -> Base:
+    """``base`` with the chosen Coulomb width replaced by ``hp["coulomb_eps_rad_s"]``."""
+    eps = hp.get("coulomb_eps_rad_s")
+    if eps is None or "coulomb_friction" not in base.chosen_names:
+        return base
+    return base.with_settings("coulomb_friction",
+                              {**base.settings("coulomb_friction"), "eps_rad_s": float(eps)})
+
+
 def _chosen_eps(sig: Signals, base: Base) -> float | None:
     for e, hp in base.chosen:
         if "eps_rad_s" in hp:
