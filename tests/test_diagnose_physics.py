@@ -199,12 +199,6 @@ def sim_run(tmp_path_factory):
     return _sim_run(tmp_path_factory, "profiles/cvt.yaml")
 
 
-@pytest.fixture(scope="module", params=["profiles/cvt.yaml", "profiles/cyclo.yaml"])
-def any_sim_run(request, tmp_path_factory, sim_run):
-    return sim_run if request.param.endswith("cvt.yaml") else _sim_run(tmp_path_factory,
-                                                                       request.param)
-
-
 @pytest.mark.slow
 def test_a_sim_run_diagnosed_whole_without_non_physical_numbers(sim_run, capsys):
     capsys.readouterr()
@@ -227,18 +221,51 @@ def test_a_sim_run_diagnosed_whole_without_non_physical_numbers(sim_run, capsys)
     assert "<h2>Diagnosis" in page and "calibrate-in-disk_a" in page
 
 
-@pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="issue 24 deliverable 4 not met yet: cvt --sim calibrations "
-                   "end 2.2-4.4x the floor (the start from standstill; cogging not significant on "
-                   "2 s traces), cyclo's 1.1-1.7x; efficiency steps 0.9-1.3x but cvt's 200 rad/s "
-                   "step 3.4x (its run-up and run-down); see the scorecard's run section")
-def test_every_step_of_a_sim_run_diagnoses_to_the_floor(any_sim_run):
+#: Fresh --sim runs for self-consistency: noise seeds neither the profiles' own (cvt 7,
+#: cyclo 11) nor the ones the diagnoser was checked on while developing (3, 5).
+FRESH_SEEDS = {"profiles/cvt.yaml": 21, "profiles/cyclo.yaml": 22}
+
+
+@pytest.fixture(scope="module", params=sorted(FRESH_SEEDS), ids=["cvt", "cyclo"])
+def fresh_run_diagnosis(request, tmp_path_factory):
+    """(profile, diagnose_run of a fresh --sim run of it)."""
     from gearbench.station.recorder import load_step_trace
 
-    steps = {q.stem[len("trace-"):]: load_step_trace(q)
-             for q in any_sim_run.glob("trace-*.parquet")}
-    run = diagnose_run(steps, json.loads((any_sim_run / "result.json").read_text()))
-    assert all(e["gap_ratio_after"] <= 1.5 for e in run["steps"])
+    out = tmp_path_factory.mktemp("fresh") / "run"
+    assert main(["run", request.param, "--sim", "--yes", "--seed",
+                 str(FRESH_SEEDS[request.param]), "--out", str(out)]) in (0, 1)
+    steps = {q.stem[len("trace-"):]: load_step_trace(q) for q in out.glob("trace-*.parquet")}
+    return request.param, diagnose_run(steps, json.loads((out / "result.json").read_text()))
+
+
+def _left(run, kind):
+    return {f"{e['step']} {e['motor']}": round(e["gap_ratio_after"], 2)
+            for e in run["steps"] if e["kind"] == kind}
+
+
+@pytest.mark.slow
+def test_every_calibration_of_a_fresh_sim_run_diagnoses_to_the_floor(fresh_run_diagnosis):
+    """Each motor's calibration trace ends within 1.5x its noise floor, the emulator's
+    effects named (Coulomb friction, cogging or its one-way look-alike)."""
+    profile, run = fresh_run_diagnosis
+    left = _left(run, "motor")
+    assert len(left) == 4
+    if profile.endswith("cyclo.yaml") and max(left.values()) > 1.5:
+        pytest.xfail(f"cyclo's small-disk calibration: cogging closes ~40 % of what Coulomb "
+                     f"friction leaves but is not significant (dBIC -3); left {left}")
+    assert max(left.values()) <= 1.5, left
+
+
+@pytest.mark.slow
+def test_every_efficiency_step_of_a_fresh_sim_run_diagnoses_to_the_floor(fresh_run_diagnosis):
+    """Each efficiency step against the bench model built from the run's calibrations."""
+    profile, run = fresh_run_diagnosis
+    left = _left(run, "bench")
+    assert len(left) == 3
+    if profile.endswith("cvt.yaml") and max(left.values()) > 1.5:
+        pytest.xfail(f"cvt's 200 rad/s step: its run-up from 100 rad/s (torque balance "
+                     f"17-110x the floor on those blocks, 1.7x on the steady ones); left {left}")
+    assert max(left.values()) <= 1.5, left
 
 
 @pytest.mark.parametrize("model,field", [({"Kt": -0.05, "J": 1e-5, "D": 0.0}, "Kt/J"),
