@@ -278,3 +278,18 @@ def test_a_non_physical_given_model_is_refused(tmp_path, model, field):
     f.write_text(json.dumps(model))
     with pytest.raises(ProfileError, match=field):
         load_model(f)
+
+
+def test_position_friction_and_cogging_are_one_ambiguity_on_one_way_motion():
+    """On one-direction motion sign(w) is constant: friction varying with an order of
+    the angle is cogging of that order — named as one ambiguity with its experiment."""
+    from gearbench.analysis.diagnose.chain import _one_ambiguity
+    from gearbench.analysis.diagnose.verdict import Verdict
+
+    steps = [{"effect": "coulomb_friction", "confused_with": [], "experiment": None},
+             {"effect": "position_friction", "confused_with": [], "experiment": None}]
+    v = _one_ambiguity(Verdict("coulomb_friction", [], None), steps)
+    assert v.confused_with == ["current_offset"]
+    assert steps[1]["confused_with"] == ["cogging"]
+    assert steps[1]["ambiguous"] == ["position_friction", "cogging"]
+    assert "both directions" in steps[1]["experiment"]
