@@ -293,3 +293,47 @@ def test_position_friction_and_cogging_are_one_ambiguity_on_one_way_motion():
     assert steps[1]["confused_with"] == ["cogging"]
     assert steps[1]["ambiguous"] == ["position_friction", "cogging"]
     assert "both directions" in steps[1]["experiment"]
+
+
+def test_a_standstill_bounds_the_coulomb_width():
+    """A rotor that stands 20 samples on one encoder count while current flows crept
+    less than a count: a smoothed sign wider than q / (20 dt) would have moved it."""
+    from gearbench.analysis.diagnose.friction import _eps_grid, stuck_width_bound
+    from gearbench.analysis.diagnose.nominal import Signals
+
+    dt, q, n = 1e-3, 2 * np.pi / 10000, 400
+    rng = np.random.default_rng(0)
+    th = np.round(np.cumsum(np.full(n, 1.5 * dt)) / q) * q      # 1.5 rad/s on a lattice
+    th[100:120] = th[100]                                        # 20 samples standing
+    th[120:] += th[100] - th[120]
+    cur = 0.3 + 0.004 * rng.standard_normal(n)
+
+    def sig(theta, current):
+        return Signals(np.arange(n) * dt, theta, np.gradient(theta, dt), current, dt)
+
+    assert stuck_width_bound(sig(th, cur)) == pytest.approx(q / (20 * dt))
+    assert max(_eps_grid(sig(th, cur))) <= q / (20 * dt)
+    # no current while standing (drive off): nothing to creep under, no bound
+    off = cur.copy()
+    off[95:125] = 0.004 * rng.standard_normal(30)
+    assert stuck_width_bound(sig(th, off)) is None
+    moving = np.round(np.cumsum(np.full(n, 1.5 * dt)) / q) * q
+    assert stuck_width_bound(sig(moving, cur)) is None
+
+
+def test_a_local_gain_is_significant_only_when_it_closes_most_of_the_gap():
+    """Two horizons far above the floor brought to it (a slow roll-back's cogging):
+    significant though the paired t is modest; the same gain closing a third of a
+    larger gap is not."""
+    from gearbench.analysis.diagnose import verdict as vd
+
+    floor = 1.0
+    before = np.full(80, 1.0)
+    before[[0, 4]] = [130.0, 180.0]
+    after = before.copy()
+    after[[0, 4]] = [0.7, 5.0]
+    s = vd.score("cogging", {}, before, after, 2, floor, 1.0, overlap=4)
+    assert s.t_stat < vd.T_CRIT and s.shrink >= vd.LOCAL_SHRINK and s.significant
+    wide = before + 12.0          # the rest of the trace also far above the floor
+    s = vd.score("cogging", {}, wide, after + 12.0, 2, floor, 1.0, overlap=4)
+    assert s.shrink < vd.LOCAL_SHRINK and not s.significant
