@@ -330,20 +330,20 @@ def test_cli_position_unit_options(tmp_path, capsys):
 def test_shaft_under_an_ordinary_multisine_is_testable_and_placed():
     """A two-mass resonance (~29 Hz) under a 0.3-6 Hz multisine: the former rule
     (excitation bandwidth must reach half the resonance) called it untestable; it is
-    testable, and the fit places the resonance (wn within 5 %) and closes part of the
-    gap on held-out data.  Not more: the multisine rings the mode only in the start
-    transient (one 0.5 s block; later blocks' twist is ~800x smaller, quasi-static), so
-    a model fitted without that block cannot learn the ring and one fitted with it is
-    scored without it — held-out validation cannot confirm a one-block effect.  Its
-    shrink was 0.28 while the folds alternated blocks in time (an artefact: the
-    transient bent the even fold's nominal fit, which the shaft mended); with blocks
-    dealt to the folds by excitation it is ~0.13 and not significant against the null,
-    and Kt saturation is the verdict (see the scorecard)."""
+    testable, and the fit places the resonance (wn within 5 %).  Held-out validation
+    cannot confirm it: the multisine rings the mode only in the start transient (one
+    0.5 s block; later blocks' twist is ~800x smaller, quasi-static), so a model fitted
+    without that block cannot learn the ring and one fitted with it is scored without
+    it.  Its shrink was 0.28 while the folds alternated blocks in time (an artefact:
+    the transient bent the even fold's nominal fit, which the shaft mended), ~0.12 with
+    blocks dealt to the folds by excitation, and -0.03 since fits are refined on every
+    fit horizon rather than the disjoint ones (issue 24) — never significant; the
+    scorecard names it 0/4 on multisines."""
     case = harness.Case("shaft_compliance", "moderate", "multisine", 0,
                         harness.INJECTIONS["shaft_compliance"][1])
     d = harness.run_case(case, chain=False).diagnosis
     sc = next(c for c in d.candidates if c.effect == "shaft_compliance")
-    assert sc.testable and sc.shrink > 0.05
+    assert sc.testable and not sc.significant
     wn = np.sqrt(case.changes["shaft_stiffness"] / harness.DISK_KGM2["shaft_compliance"])
     assert abs(sc.params["wn_rad_s"] / wn - 1) < 0.05
 

@@ -199,12 +199,6 @@ def sim_run(tmp_path_factory):
     return _sim_run(tmp_path_factory, "profiles/cvt.yaml")
 
 
-@pytest.fixture(scope="module", params=["profiles/cvt.yaml", "profiles/cyclo.yaml"])
-def any_sim_run(request, tmp_path_factory, sim_run):
-    return sim_run if request.param.endswith("cvt.yaml") else _sim_run(tmp_path_factory,
-                                                                       request.param)
-
-
 @pytest.mark.slow
 def test_a_sim_run_diagnosed_whole_without_non_physical_numbers(sim_run, capsys):
     capsys.readouterr()
@@ -227,18 +221,51 @@ def test_a_sim_run_diagnosed_whole_without_non_physical_numbers(sim_run, capsys)
     assert "<h2>Diagnosis" in page and "calibrate-in-disk_a" in page
 
 
-@pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="issue 24 deliverable 4 not met yet: cvt --sim calibrations "
-                   "end 2.2-4.4x the floor (the start from standstill; cogging not significant on "
-                   "2 s traces), cyclo's 1.1-1.7x; efficiency steps 0.9-1.3x but cvt's 200 rad/s "
-                   "step 3.4x (its run-up and run-down); see the scorecard's run section")
-def test_every_step_of_a_sim_run_diagnoses_to_the_floor(any_sim_run):
+#: Fresh --sim runs for self-consistency: noise seeds neither the profiles' own (cvt 7,
+#: cyclo 11) nor the ones the diagnoser was checked on while developing (3, 5).
+FRESH_SEEDS = {"profiles/cvt.yaml": 21, "profiles/cyclo.yaml": 22}
+
+
+@pytest.fixture(scope="module", params=sorted(FRESH_SEEDS), ids=["cvt", "cyclo"])
+def fresh_run_diagnosis(request, tmp_path_factory):
+    """(profile, diagnose_run of a fresh --sim run of it)."""
     from gearbench.station.recorder import load_step_trace
 
-    steps = {q.stem[len("trace-"):]: load_step_trace(q)
-             for q in any_sim_run.glob("trace-*.parquet")}
-    run = diagnose_run(steps, json.loads((any_sim_run / "result.json").read_text()))
-    assert all(e["gap_ratio_after"] <= 1.5 for e in run["steps"])
+    out = tmp_path_factory.mktemp("fresh") / "run"
+    assert main(["run", request.param, "--sim", "--yes", "--seed",
+                 str(FRESH_SEEDS[request.param]), "--out", str(out)]) in (0, 1)
+    steps = {q.stem[len("trace-"):]: load_step_trace(q) for q in out.glob("trace-*.parquet")}
+    return request.param, diagnose_run(steps, json.loads((out / "result.json").read_text()))
+
+
+def _left(run, kind):
+    return {f"{e['step']} {e['motor']}": round(e["gap_ratio_after"], 2)
+            for e in run["steps"] if e["kind"] == kind}
+
+
+@pytest.mark.slow
+def test_every_calibration_of_a_fresh_sim_run_diagnoses_to_the_floor(fresh_run_diagnosis):
+    """Each motor's calibration trace ends within 1.5x its noise floor, the emulator's
+    effects named (Coulomb friction, cogging or its one-way look-alike)."""
+    profile, run = fresh_run_diagnosis
+    left = _left(run, "motor")
+    assert len(left) == 4
+    if profile.endswith("cyclo.yaml") and max(left.values()) > 1.5:
+        pytest.xfail(f"cyclo's small-disk calibration: cogging closes ~40 % of what Coulomb "
+                     f"friction leaves but is not significant (dBIC -3); left {left}")
+    assert max(left.values()) <= 1.5, left
+
+
+@pytest.mark.slow
+def test_every_efficiency_step_of_a_fresh_sim_run_diagnoses_to_the_floor(fresh_run_diagnosis):
+    """Each efficiency step against the bench model built from the run's calibrations."""
+    profile, run = fresh_run_diagnosis
+    left = _left(run, "bench")
+    assert len(left) == 3
+    if profile.endswith("cvt.yaml") and max(left.values()) > 1.5:
+        pytest.xfail(f"cvt's 200 rad/s step: its run-up from 100 rad/s (torque balance "
+                     f"17-110x the floor on those blocks, 1.7x on the steady ones); left {left}")
+    assert max(left.values()) <= 1.5, left
 
 
 @pytest.mark.parametrize("model,field", [({"Kt": -0.05, "J": 1e-5, "D": 0.0}, "Kt/J"),
@@ -251,3 +278,62 @@ def test_a_non_physical_given_model_is_refused(tmp_path, model, field):
     f.write_text(json.dumps(model))
     with pytest.raises(ProfileError, match=field):
         load_model(f)
+
+
+def test_position_friction_and_cogging_are_one_ambiguity_on_one_way_motion():
+    """On one-direction motion sign(w) is constant: friction varying with an order of
+    the angle is cogging of that order — named as one ambiguity with its experiment."""
+    from gearbench.analysis.diagnose.chain import _one_ambiguity
+    from gearbench.analysis.diagnose.verdict import Verdict
+
+    steps = [{"effect": "coulomb_friction", "confused_with": [], "experiment": None},
+             {"effect": "position_friction", "confused_with": [], "experiment": None}]
+    v = _one_ambiguity(Verdict("coulomb_friction", [], None), steps)
+    assert v.confused_with == ["current_offset"]
+    assert steps[1]["confused_with"] == ["cogging"]
+    assert steps[1]["ambiguous"] == ["position_friction", "cogging"]
+    assert "both directions" in steps[1]["experiment"]
+
+
+def test_a_standstill_bounds_the_coulomb_width():
+    """A rotor that stands 20 samples on one encoder count while current flows crept
+    less than a count: a smoothed sign wider than q / (20 dt) would have moved it."""
+    from gearbench.analysis.diagnose.friction import _eps_grid, stuck_width_bound
+    from gearbench.analysis.diagnose.nominal import Signals
+
+    dt, q, n = 1e-3, 2 * np.pi / 10000, 400
+    rng = np.random.default_rng(0)
+    th = np.round(np.cumsum(np.full(n, 1.5 * dt)) / q) * q      # 1.5 rad/s on a lattice
+    th[100:120] = th[100]                                        # 20 samples standing
+    th[120:] += th[100] - th[120]
+    cur = 0.3 + 0.004 * rng.standard_normal(n)
+
+    def sig(theta, current):
+        return Signals(np.arange(n) * dt, theta, np.gradient(theta, dt), current, dt)
+
+    assert stuck_width_bound(sig(th, cur)) == pytest.approx(q / (20 * dt))
+    assert max(_eps_grid(sig(th, cur))) <= q / (20 * dt)
+    # no current while standing (drive off): nothing to creep under, no bound
+    off = cur.copy()
+    off[95:125] = 0.004 * rng.standard_normal(30)
+    assert stuck_width_bound(sig(th, off)) is None
+    moving = np.round(np.cumsum(np.full(n, 1.5 * dt)) / q) * q
+    assert stuck_width_bound(sig(moving, cur)) is None
+
+
+def test_a_local_gain_is_significant_only_when_it_closes_most_of_the_gap():
+    """Two horizons far above the floor brought to it (a slow roll-back's cogging):
+    significant though the paired t is modest; the same gain closing a third of a
+    larger gap is not."""
+    from gearbench.analysis.diagnose import verdict as vd
+
+    floor = 1.0
+    before = np.full(80, 1.0)
+    before[[0, 4]] = [130.0, 180.0]
+    after = before.copy()
+    after[[0, 4]] = [0.7, 5.0]
+    s = vd.score("cogging", {}, before, after, 2, floor, 1.0, overlap=4)
+    assert s.t_stat < vd.T_CRIT and s.shrink >= vd.LOCAL_SHRINK and s.significant
+    wide = before + 12.0          # the rest of the trace also far above the floor
+    s = vd.score("cogging", {}, wide, after + 12.0, 2, floor, 1.0, overlap=4)
+    assert s.shrink < vd.LOCAL_SHRINK and not s.significant

@@ -43,7 +43,8 @@ class Base:
     drag: bool = True
 
     def with_effect(self, effect: "Effect", hp: dict) -> "Base":
-        return replace(self, chosen=(*self.chosen, (effect, dict(hp))))
+        base = effect.adjust_base(self, hp)
+        return replace(base, chosen=(*base.chosen, (effect, dict(hp))))
 
     def with_settings(self, name: str, hp: dict) -> "Base":
         """The chosen effect ``name`` at new settings, in its place in the chain."""
@@ -132,7 +133,13 @@ class Effect:
         return [{}]
 
     def build(self, sig: Signals, base: Base, hp: dict) -> tuple[list[Term], dict[int, float]]:
+        base = self.adjust_base(base, hp)
         return base.terms() + self.extra(hp), base.fixed()
+
+    def adjust_base(self, base: Base, hp: dict) -> Base:
+        """The model this effect augments with settings of earlier effects that its
+        own ``hp`` re-chooses (default: none)."""
+        return base
 
     def extra(self, hp: dict) -> list[Term]:
         return []

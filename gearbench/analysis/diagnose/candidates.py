@@ -165,8 +165,9 @@ def fit_effect(sig, base, effect: Effect, win, hp0: dict | None = None, sim=None
     if hp0 is None:
         hp0 = _scan(sig, base, effect, [win])[0]
     best = fit(hp0)
-    if effect.continuous:
-        keys = effect.continuous
+    # settings the grid holds at one value (a Coulomb width a standstill bounds) stay
+    keys = tuple(k for k in effect.continuous if len({g[k] for g in grid}) > 1)
+    if keys:
         x0 = np.log([best[0][k] for k in keys])
         bounds = [(np.log(min(g[k] for g in grid)), np.log(max(g[k] for g in grid)))
                   for k in keys]
@@ -188,7 +189,8 @@ def fit_effect(sig, base, effect: Effect, win, hp0: dict | None = None, sim=None
 
 def n_settings(effect: Effect, sig, base) -> int:
     grid = effect.grid(sig, base)
-    return len([k for k in grid[0] if len({g[k] for g in grid}) > 1])
+    keys = dict.fromkeys(k for g in grid for k in g)     # a setting some points leave out
+    return len([k for k in keys if len({g.get(k) for g in grid}) > 1])
 
 
 def _n_free(model: Model, base: Base, effect: Effect | None) -> int:

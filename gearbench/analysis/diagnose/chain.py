@@ -133,7 +133,8 @@ def sampler_holds(ctx: Context, base: Base, nom_folds, mse_nom) -> list[float]:
     list of float
         The hold fraction per fold, in [0, 1].
     """
-    eps = _eps_grid(ctx.sig)[len(EPS_FRACTIONS) // 2]
+    grid = _eps_grid(ctx.sig)
+    eps = grid[len(grid) // 2]
     terms = base.terms() + [CoulombTerm(eps=eps)]
     folds = _refined(ctx, [fit_model(ctx.sig, terms, w)[0] for w in ctx.wins])
     ok = all(m.params()["tc_over_j"] > 0 for m in folds)     # friction opposes motion
@@ -326,25 +327,39 @@ def _swap_one_column(ctx: Context, st0: State, err_nom, max_steps, tests, done):
     return alt if float(np.mean(alt[1].mse)) < float(np.mean(st.mse)) else done
 
 
+#: Pairs that are one column on one-direction motion, each with what makes them so:
+#: Coulomb friction (sign(w) constant) and an offset; position-dependent friction
+#: (sign(w) times an order of the angle) and cogging (the same order) — on our own
+#: --sim disk calibration position friction of order 6 sized the emulator's cogging
+#: (0.038 A for 0.039 A) under the other name.
+ONE_COLUMN_PAIRS = (ONE_COLUMN_PAIR, ("position_friction", "cogging"))
+
+
 def _one_ambiguity(verdict: vd.Verdict, steps: list[dict]) -> vd.Verdict:
-    """Coulomb friction and a current offset reported as one ambiguity, with the
-    experiment that separates them, wherever either is named."""
-    text = vd.EXPERIMENTS[frozenset(ONE_COLUMN_PAIR)]
-    note = ("one column on this excitation (the motion keeps one direction): "
-            "coulomb_friction and current_offset are the same regressor; " + text)
+    """Each one-column pair reported as one ambiguity, with the experiment that
+    separates it, wherever either of the pair is named."""
+    for pair in ONE_COLUMN_PAIRS:
+        verdict = _pair_ambiguity(verdict, steps, pair)
+    return verdict
+
+
+def _pair_ambiguity(verdict: vd.Verdict, steps: list[dict], pair) -> vd.Verdict:
+    text = vd.EXPERIMENTS[frozenset(pair)]
+    note = (f"one column on this excitation (the motion keeps one direction): "
+            f"{pair[0]} and {pair[1]} are the same regressor; " + text)
 
     def merge(effect, confused, experiment):
-        other = next(e for e in ONE_COLUMN_PAIR if e != effect)
+        other = next(e for e in pair if e != effect)
         confused = [*dict.fromkeys([*(confused or []), other])]
         experiment = "; ".join(x for x in (note, experiment) if x and x != text)
         return confused, experiment
 
     for s in steps:
-        if s["effect"] in ONE_COLUMN_PAIR:
+        if s["effect"] in pair:
             s["confused_with"], s["experiment"] = merge(s["effect"], s["confused_with"],
                                                         s["experiment"])
-            s["ambiguous"] = list(ONE_COLUMN_PAIR)
-    if verdict.effect in ONE_COLUMN_PAIR:
+            s["ambiguous"] = list(pair)
+    if verdict.effect in pair:
         c, e = merge(verdict.effect, verdict.confused_with, verdict.experiment)
         verdict = replace(verdict, confused_with=c, experiment=e)
     return verdict

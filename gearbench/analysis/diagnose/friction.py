@@ -121,8 +121,91 @@ def speed_scale(sig: Signals) -> float:
 EPS_FRACTIONS = (2e-4, 1e-3, 7e-3)
 
 
+#: Shortest standstill (samples the encoder does not move while current flows) that
+#: bounds the Coulomb width.
+MIN_STUCK_SAMPLES = 8
+
+
+def stuck_width_bound(sig: Signals) -> float | None:
+    """Widest Coulomb smoothing the trace's own standstills allow, or None.
+
+    A smoothed sign tanh(w/eps) is not static friction: below breakaway it lets the
+    rotor creep at w = eps atanh(T/Tc), i.e. at about eps when the drive torque is
+    three quarters of Tc.  Where the encoder stays on one count for L samples while
+    current flows, the rotor crept less than one count q: eps <= q / (L dt).  (On our
+    own --sim out-motor disk calibration the rotor stands 20 ms while the current rises
+    to breakaway; a width of 2 rad/s, chosen because its creep stood in for the missing
+    cogging, kept cogging from fitting: 2.8x the floor, 1.35x at widths the standstill
+    allows.)
+
+    Parameters
+    ----------
+    sig : Signals
+        The trace (encoder angles on a lattice; without one nothing is bounded).
+
+    Returns
+    -------
+    float or None
+        q / (L dt) for the longest standstill with current above 3x its noise of at
+        least ``MIN_STUCK_SAMPLES`` samples; None without one.
+    """
+    if "stuck_width" in sig.cache:
+        return sig.cache["stuck_width"]
+    from .simerror import current_noise, lattice_step
+
+    out = None
+    q = lattice_step(sig.position_rad)
+    if q:
+        moved = np.abs(np.diff(sig.position_rad)) > 0.5 * q
+        edges = np.flatnonzero(np.diff(np.concatenate([[1], moved.astype(int), [1]])))
+        starts, ends = edges[::2], edges[1::2]        # runs of samples without a count
+        i_min = 3.0 * current_noise(sig)
+        runs = [e - s for s, e in zip(starts, ends) if e - s >= MIN_STUCK_SAMPLES
+                and float(np.mean(np.abs(sig.current_a[s:e + 1]))) > i_min]
+        if runs:
+            out = float(q / (max(runs) * sig.dt_s))
+    sig.cache["stuck_width"] = out
+    return out
+
+
 def _eps_grid(sig: Signals) -> list[float]:
-    return [f * speed_scale(sig) for f in EPS_FRACTIONS]
+    """Coulomb widths scanned: fractions of the top speed, none wider than the trace's
+    standstills allow (``stuck_width_bound``)."""
+    grid = [f * speed_scale(sig) for f in EPS_FRACTIONS]
+    cap = stuck_width_bound(sig)
+    if cap is None:
+        return grid
+    return sorted({min(e, cap) for e in grid})
+
+
+def _mid_eps(sig: Signals) -> float:
+    grid = _eps_grid(sig)
+    return grid[len(grid) // 2]
+
+
+def narrower_widths(sig: Signals, base: Base) -> list[float | None]:
+    """Coulomb widths a position-periodic candidate is fitted with: the narrowest
+    scanned one (closest to static friction's sign) when the chain chose a wider one,
+    else the chain's own (None).
+
+    A wide width creeps at low speed and so stands in for a torque that pulls the
+    rotor there (cogging at a slow roll-back): chosen before cogging, 2.3 rad/s on our
+    own --sim disk calibration left cogging nothing to close (shrink 0), and cogging
+    never entered to let the width be re-chosen (retune does so once it is in)."""
+    eps = _chosen_eps(sig, base) if "coulomb_friction" in base.chosen_names else None
+    if eps is None:
+        return [None]
+    narrow = min(_eps_grid(sig))
+    return [narrow] if narrow < 0.5 * eps else [None]
+
+
+def with_width(base: Base, hp: dict) -> Base:
+    """``base`` with the chosen Coulomb width replaced by ``hp["coulomb_eps_rad_s"]``."""
+    eps = hp.get("coulomb_eps_rad_s")
+    if eps is None or "coulomb_friction" not in base.chosen_names:
+        return base
+    return base.with_settings("coulomb_friction",
+                              {**base.settings("coulomb_friction"), "eps_rad_s": float(eps)})
 
 
 def _chosen_eps(sig: Signals, base: Base) -> float | None:
@@ -304,7 +387,7 @@ class PositionFriction(Effect):
     name = "position_friction"
 
     def grid(self, sig, base):
-        eps = _chosen_eps(sig, base) or _eps_grid(sig)[1]
+        eps = _chosen_eps(sig, base) or _mid_eps(sig)
         lo, span = float(np.min(sig.position_rad)), float(np.ptp(sig.position_rad)) or 1.0
         g = [{"order": 0, "eps_rad_s": eps, "lo": lo, "span": span}]
         if sig.rad_per_unit is None:    # rotor-angle orders need an angle (see Signals)

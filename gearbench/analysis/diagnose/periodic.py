@@ -97,7 +97,16 @@ class Cogging(Effect):
         # angle (or a lead was given) — see Signals.rad_per_unit
         if sig.rad_per_unit is None:
             return []
-        return [{"cog_order": n} for n in range(1, MAX_ORDER + 1)]
+        from .friction import narrower_widths
+
+        # with a narrower Coulomb width too: a wide one's creep stands in for cogging
+        return [{"cog_order": n} if e is None else {"cog_order": n, "coulomb_eps_rad_s": e}
+                for e in narrower_widths(sig, base) for n in range(1, MAX_ORDER + 1)]
+
+    def adjust_base(self, base, hp):
+        from .friction import with_width
+
+        return with_width(base, hp)
 
     def extra(self, hp):
         return [CoggingTerm(order=hp["cog_order"])]

@@ -26,6 +26,11 @@ T_CRIT = 2.0
 BIC_STRONG = 10.0
 #: Smallest MSE reduction that counts, as a fraction of the noise-floor MSE.
 MATERIAL = 0.1
+#: A held-out gain confined to a few horizons (cogging while the motor rolls back
+#: slowly at the start of a trace, stiction at a reversal) leaves the paired t modest
+#: however large it is; it counts when it closes at least this share of the gap with
+#: very strong BIC evidence (and this much more than the null candidate).
+LOCAL_SHRINK = 0.5
 #: Below this paired t, two candidates' held-out errors are indistinguishable ...
 T_CONFUSED = 2.0
 #: ... and so they are when one closes the gap within this much of the other.
@@ -179,7 +184,13 @@ def score(effect: str, params: dict, before_h: np.ndarray, after_h: np.ndarray,
     t = max(t, rank_z(before_h, after_h, overlap))
     # only the part of the reduction above the noise floor counts: a nominal already at
     # the floor has no gap to explain, however much a candidate fits its noise
-    sig = bool(t > T_CRIT and dbic < -BIC_STRONG and (b - max(a, floor_mse)) > MATERIAL * floor_mse)
+    # a local gain (few horizons, t modest) counts when it closes most of the gap: on
+    # our own --sim disk calibration cogging took the slow roll-back at the start from
+    # 131x and 186x the floor to 0.7x and 5x on two held-out horizons (shrink 0.81,
+    # dBIC -16, t 1.75)
+    consistent = t > T_CRIT or shrink >= LOCAL_SHRINK
+    sig = bool(consistent and dbic < -BIC_STRONG
+               and (b - max(a, floor_mse)) > MATERIAL * floor_mse)
     return Score(effect, params, float(np.sqrt(b)) / velocity_rms,
                  float(np.sqrt(a)) / velocity_rms, float(shrink), float(dbic), sig, float(t),
                  after_h, nominal_shift or {}, overlap, extra_params)
@@ -191,7 +202,8 @@ def against_null(s: Score, null_h: np.ndarray, null_shrink: float) -> Score:
     from dataclasses import replace
 
     t = paired_t(null_h, s.mse_h, s.overlap)
-    beats = bool(t > T_CRIT and s.shrink > null_shrink)
+    beats = bool((t > T_CRIT or s.shrink >= null_shrink + LOCAL_SHRINK)
+                 and s.shrink > null_shrink)
     return replace(s, t_vs_null=float(t), null_shrink=float(null_shrink),
                    significant=bool(s.significant and beats))
 
