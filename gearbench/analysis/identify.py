@@ -48,6 +48,8 @@ MIN_ACCEL_SNR = 20.0         # rms filtered acceleration / rms encoder-noise acc
 # come from the encoder step, the sample rate and the run's own speed range.
 STANDSTILL_COUNTS_PER_SAMPLE = 1 / 6   # slower than 1 count per 6 samples (>= 3 samples): sticks
 STANDSTILL_TOP_FRACTION = 3e-4  # without a visible encoder step: this share of the top speed
+STICK_BAND = 3.0            # x the standstill speed: a dwell left out of the fit
+STICK_MARGIN_S = 0.01       # ... widened by this on each side (presliding, breakaway)
 REVERSAL_TOP_FRACTION = 0.02  # a run "reverses" if >5 % of it is beyond ±this share of top speed
 MIN_R2_SHARE = 0.5           # refuse a fit explaining < half of what the data's noise allows
 MAX_B2_REL_STD = 0.05        # refuse a fit whose b2 is known worse than 5 % (1 sigma)
@@ -243,6 +245,7 @@ class _Signals:
     reverses: bool
     noise_var_raw: float        # white current-noise variance, A²
     source: str
+    i_raw: np.ndarray | None = None   # raw current (weighted form: the lag refit filters it again)
 
     @property
     def n(self) -> int:
@@ -255,7 +258,11 @@ class _Signals:
         return slice(half + 1, half + 1 + self.n)
 
     def matched(self, rows: np.ndarray) -> np.ndarray:
-        return dv.matched_filter(rows, self.taps)
+        """Rows through the match, the equation weight and the FIR (as ``fs``)."""
+        if self.i_raw is None:
+            return dv.matched_filter(rows * self.moving, self.taps)
+        x = dv.match_samples(np.atleast_2d(rows)) * self.moving
+        return dv.filter_valid_rows(x, self.taps)[:, 1:-1]
 
     @cached_property
     def speed_range(self) -> list[float]:
@@ -299,15 +306,18 @@ def _prepare(t, th, i, *, cutoff_hz, friction_width_rad_s, command, source) -> _
             th, {"current": i, "sign": np.tanh(w_raw / friction_width_rad_s), "moving": moving,
                  **extra}, dt, taps)
     else:
-        moving = 1.0 - dv.standstill(w_smooth, standstill_speed(th, w_smooth, dt))
+        moving = equation_weight(w_smooth, standstill_speed(th, w_smooth, dt), dt)
         matched = {"sign": dv.coulomb_regressor(
-            th, dt, velocity=dv.refine_reversals(th, w_smooth, half_width=hw)) * moving}
+            th, dt, velocity=dv.refine_reversals(th, w_smooth, half_width=hw))}
         if command is not None:
-            matched["command_sign"] = np.sign(extra["command"]) * moving
+            matched["command_sign"] = np.sign(extra["command"])
             matched["setpoint_step"] = _setpoint_steps(extra["command"], dt)
         # the masked offset column is needed only where an offset is fitted (reversing)
-        others = {"current": i * moving, **({"moving": moving} if reverses else {}), **extra}
-        fs = dv.consistent_derivatives(th, others, dt, taps, matched=matched)
+        others = {"current": i, **({"moving": np.ones_like(th)} if reverses else {})}
+        fs = dv.weighted_derivatives(th, others, dt, taps, moving, matched=matched,
+                                     unweighted=extra)
+        return _Signals(th, dt, cutoff_hz, taps, w_smooth, moving, fs, reverses,
+                        _white_noise_variance(i), source, i_raw=np.asarray(i, float))
     return _Signals(th, dt, cutoff_hz, taps, w_smooth, moving, fs, reverses,
                     _white_noise_variance(i), source)
 
@@ -350,7 +360,7 @@ def _base_columns(sig: _Signals, form: str, *, spring: bool, use_bias: bool) -> 
 def _harmonic_columns(sig: _Signals, prefix: str, angle_rad: np.ndarray, orders, form: str) -> list:
     """sin/cos(k·angle) of the position-dependent torques (cogging, load), masked while
     the rotor sticks, through the same filters as the current."""
-    harm = np.vstack([f(k * angle_rad) * sig.moving for k in orders for f in (np.sin, np.cos)])
+    harm = np.vstack([f(k * angle_rad) for k in orders for f in (np.sin, np.cos)])
     filt = sig.matched(harm)
     s = 1.0 if form == "accel" else -1.0
     return [(f"{prefix}{k}_{p}" if prefix else f"{p}", filt[2 * j + q], s)
@@ -427,8 +437,17 @@ def _solve_torque(cols, sig: _Signals, *, Z, lag, accel_noise_var):
     for r, c in enumerate(cols):
         Xt[r] = c[1]
     y = base
+    raw = sig.i_raw
+
+    def lag_column(y, shifted):
+        # d/dt of the weighted, filtered current is not the weighted derivative where the
+        # weight steps: differentiate the raw current, then weight and filter it
+        if raw is None:
+            return -np.gradient(y, sig.dt)
+        return -sig.matched(np.gradient(shifted, sig.dt))[0]
+
     if lag:
-        Xt[-1] = -np.gradient(y, sig.dt)
+        Xt[-1] = lag_column(y, raw)
     Zt = None
     if Z is not None:
         Zt = np.vstack([Z, Xt[-1:]]) if lag else Z
@@ -455,8 +474,14 @@ def _solve_torque(cols, sig: _Signals, *, Z, lag, accel_noise_var):
         if abs(tau) < 0.02 * sig.dt or abs(shift_s + tau) > 5 * sig.dt:
             break
         shift_s += tau
-        y = np.interp(idx + shift_s / sig.dt, idx, base)
-        Xt[-1] = -np.gradient(y, sig.dt)
+        if raw is None:
+            y = np.interp(idx + shift_s / sig.dt, idx, base)
+            Xt[-1] = lag_column(y, None)
+        else:
+            ir = np.arange(len(raw), dtype=float)
+            shifted = np.interp(ir + shift_s / sig.dt, ir, raw)
+            y = sig.matched(shifted)[0]
+            Xt[-1] = lag_column(y, shifted)
         if Zt is not None:
             Zt[-1] = Xt[-1]
     return _Fit("iv" if Zt is not None else "torque", cols, beta, Xt, Zt, y, A, G, shift_s)
@@ -837,6 +862,43 @@ def _check(sig: _Signals, fit: IdentificationResult) -> None:
         floor_var, y = noise_i + (accel_noise / b2) ** 2, fs["current"]
     check_fit_quality(r2=fit.r2, floor_r2=1.0 - floor_var / max(float(np.var(y)), 1e-300),
                       source=sig.source)
+
+
+def equation_weight(velocity: np.ndarray, standstill_speed_: float, dt_s: float) -> np.ndarray:
+    """Per raw sample, 1 where the motor equation is fitted, 0 where it is left out.
+
+    Left out: every dwell of at least 3 samples with |ω| below ``STICK_BAND`` x the
+    standstill speed (the rotor sticks or creeps: static friction takes any value up
+    to the breakaway, so the current there says nothing about Kt, J or the sliding
+    friction), widened by ``STICK_MARGIN_S`` on each side (presliding and the
+    breakaway transition, which sign(ω) does not describe). The weight multiplies
+    the raw equation before the filter (``derivatives.weighted_derivatives``), so
+    the fit stays exact on what remains; the intervals then count only what remains.
+
+    Parameters
+    ----------
+    velocity : zero-phase speed at every sample.
+    standstill_speed_ : ``standstill_speed`` of the run.
+    dt_s : sample period.
+
+    Returns
+    -------
+    numpy.ndarray of 0.0/1.0
+
+    References
+    ----------
+    M. Gautier and W. Khalil, "On the identification of the inertial parameters of robots", Proc. 27th IEEE CDC, 1988 (data selection); B. Armstrong-Hélouvry, P. Dupont and C. Canudas de Wit, "A survey of models, analysis tools and compensation methods for the control of machines with friction", Automatica 30(7), 1994, pp. 1083-1138 (presliding, breakaway)
+
+    Examples
+    --------
+    >>> equation_weight(np.array([1.0, 0, 0, 0, 1.0, 1.0]), 0.1, 1e-3)
+    array([1., 0., 0., 0., 1., 1.])
+    """
+    stuck = dv.standstill(velocity, STICK_BAND * standstill_speed_)
+    margin = int(round(STICK_MARGIN_S / dt_s))
+    if margin > 0 and stuck.any():
+        stuck = np.convolve(stuck, np.ones(2 * margin + 1), mode="same") > 0
+    return 1.0 - stuck.astype(float)
 
 
 def smoothing_half_width(dt_s: float) -> int:
