@@ -324,7 +324,8 @@ def test_friction_dominated_100hz_joint_torque_side_recovers_its_inertia():
         assert abs(v - truth) <= half, (key, v, half, truth)
     acc = identify_default(d["time_s"], d["position_rad"], d["current_a"], form="accel",
                            form_spread=False, **kw)
-    assert physical(acc, joint.gain_nm_a)["J"][0] > 2 * joint.J
+    # (1.8x since stuck stretches are left out of the fit; 4-5x before)
+    assert physical(acc, joint.gain_nm_a)["J"][0] > 1.5 * joint.J
     cc = acc.extras["cross_check"]
     assert not cc["agree"] and KT_J in cc["differ"] and cc["supported"] == "torque-ls"
     # with the spread of the two directions as model error, the accel form's own
