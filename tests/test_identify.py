@@ -376,3 +376,39 @@ def test_real_emps_at_1khz_250hz_100hz_within_2_percent_of_published(step):
     assert fit.value(D_J) * mass == pytest.approx(203.5034, rel=0.02)
     assert fit.value(TC_J) / fit.b2 == pytest.approx(20.3935, rel=0.02)
     assert fit.extras["cross_check"]["agree"]
+
+
+# ------------------------------------------ issue 23: stuck stretches left out exactly
+def test_weighted_filter_is_the_plain_one_with_unit_weight_and_blind_where_weight_is_zero():
+    """The motor equation multiplied by a 0/1 weight before the filter: with w = 1 the
+    filtered signals are ``consistent_derivatives``' own; where w = 0 (a stuck stretch and
+    its margin) whatever the current does there cannot reach the fit."""
+    from gearbench.analysis import derivatives as dv
+
+    rng = np.random.default_rng(3)
+    t = np.arange(3000) * 1e-3
+    th = np.cumsum(50 * np.sin(2 * np.pi * 1.3 * t) + 5) * 1e-3
+    i = rng.normal(size=t.size)
+    taps = dv.lowpass_fir(40.0, 1000.0)
+    plain = dv.consistent_derivatives(th, {"current": i}, 1e-3, taps)
+    ones = dv.weighted_derivatives(th, {"current": i}, 1e-3, taps, np.ones(t.size))
+    for key in ("velocity", "acceleration", "current"):
+        np.testing.assert_allclose(ones[key], plain[key], rtol=1e-9, atol=1e-9 * np.abs(plain[key]).max())
+    w = np.ones(t.size)
+    w[1200:1500] = 0.0
+    garbage = i.copy()
+    garbage[1201:1499] += 100.0          # inside the zero weight, clear of the 3-tap match
+    a = dv.weighted_derivatives(th, {"current": i}, 1e-3, taps, w)["current"]
+    b = dv.weighted_derivatives(th, {"current": garbage}, 1e-3, taps, w)["current"]
+    np.testing.assert_array_equal(a, b)
+
+
+def test_equation_weight_leaves_out_dwells_with_a_margin_not_fast_crossings():
+    from gearbench.analysis.identify import equation_weight
+
+    w = np.r_[np.full(50, 5.0), np.linspace(5, -5, 5), np.full(50, -5.0)]   # fast crossing
+    assert equation_weight(w, 0.1, 1e-3).min() == 1.0
+    w = np.r_[np.full(50, 5.0), np.zeros(20), np.full(50, 5.0)]              # 20 ms dwell
+    out = equation_weight(w, 0.1, 1e-3)
+    assert out[:40].min() == 1.0 and out[80:].min() == 1.0   # 10 ms margin each side
+    assert out[40:80].max() == 0.0

@@ -210,3 +210,20 @@ def test_overlapping_covariance_is_honest_for_coloured_residuals():
     ratio = np.mean(var) / np.var(est)
     assert 0.75 < ratio < 1.3
     assert dof == int(1.5 * (n / L - 1))
+
+
+def test_rotor_stuck_for_most_of_its_run_is_noise_limited_and_says_so():
+    """Seed 7 case 94, output motor: Coulomb friction 1.9x the rms current on a 4 Hz speed
+    loop, the rotor stuck 97 % of its reversing run. Stuck stretches carry no Kt
+    information and are left out of the fit (``identify.equation_weight``); what remains
+    gives Kt with a wide interval that holds the truth and a warning naming the shortfall
+    (before: an exception, and the fits with the stuck samples in were off by 8 %)."""
+    from gearbench.analysis.calibration import calibrate_motor
+
+    case = R.draw_case(94, 7)
+    u, lo = R.simulate_case(case)["runs"]["out"]
+    m = case.plant.motor_out
+    cal = calibrate_motor(u, lo, case.disks_kgm2["out"])
+    assert cal.Kt_ci95[0] <= m.Kt <= cal.Kt_ci95[1]
+    assert cal.Kt_std / m.Kt > 0.01                                  # noise-limited
+    assert any("acceleration content" in w for w in cal.fit["warnings"])

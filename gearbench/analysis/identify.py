@@ -11,8 +11,10 @@ Two methods, same result type:
             differences (see ``derivatives.consistent_derivatives``) so velocity,
             acceleration and current stay aligned; a Coulomb term sign(θ') instead
             of subtracting a no-load current, integrated at each reversal's
-            sub-sample instant as the angle's second difference sees it, with the
-            torque regressors zeroed while the rotor sticks at a reversal; C fixed at 0 unless asked; a
+            sub-sample instant as the angle's second difference sees it; stuck and
+            breakaway stretches left out of the equation (``equation_weight``: the raw
+            equation is weighted 0 there before the filter, so the fit stays exact on
+            what remains and its intervals count only that); C fixed at 0 unless asked; a
             current-noise (errors-in-variables) correction; cogging harmonics
             sin/cos(k θ) with the orders k found from the data (``cogging_order_scores``
             screens k = 1…64 on the rotor angle, an information criterion keeps them);
@@ -51,6 +53,7 @@ STANDSTILL_TOP_FRACTION = 3e-4  # without a visible encoder step: this share of 
 STICK_BAND = 3.0            # x the standstill speed: a dwell left out of the fit
 STICK_MARGIN_S = 0.01       # ... widened by this on each side (presliding, breakaway),
 STICK_MARGIN_SAMPLES = 2     # and by at least this many samples (100 Hz: 10 ms is 1 sample)
+LEFT_OUT_WARN_SHARE = 0.25   # warn when more of the run than this is left out
 REVERSAL_TOP_FRACTION = 0.02  # a run "reverses" if >5 % of it is beyond ±this share of top speed
 MIN_R2_SHARE = 0.5           # refuse a fit explaining < half of what the data's noise allows
 MAX_B2_REL_STD = 0.05        # refuse a fit whose b2 is known worse than 5 % (1 sigma)
@@ -241,7 +244,7 @@ class _Signals:
     cutoff_hz: float
     taps: np.ndarray
     w_smooth: np.ndarray        # speed at every raw sample
-    moving: np.ndarray          # 0 while the rotor sticks at a reversal, else 1
+    moving: np.ndarray          # equation weight: 0 on stuck/breakaway stretches, else 1
     fs: dict                    # filtered signals, ``consistent_derivatives`` layout
     reverses: bool
     noise_var_raw: float        # white current-noise variance, A²
@@ -280,10 +283,12 @@ def _prepare(t, th, i, *, cutoff_hz, friction_width_rad_s, command, source) -> _
     """Filter every signal with one zero-phase FIR (``derivatives.consistent_derivatives``).
 
     The Coulomb step is integrated at its sub-sample reversal instant as the angle's second
-    difference sees it (``derivatives.coulomb_regressor``). While the rotor sticks at a
-    reversal friction balances whatever the drive gives and the motor equation is
-    J θ'' = 0, so every torque term (current, Coulomb, offset) is masked there: the
-    filtered equation stays exact without dropping data."""
+    difference sees it (``derivatives.coulomb_regressor``). While the rotor sticks
+    static friction balances whatever the drive gives (any value up to the breakaway),
+    and sign(θ') does not describe the breakaway either: those samples, with a margin,
+    are weighted out of the raw equation before the filter (``equation_weight``,
+    ``derivatives.weighted_derivatives``), so the filtered equation stays exact on the
+    rest. A stuck stretch carries no Kt information; the intervals count what remains."""
     dt = float(np.median(np.diff(t)))
     rate = 1.0 / dt
     cutoff_hz = cutoff_hz or min(40.0, rate / 10.0)
@@ -697,6 +702,13 @@ def _identify_checked(sig: _Signals, form: str, label: str, opts: dict, *, check
     if check:
         _check(sig, chosen)
     chosen.extras["cross_check"] = cross
+    left_out = float(1.0 - np.mean(sig.moving))
+    chosen.extras["left_out_share"] = left_out
+    if left_out > LEFT_OUT_WARN_SHARE:
+        chosen.extras.setdefault("warnings", []).append(
+            f"the rotor sticks or breaks away on {100 * left_out:.0f} % of the run; those "
+            f"samples carry no Kt information and are left out of the fit (its intervals "
+            f"count only the rest): move faster through zero speed or avoid the stops")
     return chosen
 
 
