@@ -410,5 +410,6 @@ def test_equation_weight_leaves_out_dwells_with_a_margin_not_fast_crossings():
     assert equation_weight(w, 0.1, 1e-3).min() == 1.0
     w = np.r_[np.full(50, 5.0), np.zeros(20), np.full(50, 5.0)]              # 20 ms dwell
     out = equation_weight(w, 0.1, 1e-3)
-    assert out[:40].min() == 1.0 and out[80:].min() == 1.0   # 10 ms margin each side
-    assert out[40:80].max() == 0.0
+    assert out[40:80].max() == 0.0                           # 10 ms margin each side,
+    assert np.all(np.diff(out[29:41]) <= 0) and 0 < out[35] < 1   # then a 10 ms ramp
+    assert out[:30].min() == 1.0 and out[90:].min() == 1.0
