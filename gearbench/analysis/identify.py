@@ -54,6 +54,7 @@ STANDSTILL_TOP_FRACTION = 3e-4  # without a visible encoder step: this share of 
 STICK_BAND = 3.0            # x the standstill speed: the slow stretch around a dwell, left out
 STICK_MARGIN_S = 0.01       # ... widened by this on each side (presliding, breakaway),
 STICK_MARGIN_SAMPLES = 2     # and by at least this many samples (100 Hz: 10 ms is 1 sample)
+STUCK_CURRENT_SIGMAS = 3.0   # a dwell is stuck only while the drive pushes: median |i| > this x noise
 LEFT_OUT_WARN_SHARE = 0.25   # warn when more of the run than this is left out
 REVERSAL_TOP_FRACTION = 0.02  # a run "reverses" if >5 % of it is beyond ±this share of top speed
 MIN_R2_SHARE = 0.5           # refuse a fit explaining < half of what the data's noise allows
@@ -313,11 +314,16 @@ def _prepare(t, th, i, *, cutoff_hz, friction_width_rad_s, command, source) -> _
             th, {"current": i, "sign": np.tanh(w_raw / friction_width_rad_s), "moving": moving,
                  **extra}, dt, taps)
     else:
-        moving = equation_weight(w_smooth, standstill_speed(th, w_smooth, dt), dt)
+        w_still = standstill_speed(th, w_smooth, dt)
+        moving = equation_weight(w_smooth, w_still, dt, current=i,
+                                 current_noise=float(np.sqrt(_white_noise_variance(i))))
+        # a rotor at rest that nothing pushes stays in the equation (J θ'' = Kt i = 0, a
+        # speed step from rest), its friction is zero there, not ±Tc
+        sliding = 1.0 - (dv.standstill(w_smooth, w_still) > 0) * (moving == 1.0)
         matched = {"sign": dv.coulomb_regressor(
-            th, dt, velocity=dv.refine_reversals(th, w_smooth, half_width=hw))}
+            th, dt, velocity=dv.refine_reversals(th, w_smooth, half_width=hw)) * sliding}
         if command is not None:
-            matched["command_sign"] = np.sign(extra["command"])
+            matched["command_sign"] = np.sign(extra["command"]) * sliding
             matched["setpoint_step"] = _setpoint_steps(extra["command"], dt)
         # the masked offset column is needed only where an offset is fitted (reversing)
         others = {"current": i, **({"moving": np.ones_like(th)} if reverses else {})}
@@ -885,7 +891,8 @@ def _check(sig: _Signals, fit: IdentificationResult) -> None:
                       source=sig.source)
 
 
-def equation_weight(velocity: np.ndarray, standstill_speed_: float, dt_s: float) -> np.ndarray:
+def equation_weight(velocity: np.ndarray, standstill_speed_: float, dt_s: float, *,
+                    current: np.ndarray | None = None, current_noise: float = 0.0) -> np.ndarray:
     """Per raw sample, 1 where the motor equation is fitted, 0 where it is left out.
 
     Left out: every dwell (at least 3 samples below the standstill speed), extended to
@@ -894,7 +901,10 @@ def equation_weight(velocity: np.ndarray, standstill_speed_: float, dt_s: float)
     says nothing about Kt, J or the sliding friction), widened by ``STICK_MARGIN_S``
     (at least ``STICK_MARGIN_SAMPLES``) on each side (presliding and the
     breakaway transition, which sign(ω) does not describe), then rising to 1 over as
-    many samples again (raised cosine). The weight multiplies
+    many samples again (raised cosine). A dwell whose median current is within
+    ``STUCK_CURRENT_SIGMAS`` x ``current_noise`` of zero is a rotor at rest that nothing
+    pushes (before a speed step from rest): J θ'' = Kt i = 0 holds there, it stays in
+    (weight 1; the caller sets its friction to zero). The weight multiplies
     the raw equation before the filter (``derivatives.weighted_derivatives``), so
     the fit stays exact on what remains; the intervals then count only what remains.
 
@@ -903,6 +913,8 @@ def equation_weight(velocity: np.ndarray, standstill_speed_: float, dt_s: float)
     velocity : zero-phase speed at every sample.
     standstill_speed_ : ``standstill_speed`` of the run.
     dt_s : sample period.
+    current : raw current (A); None: every dwell counts as stuck.
+    current_noise : its white-noise std (A).
 
     Returns
     -------
@@ -919,6 +931,7 @@ def equation_weight(velocity: np.ndarray, standstill_speed_: float, dt_s: float)
            0.25, 0.75, 1.  , 1.  ])
     """
     w = np.asarray(velocity, float)
+    current = None if current is None else np.asarray(current, float)
     core = dv.standstill(w, standstill_speed_) > 0
     stuck = np.zeros(len(w), bool)
     if core.any():
@@ -931,7 +944,8 @@ def equation_weight(velocity: np.ndarray, standstill_speed_: float, dt_s: float)
         slow = np.abs(w) < STICK_BAND * standstill_speed_
         edges = np.diff(np.concatenate([[0], slow.astype(np.int8), [0]]))
         for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)):
-            if core[a:b].any():
+            if core[a:b].any() and (current is None or np.median(np.abs(current[a:b]))
+                                    > STUCK_CURRENT_SIGMAS * current_noise):
                 stuck[a:b] = True
         if stuck.any() and margin > 0:
             # the margin, then a raised-cosine ramp as long: a hard edge lets the raw
