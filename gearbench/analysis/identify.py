@@ -12,9 +12,11 @@ Two methods, same result type:
             acceleration and current stay aligned; a Coulomb term sign(θ') instead
             of subtracting a no-load current, integrated at each reversal's
             sub-sample instant as the angle's second difference sees it; stuck and
-            breakaway stretches left out of the equation (``equation_weight``: the raw
-            equation is weighted 0 there before the filter, so the fit stays exact on
-            what remains and its intervals count only that); C fixed at 0 unless asked; a
+            breakaway stretches (a dwell the drive pushes against) left out of the
+            equation (``equation_weight``: the raw equation is weighted 0 there before
+            the filter, so the fit stays exact on what remains and its intervals count
+            only that; a rotor at rest that nothing pushes stays in, friction 0 there);
+            C fixed at 0 unless asked; a
             current-noise (errors-in-variables) correction; cogging harmonics
             sin/cos(k θ) with the orders k found from the data (``cogging_order_scores``
             screens k = 1…64 on the rotor angle, an information criterion keeps them);
@@ -290,7 +292,9 @@ def _prepare(t, th, i, *, cutoff_hz, friction_width_rad_s, command, source) -> _
     and sign(θ') does not describe the breakaway either: those samples, with a margin,
     are weighted out of the raw equation before the filter (``equation_weight``,
     ``derivatives.weighted_derivatives``), so the filtered equation stays exact on the
-    rest. A stuck stretch carries no Kt information; the intervals count what remains."""
+    rest. A stuck stretch carries no Kt information; the intervals count what remains.
+    A rotor at rest with no current (before a speed step from rest) is not stuck: it
+    stays in with its friction term 0."""
     dt = float(np.median(np.diff(t)))
     rate = 1.0 / dt
     cutoff_hz = cutoff_hz or min(40.0, rate / 10.0)
