@@ -324,7 +324,8 @@ def test_friction_dominated_100hz_joint_torque_side_recovers_its_inertia():
         assert abs(v - truth) <= half, (key, v, half, truth)
     acc = identify_default(d["time_s"], d["position_rad"], d["current_a"], form="accel",
                            form_spread=False, **kw)
-    assert physical(acc, joint.gain_nm_a)["J"][0] > 2 * joint.J
+    # (1.8x since stuck stretches are left out of the fit; 4-5x before)
+    assert physical(acc, joint.gain_nm_a)["J"][0] > 1.5 * joint.J
     cc = acc.extras["cross_check"]
     assert not cc["agree"] and KT_J in cc["differ"] and cc["supported"] == "torque-ls"
     # with the spread of the two directions as model error, the accel form's own
@@ -375,3 +376,71 @@ def test_real_emps_at_1khz_250hz_100hz_within_2_percent_of_published(step):
     assert fit.value(D_J) * mass == pytest.approx(203.5034, rel=0.02)
     assert fit.value(TC_J) / fit.b2 == pytest.approx(20.3935, rel=0.02)
     assert fit.extras["cross_check"]["agree"]
+
+
+# ------------------------------------------ issue 23: stuck stretches left out exactly
+def test_weighted_filter_is_the_plain_one_with_unit_weight_and_blind_where_weight_is_zero():
+    """The motor equation multiplied by a 0/1 weight before the filter: with w = 1 the
+    filtered signals are ``consistent_derivatives``' own; where w = 0 (a stuck stretch and
+    its margin) whatever the current does there cannot reach the fit."""
+    from gearbench.analysis import derivatives as dv
+
+    rng = np.random.default_rng(3)
+    t = np.arange(3000) * 1e-3
+    th = np.cumsum(50 * np.sin(2 * np.pi * 1.3 * t) + 5) * 1e-3
+    i = rng.normal(size=t.size)
+    taps = dv.lowpass_fir(40.0, 1000.0)
+    plain = dv.consistent_derivatives(th, {"current": i}, 1e-3, taps)
+    ones = dv.weighted_derivatives(th, {"current": i}, 1e-3, taps, np.ones(t.size))
+    for key in ("velocity", "acceleration", "current"):
+        np.testing.assert_allclose(ones[key], plain[key], rtol=1e-9, atol=1e-9 * np.abs(plain[key]).max())
+    w = np.ones(t.size)
+    w[1200:1500] = 0.0
+    garbage = i.copy()
+    garbage[1201:1499] += 100.0          # inside the zero weight, clear of the 3-tap match
+    a = dv.weighted_derivatives(th, {"current": i}, 1e-3, taps, w)["current"]
+    b = dv.weighted_derivatives(th, {"current": garbage}, 1e-3, taps, w)["current"]
+    np.testing.assert_array_equal(a, b)
+
+
+def test_equation_weight_leaves_out_dwells_with_a_margin_not_fast_crossings():
+    from gearbench.analysis.identify import equation_weight
+
+    w = np.r_[np.full(50, 5.0), np.linspace(5, -5, 5), np.full(50, -5.0)]   # fast crossing
+    assert equation_weight(w, 0.1, 1e-3).min() == 1.0
+    w = np.r_[np.full(50, 5.0), np.zeros(20), np.full(50, 5.0)]              # 20 ms dwell
+    out = equation_weight(w, 0.1, 1e-3)
+    assert out[40:80].max() == 0.0                           # 10 ms margin each side,
+    assert np.all(np.diff(out[29:41]) <= 0) and 0 < out[35] < 1   # then a 10 ms ramp
+    assert out[:30].min() == 1.0 and out[90:].min() == 1.0
+
+
+def test_equation_weight_leaves_out_a_dwell_only_while_the_drive_pushes():
+    """A rotor at rest that nothing pushes (before a speed step from rest) satisfies
+    J θ'' = Kt i = 0 and stays in; a dwell held by friction against a current is left out."""
+    from gearbench.analysis.identify import equation_weight
+
+    rng = np.random.default_rng(3)
+    w = np.r_[np.zeros(200), np.linspace(0, 300, 30), np.full(100, 300.0)]
+    noise = rng.normal(0, 0.004, len(w))
+    at_rest = equation_weight(w, 0.1, 1e-3, current=noise, current_noise=0.004)
+    assert at_rest.min() == 1.0
+    pushed = equation_weight(w, 0.1, 1e-3, current=noise + 0.2, current_noise=0.004)
+    assert pushed[:200].max() == 0.0
+
+
+def test_speed_step_from_rest_keeps_its_acceleration():
+    """The paper's speed step from rest: nothing is left out (the acceleration from rest is
+    the run's Kt/J information); with the dwell left out and its 10 ms margin + ramp the
+    step cost Kt up to 0.25 % (seed 3, 'in' motor: +0.249 % -> -0.104 %)."""
+    from gearbench.benchmarks import accuracy as A
+    from gearbench.sim import simulate_motor
+
+    motor, _ = A._motors()
+    cmd = A._excitation("step", 3.0)
+    u = simulate_motor(motor, cmd, seed=3000)
+    lo = simulate_motor(motor, cmd, disk_kgm2=A.DISK_KGM2, seed=3001)
+    fu = identify(u.time_s, u["position_rad"], u["current_a"], check=False)
+    assert fu.extras.get("left_out_share", 0.0) == 0.0
+    cal = A._calibrate(u, lo, "default")
+    assert abs(cal.Kt / motor.Kt - 1) < 0.002

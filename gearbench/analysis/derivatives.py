@@ -420,3 +420,119 @@ def refine_reversals(position_rad: np.ndarray, velocity: np.ndarray, *, half_wid
     for k in range(-1, 3):
         w[j + k] = direction * (j + k - tc)
     return w
+
+
+def weighted_derivatives(position_rad: np.ndarray, others: dict[str, np.ndarray], dt_s: float,
+                         taps: np.ndarray, weight: np.ndarray, *,
+                         matched: dict[str, np.ndarray] | None = None,
+                         unweighted: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+    """``consistent_derivatives`` of the motor equation multiplied sample by sample by
+    ``weight`` before the filter: F[w·θ''], F[w·θ'], F[w·M i], … with θ'' and θ' the
+    central differences of the angle and M the 3-tap second-difference match.
+
+    If ``J θ''_k + D θ'_k + … = Kt (M i)_k`` holds on every sample with w_k ≠ 0, it
+    holds exactly between the filtered, weighted signals, whatever happens where
+    w_k = 0 (a stuck rotor, a friction transition the model lacks): samples are
+    dropped from the equation without cutting the filter's window. With w ≡ 1 this
+    is ``consistent_derivatives`` (filtering and differencing commute).
+
+    Parameters
+    ----------
+    position_rad : sampled angle.
+    others : undifferentiated signals (3-tap match, weight, FIR).
+    dt_s : sample period.
+    taps : FIR from :func:`lowpass_fir`.
+    weight : per raw sample, 0..1.
+    matched : signals already in the second difference's form (weight, FIR).
+    unweighted : signals filtered as ``consistent_derivatives`` does (instruments).
+
+    Returns
+    -------
+    dict laid out as :func:`consistent_derivatives` (``position`` unweighted).
+
+    References
+    ----------
+    A. V. Oppenheim and R. W. Schafer, "Discrete-Time Signal Processing", 3rd ed., Pearson 2010, sec. 7.5; M. Gautier and W. Khalil, "On the identification of the inertial parameters of robots", Proc. 27th IEEE CDC, 1988 (data selection for IDIM-LS)
+
+    Examples
+    --------
+    >>> fs = weighted_derivatives(theta, {"current": i}, 1e-3, taps, w)   # doctest: +SKIP
+
+    """
+    th = np.asarray(position_rad, float)
+    n = len(th)
+    w = np.asarray(weight, float)
+    out = consistent_derivatives(th, dict(unweighted or {}), dt_s, taps)
+    if n < len(taps) + 2:
+        return {**out, **{m: np.empty(0) for m in [*others, *(matched or {})]}}
+    d1 = np.zeros(n)
+    d2 = np.zeros(n)
+    d1[1:-1] = (th[2:] - th[:-2]) / (2.0 * dt_s)
+    d2[1:-1] = (th[2:] - 2.0 * th[1:-1] + th[:-2]) / (dt_s * dt_s)
+    rows = {"velocity": d1, "acceleration": d2}
+    for m, x in others.items():
+        rows[m] = match_samples(np.asarray(x, float))
+    for m, x in (matched or {}).items():
+        rows[m] = np.asarray(x, float)
+    names = list(rows)
+    filt = signal.oaconvolve(np.vstack([rows[m] for m in names]) * w[None, :],
+                             taps[None, :], mode="valid", axes=1)
+    for j, m in enumerate(names):
+        out[m] = filt[j][1:-1]
+    return out
+
+
+def match_samples(x: np.ndarray) -> np.ndarray:
+    """The 3-tap second-difference match at each raw sample (ends copied).
+
+    Parameters
+    ----------
+    x : rows (..., n).
+
+    Returns
+    -------
+    numpy.ndarray, same shape.
+
+    References
+    ----------
+    A. V. Oppenheim and R. W. Schafer, "Discrete-Time Signal Processing", 3rd ed., Pearson 2010, sec. 7.5
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> match_samples(np.ones(4))
+    array([1., 1., 1., 1.])
+    """
+    x = np.asarray(x, float)
+    c = SECOND_DIFFERENCE_MATCH
+    out = x.copy()
+    out[..., 1:-1] = c[0] * x[..., :-2] + c[1] * x[..., 1:-1] + c[2] * x[..., 2:]
+    return out
+
+
+def filter_valid_rows(x: np.ndarray, taps: np.ndarray) -> np.ndarray:
+    """Rows of ``x`` (k x n) through the FIR, 'valid' part (``filter_valid`` per row).
+
+    Parameters
+    ----------
+    x : k x n rows.
+    taps : FIR.
+
+    Returns
+    -------
+    numpy.ndarray, k x (n − len(taps) + 1).
+
+    References
+    ----------
+    A. V. Oppenheim and R. W. Schafer, "Discrete-Time Signal Processing", 3rd ed., Pearson 2010, sec. 7.5
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> filter_valid_rows(np.ones((2, 5)), np.ones(3) / 3).shape
+    (2, 3)
+    """
+    x = np.atleast_2d(np.asarray(x, float))
+    if x.shape[1] < len(taps):
+        return np.empty((x.shape[0], 0))
+    return signal.oaconvolve(x, taps[None, :], mode="valid", axes=1)
