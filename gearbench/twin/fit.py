@@ -452,10 +452,11 @@ def fit(prob: Problem, params: list[Param], *, iterations: int = 8, mask: np.nda
     if not intervals:
         return out
     if not at_u or fd != FD_REL:
-        # the intervals' Jacobian at the steps whose columns are known to be clean (FD_WEAK):
-        # the first version took the last iteration's, after a stall's 10x finer retry, whose
-        # noise-made columns inflated JᵀJ (a clean run of the hidden cyclo twin: 14/22 within,
-        # drag +0.32 % for ±0.08 %, viscous drag −1.42 % for ±0.15 %)
+        # the intervals' Jacobian fresh at the final values and at the steps whose columns are
+        # known to be clean (FD_WEAK), not a stall's 10x finer retry. The first version took
+        # the last iteration's, at the values before its step: on a clean run of the hidden
+        # cyclo twin 14/22 within, drag +0.32 % for ±0.08 %, viscous drag −1.42 % for ±0.15 %;
+        # a fresh fit with the fresh final Jacobian: +0.14 % ±0.15 %, −0.72 % ±1.06 %
         out["jac"] = jac = _jacobian(prob, params, u, r)
     set_intervals(prob, params, jac, r, sel)
     return out
