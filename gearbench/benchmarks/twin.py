@@ -15,9 +15,10 @@ Sections (``--sections``, all by default):
 * emps: the real EMPS axis, its force replayed in torque mode.
 
 Runs and twin fits are cached (``--cache``, default /tmp/gearbench-twin-bench): a run
-takes ~20-30 s, a twin fit minutes (cvt) to tens of minutes (cyclo).
+takes ~20-30 s, a twin fit 600-650 replays (3-4 min on an idle core, 5-18 min on a loaded one).
 
     python -m gearbench.benchmarks twin [--cases cvt,cyclo] [--sections ...] [--cache DIR]
+                                        [--hidden-set main|alt|alt2] [--seed N]
 """
 from __future__ import annotations
 
