@@ -15,7 +15,7 @@ Sections (``--sections``, all by default):
 * emps: the real EMPS axis, its force replayed in torque mode.
 
 Runs and twin fits are cached (``--cache``, default /tmp/gearbench-twin-bench): a run
-takes ~20-30 s, a twin fit 600-650 replays (3-4 min on an idle core, 5-18 min on a loaded one).
+takes ~20-30 s, a twin fit 600-650 replays (about 3.5 min at 0.32 s per replay on an idle core; 4-18 min measured at load 7-8).
 
     python -m gearbench.benchmarks twin [--cases cvt,cyclo] [--sections ...] [--cache DIR]
                                         [--hidden-set main|alt|alt2] [--seed N]
