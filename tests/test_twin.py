@@ -265,3 +265,30 @@ def test_cli_twin_on_a_sim_run_gives_the_proof(tmp_path):
         assert p["interval95"] == pytest.approx(1.96 * p["sigma"] + abs(p["model_bias"]))
     assert "interval = 1.96·sigma" in r.stdout
     load_twin_block(str(tmp_path / "twin.yaml"))
+
+
+def test_broyden_update_meets_the_secant_and_keeps_other_directions():
+    """Broyden's update (Broyden 1965) makes the carried Jacobian reproduce the step just
+    taken (J_new·Δu = Δr) and leaves directions orthogonal to the step (in the parameters'
+    scales) unchanged: the fit's cheap iterations between fresh Jacobians."""
+    rng = np.random.default_rng(0)
+    J = rng.normal(size=(50, 3))
+    sc = np.array([1e-5, 1.0, 1e3])           # SI scales apart by 10⁸, as Kt/J or D
+    step = np.array([2e-7, 0.0, 0.0])
+    dr = rng.normal(size=50)
+    Jn = F._broyden(J, sc, step, dr)
+    assert np.allclose(Jn @ step, dr)
+    assert np.allclose(Jn[:, 1:], J[:, 1:])     # the other parameters' columns untouched
+
+
+def test_fit_stops_once_an_iteration_moves_nothing_the_intervals_can_tell():
+    """From the truth the first iteration moves every parameter by a fraction of its
+    interval, and the fit stops there instead of running its iteration budget."""
+    rec = _record(BLOCK, _segments(n_cal=600, n_eff=800))
+    prob = F.Problem(rec, copy.deepcopy(BLOCK), Q)
+    params = [p for p in F.base_params(BLOCK) if p.path in ("motors.in.Kt", "motors.in.Tc", "eta_mesh")]
+    res = F.fit(prob, params, iterations=8)
+    assert res["iterations"] <= 2
+    # one replay for the start, a Jacobian (3) and a few steps per iteration, the final Jacobian
+    # and the exact replay of the interval: far under 8 iterations' worth (8 x 4 = 32)
+    assert prob.evaluations < 22

@@ -128,7 +128,7 @@ def run(args) -> int:
     base_values = F.written_values(params)
     print(f"S/n {res['S0'] / res['n']:.3f} -> {res['S'] / res['n']:.3f} (1 = at the noise floor)")
     print("\nadding the effects the simulation lacks, by held-out gain:")
-    chain = F.add_effects(prob, params, max_effects=args.max_effects, verbose=print)
+    chain = F.add_effects(prob, params, max_effects=args.max_effects, verbose=print, last=res)
     report["chain"] = chain
     _print_chain(chain)
     fitted = F.with_params(prob.block, params)
@@ -156,6 +156,8 @@ def run(args) -> int:
         _print_proof(report["proof"])
         report["proof"]["misses"] = _verdict(report["proof"], after)
     report["wall_s"] = time.monotonic() - t0
+    report["fit_replays"] = prob.evaluations
+    print(f"\n{prob.evaluations} replays in the fit; {report['wall_s']:.0f} s wall")
     _dump(args, report)
     return 0
 
