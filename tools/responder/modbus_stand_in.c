@@ -131,6 +131,11 @@ static uint16_t ring_word(Unit *u, int a, double t) {
     double tn = t0_s + n * counter_period_s, pos = u->pos_rad + u->vel_rad_s * (tn - u->since_s);
     int enabled = (u->reg[STATUS] & 0x6F) == 0x27;
     double current_a = enabled ? (u->reg[MODE] == 4 ? get32(u->reg, TARGET_CUR) * CUR_SCALE : 0.05 * u->vel_rad_s / 50) : 0.0;
+    if (w == 0 && n % cell_counts == 0 && n / cell_counts > u->last_cell) {   /* a cell sample first read */
+        if (u->last_cell >= 0 && n / cell_counts > u->last_cell + 1) cells_unread += n / cell_counts - u->last_cell - 1;
+        u->last_cell = n / cell_counts;
+        history_entries++;
+    }
     uint32_t v;
     switch (w) {
     case 0: return u->reg[STATUS];
@@ -138,11 +143,6 @@ static uint16_t ring_word(Unit *u, int a, double t) {
     case 3: case 4: v = (uint32_t)(int32_t)llround(fmod(pos / POS_SCALE, 2147483648.0)); break;
     case 5: case 6: v = (uint32_t)(int32_t)llround(u->vel_rad_s / VEL_SCALE); break;
     default: v = (uint32_t)(int32_t)llround(current_a / CUR_SCALE); break;
-    }
-    if (w == 0 && n % cell_counts == 0 && n / cell_counts > u->last_cell) {   /* a cell sample first read */
-        if (u->last_cell >= 0 && n / cell_counts > u->last_cell + 1) cells_unread += n / cell_counts - u->last_cell - 1;
-        u->last_cell = n / cell_counts;
-        history_entries++;
     }
     return (w % 2 == 1) ? v >> 16 : v & 0xFFFF;      /* odd word: high half (big word order) */
 }
