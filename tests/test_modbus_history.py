@@ -44,9 +44,9 @@ class SimNetwork(ModbusNetwork):
     """The master with its two reads answered by simulated drives on ``clock``: counter =
     (t - offset) / 1 ms, position = 3 counts per counter period; the ring written every count."""
 
-    def __init__(self, clock: SimClock, history: bool = True, depth: int | None = None):
+    def __init__(self, clock: SimClock, history: bool = True, depth: int | None = None, drift: float = 0.0):
         super().__init__(history=history)
-        self.clock, self.offset_s, self.reads = clock, 0.0004321, []
+        self.clock, self.offset_s, self.reads, self.drift = clock, 0.0004321, [], drift
         for name, unit in (("in", 1), ("out", 2)):
             d = ModbusDrive(AxisConfig(name, unit, MAP), self, None, "sim")
             if depth is not None:
@@ -62,7 +62,8 @@ class SimNetwork(ModbusNetwork):
         self._ring = self.use_history and all(d.map.history for d in self.drives.values())
 
     def _now_counter(self) -> int:
-        return int((self.clock.t + 30e-6 - self.offset_s) // 1e-3)     # the request's 30 us transit
+        # the request's 30 us transit; the drive's crystal ``drift`` fast
+        return int((self.clock.t + 30e-6 - self.offset_s) * (1 + self.drift) // 1e-3)
 
     def _block(self, d: ModbusDrive, n: int) -> list[int]:
         m = d.map
@@ -144,6 +145,18 @@ def test_a_stall_longer_than_the_ring_counts_the_overwritten_cells_lost(clock):
     assert 25 - 8 <= net.lost_samples <= 25 - 8 + 3, sup
     idx = [s["in"].index for s in samples]
     assert idx == sorted(set(idx))           # in order, none twice
+
+
+@pytest.mark.parametrize("drift", [-500e-6, 500e-6])
+def test_the_schedule_follows_a_drive_crystal_off_by_500_ppm(clock, drift):
+    net = SimNetwork(clock, drift=drift)
+    samples = _run(net, clock, 6000, {})        # 12 s: 6 ms of drift, 3 cells
+    sup = net.supervision()
+    assert net.lost_samples == 0 and sup["lost_history_overrun"] == 0, sup
+    # the reads stay within a cell of the drive: one entry per read (three every 16th: the next
+    # cell's first entry, a look ahead), a stale one now and then
+    assert np.mean([c for _, c in net.reads]) < 1.3 * 9 and sup["history_stale"] < 0.08 * len(samples), sup
+    assert sup["recovered_from_history"] <= sup["history_stale"] + 1, sup   # only the re-read stale ones
 
 
 def test_a_read_across_the_ring_wrap_is_split(clock):

@@ -512,8 +512,10 @@ class ModbusNetwork(DriveNetwork):
             now = time.monotonic()
             if due > now:
                 time.sleep(due - now)
+                self.poll_late_max_s = max(self.poll_late_max_s, time.monotonic() - due)
             self._take_pending()           # fills _held, moves _cell
-            self._send_history()
+            if sched.phase_s + self._cell * sched.period_s <= time.monotonic():
+                self._send_history()       # (a drive ahead of the schedule gave a cell not yet due)
         return self._held.pop(0)
 
     def _send_history(self) -> None:
@@ -528,16 +530,21 @@ class ModbusNetwork(DriveNetwork):
             self.lost_history_overrun += oldest - self._cell
             self._cell = oldest
         a = self._cell * k                      # the first entry's counter
-        n = min((now_cell - self._cell) * k + 1, MAX_READ_WORDS // first.map.entry_words, depth - a % depth)
+        # every probe_every-th cell one entry more, the next cell's first: there only if the drive's
+        # clock runs ahead of the schedule (which then moves); a read before its entry was written
+        # says the schedule runs ahead of the drive (see _take_history)
+        ahead = now_cell % sched.probe_every == 0
+        n = min((now_cell + ahead - self._cell) * k + 1, MAX_READ_WORDS // first.map.entry_words, depth - a % depth)
         self._send_reads({d.name: (d.map.history_address(a), n * d.map.entry_words) for d in self.drives.values()})
         self.history_entries_max = max(self.history_entries_max, n)
-        self._pending = ("history", a, n, self._t_sent)
-        self._req_next = (a + n - 1) // k + 1
+        self._pending = ("history", a, n, self._t_sent, now_cell * k)
+        self._req_next = min((a + n - 1) // k + 1, now_cell + 1)
 
-    def _take_history(self, a: int, n: int, t_sent: float, words: dict) -> None:
-        """Ring entries ``a .. a+n-1`` (counters) as read at ``t_sent``: each valid entry of a cell's
-        first count is a sample (to ``_held``); an entry the drive had not written yet ends the take
-        (read again next time); one already overwritten is a lost cell."""
+    def _take_history(self, a: int, n: int, t_sent: float, due_counter: int, words: dict) -> None:
+        """Ring entries ``a .. a+n-1`` (counters) as read at ``t_sent``, ``due_counter`` the newest one
+        the schedule had the drive at: each valid entry of a cell's first count is a sample (to
+        ``_held``); an entry the drive had not written yet ends the take (read again next time); one
+        already overwritten is a lost cell. Entries not where the schedule has them move its phase."""
         first, sched = next(iter(self.drives.values())), self.schedule
         k, ew = first._k, first.map.entry_words
         modulus = 2 ** (16 * first.map.registers["sample_counter"].words)
@@ -545,9 +552,12 @@ class ModbusNetwork(DriveNetwork):
             counter = a + i
             held = (self._counter(first, words[first.name][i * ew:(i + 1) * ew]) - counter) % modulus
             if held > modulus // 2:            # an older sample: the drive had not reached this one
-                self.history_stale += 1
-                sched.phase_s += sched.step_s  # the schedule runs ahead of the drive's clock
+                if counter <= due_counter:
+                    self.history_stale += 1
+                    sched.phase_s += sched.step_s    # the schedule runs ahead of the drive's clock
                 break
+            if counter > due_counter and not held:
+                sched.phase_s -= sched.step_s        # the drive's clock runs ahead of the schedule
             self._cell = counter // k + 1
             if held:                           # overwritten by a newer turn of the ring
                 self.lost_history_overrun += counter % k == 0
@@ -558,8 +568,6 @@ class ModbusNetwork(DriveNetwork):
                 self.recovered_from_history += 1
             self._held.append({d.name: d._to_sample(words[d.name][i * (w := d.map.entry_words):(i + 1) * w])
                                for d in self.drives.values()})
-        else:
-            sched.phase_s -= sched.step_s / 16  # every entry there: creep toward the drive's edge
 
     def _lock(self) -> dict[str, Sample]:
         """Lock the schedule on the first drive's next counter edge (reads every 1/8 counter period)."""
@@ -603,9 +611,9 @@ class ModbusNetwork(DriveNetwork):
         if self._pending is None:
             return None
         if self._pending[0] == "history":
-            _, a, n, t_sent = self._pending
+            _, a, n, t_sent, due_counter = self._pending
             self._pending = None
-            self._take_history(a, n, t_sent, self._receive_reads())
+            self._take_history(a, n, t_sent, due_counter, self._receive_reads())
             return None
         expected, due, t_sent = self._pending
         self._pending = None
