@@ -12,7 +12,8 @@ by one sampling period; the write and the first drive's read share one
 read/write-multiple-registers request (function 0x17).
 
 Options: ``host`` ("127.0.0.1"), ``port`` (502), ``timeout_s`` (1.0),
-``lockstep`` (False), ``master_timeout_ms`` (1000; 0 = off). A drive may override
+``lockstep`` (False), ``master_timeout_ms`` (1000; 0 = off), ``history`` (True: read the drives'
+history rings where every map declares one; False: read them as drives without one). A drive may override
 ``host``/``port`` in ``AxisConfig.extra`` (real drives usually have one IP each).
 
 Free-running (real drives): a Modbus drive keeps no history, so a sample the master
