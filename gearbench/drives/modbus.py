@@ -452,8 +452,8 @@ class ModbusNetwork(DriveNetwork):
         if not self.lockstep:
             out.update(polls_late=self.polls_late, poll_late_max_s=self.poll_late_max_s, repolls=self.repolls,
                        lost_sent_late=self.lost_sent_late, lost_misplaced=self.lost_misplaced,
-                       history=("drive-side ring of " + ", ".join(f"{d.map.history[1]}" for d in self.drives.values())
-                                + " samples" if self._ring else "none (the read is the sample)"),
+                       history=(", ".join(f"{n}: ring of {d.map.history[1]} samples" for n, d in self.drives.items())
+                                if self._ring else "none (the read is the sample)"),
                        recovered_from_history=self.recovered_from_history,
                        lost_history_overrun=self.lost_history_overrun, history_stale=self.history_stale,
                        history_entries_max=self.history_entries_max)

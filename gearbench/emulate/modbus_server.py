@@ -186,7 +186,7 @@ class ModbusServerHandle:
         try:
             if set_values is not None:
                 return self._write(unit, start_address, address, list(set_values), registers)
-            self._fill(unit, start_address, registers)
+            self._fill(unit, start_address, registers, address, count)
         except ValueError:
             return ExcCodes.ILLEGAL_VALUE
         return None
@@ -209,12 +209,13 @@ class ModbusServerHandle:
                 ring[j:j + ew] = block_n
         self._ring_counter = counter
 
-    def _fill(self, unit: int, start: int, registers: list[int]) -> int:
-        """Put the named registers of this instant into ``registers`` (whose first is ``start``);
-        a read inside the history ring gets the ring's words instead. Returns the sample counter."""
+    def _fill(self, unit: int, start: int, registers: list[int], address: int = 0, count: int = 0) -> int:
+        """Put the named registers of this instant into ``registers`` (whose first is ``start``), and
+        the history ring as of the last drive cycle where the read (``address``, ``count``) reaches
+        it. Returns the sample counter."""
         m, bench = self.map, self.bench
-        if self._ring and 0 <= (off := m.history[0] - start) and off + len(self._ring[unit]) <= len(registers):
-            registers[off:off + len(self._ring[unit])] = self._ring[unit]     # as of the last drive cycle
+        if self._ring and address + count > m.history[0] and 0 <= (off := m.history[0] - start):
+            registers[off:off + len(self._ring[unit])] = self._ring[unit]
         with bench.lock:
             axis = self.bench.drive(unit)
             meas = bench.latest.get(bench.axes[unit])     # None before the first step
