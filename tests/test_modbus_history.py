@@ -115,12 +115,12 @@ def _run(net: SimNetwork, clock: SimClock, samples: int, stall_at: dict[int, flo
 
 def test_the_shipped_generic_map_declares_its_ring():
     m = load_register_map(MAP)
-    assert m.history == (100, 64) and m.entry_words == 9 and m.history_address(65) == 109
+    assert m.history == (100, 256) and m.entry_words == 9 and m.history_address(257) == 109
 
 
-@pytest.mark.parametrize("stall_s", [0.0, 0.02, 0.05])
+@pytest.mark.parametrize("stall_s", [0.0, 0.02, 0.05, 0.2])
 def test_a_stall_shorter_than_the_ring_loses_nothing_and_keeps_the_grid(clock, stall_s):
-    net = SimNetwork(clock)        # 64 entries of 1 ms: 32 cells of 2 ms
+    net = SimNetwork(clock)        # 256 entries of 1 ms: 128 cells of 2 ms
     samples = _run(net, clock, 400, {150: stall_s, 300: stall_s})
     idx = np.array([s["in"].index for s in samples])
     t = np.array([s["in"].time_s for s in samples])
