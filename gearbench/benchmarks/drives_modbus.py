@@ -20,8 +20,8 @@ Modes:
     drive's sample block once per sampling period (``--period-s``, default 2 ms: the rated
     rate, 500 samples/s per drive; README "Modbus: rated rate") at SCHED_FIFO 10.
 
-Rated rate: 2 ms. Modbus has no SYNC and no drive-side history: the master's read *is* the
-sample, so the rate is bounded by the drive's answer time. Vendors document plain register
+Rated rate: 2 ms. Modbus has no SYNC; for a drive without history the master's read *is* the
+sample (with one, a stall is read back), and the rate is bounded by the drive's answer time. Vendors document plain register
 reads answered within about 1-2 ms (IAI ROBO Cylinder: 1 ms max internal processing;
 Oriental Motor BLH/BLV over RTU: silent interval + 2 ms or less), and Kollmorgen says of the
 AKD that Modbus TCP "is not deterministic" (the AKD2G throttles high message rates). A 2 ms
