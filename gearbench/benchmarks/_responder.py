@@ -101,9 +101,11 @@ class ModbusStandIn:
     picks (``ports``: one connection per drive, as drives with an IP each); ``counters()`` while it
     runs, ``stop()`` returns the last ones."""
 
-    def __init__(self, counter_period_s: float, cell_counts: int, late_s: float, priority: int):
+    def __init__(self, counter_period_s: float, cell_counts: int, late_s: float, priority: int,
+                 history: tuple[int, int] | None = None):
+        ring = [str(history[0]), str(history[1])] if history else []   # (address, depth): the drives' ring
         self.proc = subprocess.Popen([str(build(MODBUS_SOURCE)), repr(counter_period_s), str(cell_counts),
-                                      repr(late_s), str(priority)],
+                                      repr(late_s), str(priority), *ring],
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         words = self.proc.stdout.readline().split(maxsplit=3)
         if words[:1] != ["ready"] or len(words) < 3:

@@ -2,10 +2,16 @@
 
     python -m gearbench.benchmarks drives_modbus [--seconds 10] [--period-s 0.002] [--hog 0 2]
         [--modes lockstep free] [--stand-in compiled|emulator] [--map drivers/generic-modbus-servo.yaml]
+        [--history on off]
 
-The 10-minute acceptance run (free-running at the rated period, quiet and with both cores hogged):
+The 10-minute acceptance run (free-running at the rated period, quiet and with both cores hogged,
+drives with a history ring; add ``off`` for drives without one):
 
-    python -m gearbench.benchmarks drives_modbus --seconds 600 --modes free --hog 0 2
+    python -m gearbench.benchmarks drives_modbus --seconds 600 --modes free --hog 0 2 --history on
+
+History (``--history on``, the map's ``history:``): the drives keep their last samples in a ring
+and the master reads back every cell since the last one taken, so a host stall shorter than the
+ring loses nothing; ``off``: the same drives read as if they had none (the read is the sample).
 
 Modes:
   - lockstep: each sample = sync write + read of drive 1 (one 0x17 request) + read of drive 2,
@@ -14,8 +20,8 @@ Modes:
     drive's sample block once per sampling period (``--period-s``, default 2 ms: the rated
     rate, 500 samples/s per drive; README "Modbus: rated rate") at SCHED_FIFO 10.
 
-Rated rate: 2 ms. Modbus has no SYNC and no drive-side history: the master's read *is* the
-sample, so the rate is bounded by the drive's answer time. Vendors document plain register
+Rated rate: 2 ms. Modbus has no SYNC; for a drive without history the master's read *is* the
+sample (with one, a stall is read back), and the rate is bounded by the drive's answer time. Vendors document plain register
 reads answered within about 1-2 ms (IAI ROBO Cylinder: 1 ms max internal processing;
 Oriental Motor BLH/BLV over RTU: silent interval + 2 ms or less), and Kollmorgen says of the
 AKD that Modbus TCP "is not deterministic" (the AKD2G throttles high message rates). A 2 ms
@@ -110,7 +116,7 @@ class _EmulatorStandIn:
         return self.own
 
 
-def _stand_in(regmap: str, lockstep: bool, period_s: float, which: str):
+def _stand_in(regmap: str, lockstep: bool, period_s: float, which: str, history: bool = False):
     """The drives' stand-in: the compiled one (free-running, the generic map) or the emulator.
     Returns (stand-in, why the compiled one was not used or None)."""
     if lockstep or which == "emulator":
@@ -120,16 +126,17 @@ def _stand_in(regmap: str, lockstep: bool, period_s: float, which: str):
         (None if m.model == COMPILED_MODEL else f"map {regmap} is not the {COMPILED_MODEL} it lays out")
     if why:
         return _EmulatorStandIn(regmap, lockstep), why
-    s = _responder.ModbusStandIn(m.counter_period_s, round(period_s / m.counter_period_s), LATE_ANSWER_S, STAND_IN_FIFO)
+    s = _responder.ModbusStandIn(m.counter_period_s, round(period_s / m.counter_period_s), LATE_ANSWER_S, STAND_IN_FIFO,
+                                 history=m.history if history else None)
     s.kind = f"compiled stand-in, {s.priority}"
     return s, None
 
 
 def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3, hog: int = 0,
-            stand_in: str = "compiled", latency_reads: int = 2000) -> dict:
+            stand_in: str = "compiled", latency_reads: int = 2000, history: bool = False) -> dict:
     """Sample both drives for ``seconds``, then time ``latency_reads`` single reads (pymodbus, normal
     priority); returns figures (see module docstring)."""
-    srv, why_not = _stand_in(regmap, lockstep, period_s, stand_in)
+    srv, why_not = _stand_in(regmap, lockstep, period_s, stand_in, history)
     hogs: list[subprocess.Popen] = []
     own0 = own1 = {}
     try:
@@ -137,7 +144,7 @@ def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3,
         floor = None
         if not lockstep:   # the host's floor under this run's conditions (the hogs running), just before
             floor = timer_floor(period_s, min(10.0, seconds), slack_s=(1 - PollSchedule(1.0, 1).lead_s) * period_s)
-        net = ModbusNetwork(port=srv.ports[0], lockstep=lockstep, timeout_s=2.0)
+        net = ModbusNetwork(port=srv.ports[0], lockstep=lockstep, timeout_s=2.0, history=history)
         with net:
             d_in = net.add_drive(AxisConfig("in", 1, regmap))
             d_out = net.add_drive(AxisConfig("out", 2, regmap, extra={"port": srv.ports[1]}))
@@ -153,7 +160,8 @@ def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3,
                 own0 = srv.counters()
                 samples = net.sample()         # the window starts after the stand-in's counters were read
                 lost0, first_index = net.lost_samples, samples["in"].index
-                late0 = (net.polls_late, net.lost_sent_late, net.lost_misplaced) if not lockstep else (0, 0, 0)
+                late0 = (net.polls_late, net.lost_sent_late, net.lost_misplaced, net.recovered_from_history,
+                         net.lost_history_overrun, net.history_stale)
                 cpu0, srv0, t0 = _cpu.threads(), _cpu.threads(srv.pid), time.perf_counter()
                 per_sample, n = [], 0
                 while (now := time.perf_counter()) - t0 < seconds:
@@ -170,7 +178,10 @@ def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3,
             sup = net.supervision()
             if not lockstep:   # this window's
                 sup.update(polls_late=net.polls_late - late0[0], lost_sent_late=net.lost_sent_late - late0[1],
-                           lost_misplaced=net.lost_misplaced - late0[2])
+                           lost_misplaced=net.lost_misplaced - late0[2],
+                           recovered_from_history=net.recovered_from_history - late0[3],
+                           lost_history_overrun=net.lost_history_overrun - late0[4],
+                           history_stale=net.history_stale - late0[5])
             # latency of single requests: one read of one drive's sample block
             lat = [np.nan]
             for _ in range(latency_reads):
@@ -208,12 +219,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--modes", nargs="+", default=["lockstep", "free"], choices=["lockstep", "free"])
     ap.add_argument("--stand-in", default="compiled", choices=["compiled", "emulator"],
                     help="free-running: what answers (the compiled stand-in, or the Python emulator at SCHED_FIFO)")
+    ap.add_argument("--history", nargs="+", default=["on", "off"], choices=["on", "off"],
+                    help="free-running: drives with a history ring (the map's history:) and/or read as without one")
     args = ap.parse_args(argv)
     print(f"Modbus TCP, 2 drives (unit ids 1, 2), loopback, drives' stand-in in another process, map {args.map}")
-    for mode, hog in ((m, h) for m in args.modes for h in args.hog):
-        r = measure(args.map, args.seconds, mode == "lockstep", args.period_s, hog, args.stand_in)
+    runs = [("lockstep", h, "off") for h in args.hog] * ("lockstep" in args.modes) + \
+        [("free", h, hist) for hist in args.history for h in args.hog] * ("free" in args.modes)
+    if "on" in args.history and not load_register_map(args.map).history:
+        print(f"{args.map} declares no history: ring; --history on reads it as a drive without one")
+    for mode, hog, hist in runs:
+        r = measure(args.map, args.seconds, mode == "lockstep", args.period_s, hog, args.stand_in,
+                    history=hist == "on")
         own = r["stand_in_own"]
-        label = (r["mode"] if mode == "lockstep" else f"free-running, {1e3 * r['period_s']:g} ms") + f", {hog} hogs"
+        label = (r["mode"] if mode == "lockstep" else
+                 f"free-running, {1e3 * r['period_s']:g} ms, history {hist}") + f", {hog} hogs"
         print(f"{label:>28}: "
               f"{r['samples_per_s_per_drive']:7.0f} samples/s per drive "
               f"({r['samples']} samples, lost {r['lost']} = {100 * r['lost_fraction']:.3f} %); "
@@ -226,7 +245,8 @@ def main(argv: list[str] | None = None) -> int:
             ownt = (f"{own['requests']} requests, {own['block_reads']} sample reads, {own['late_answers']} answered "
                     f"later than {LATE_ANSWER_S * 1e3:g} ms (max {own['answer_delay_max_s'] * 1e3:.3f} ms), cells no "
                     f"read fell in {own['cells_unread']}, cells read twice {own['repeat_reads']}, "
-                    f"{own['exceptions']} exceptions, {own['watchdog_trips']} watchdog trips")
+                    f"{own['exceptions']} exceptions, {own['watchdog_trips']} watchdog trips, "
+                    f"{own.get('history_reads', 0)} ring reads delivering {own.get('history_entries', 0)} cells")
         else:
             ownt = (f"{own.get('overruns', '?')} overruns, lag max {1e3 * own.get('lag_max_s', float('nan')):.1f} ms, "
                     f"{own.get('late_periods', '?')} of {own.get('periods', '?')} periods stepped over a period late")
@@ -239,7 +259,11 @@ def main(argv: list[str] | None = None) -> int:
                   f"the master: {sup['polls_late']} of {r['samples']} reads in a later cell")
         extra = (f"; latest send {sup['poll_late_max_s'] * 1e3:.2f} ms after due; lost: {sup['lost_sent_late']} "
                  f"read sent after its cell had ended (master not run), "
-                 f"{sup['lost_misplaced']} sent in time" if "polls_late" in sup else "")
+                 f"{sup['lost_misplaced']} sent in time, {sup['lost_history_overrun']} overwritten in the ring "
+                 f"before read; recovered from history {sup['recovered_from_history']} (read after their cell "
+                 f"had ended; {sup['history_stale']} entries read before written, read again; up to "
+                 f"{sup['history_entries_max']} entries per read; history: {sup['history']})"
+                 if "polls_late" in sup else "")
         print(f"{'':>30}master {r['priority']}{extra}; stand-in {r['stand_in']}, its own counters: {ownt}; "
               f"load {r['load']}", flush=True)
     return 0

@@ -12,7 +12,8 @@ by one sampling period; the write and the first drive's read share one
 read/write-multiple-registers request (function 0x17).
 
 Options: ``host`` ("127.0.0.1"), ``port`` (502), ``timeout_s`` (1.0),
-``lockstep`` (False), ``master_timeout_ms`` (1000; 0 = off). A drive may override
+``lockstep`` (False), ``master_timeout_ms`` (1000; 0 = off), ``history`` (True: read the drives'
+history rings where every map declares one; False: read them as drives without one). A drive may override
 ``host``/``port`` in ``AxisConfig.extra`` (real drives usually have one IP each).
 
 Free-running (real drives): a Modbus drive keeps no history, so a sample the master
@@ -25,6 +26,16 @@ once; drives sharing one connection in turn (one request outstanding per connect
 The answer to a connection's last read is taken at the next read's wake-up, so the
 master wakes once per sample. Lost, defined: a cell of the first drive's counter
 between two samples taken that no read fell in (``lost_samples``).
+
+Drive-side history (a map's ``history: {address, depth}``; network option ``history``, True:
+used where every drive's map declares it): the drive keeps its last ``depth`` samples in a ring,
+the sample of counter n at ``address + (n mod depth) * entry_words``, each entry laid out like
+the sample block. The master then reads, at each wake-up, the ring entries of every cell since
+the last one taken (normally one; after a host stall up to 125 registers in one read, split at
+the ring's wrap), each checked by the counter it holds: a stall shorter than the ring loses
+nothing (``recovered_from_history``: samples taken after their cell had ended, which a drive
+without history would have lost); cells whose entries were overwritten before the master read
+them are lost (``lost_history_overrun``).
 
 A tester PC that dies stops its drives: where the map declares the drive's
 communication watchdog (``comm_timeout``, seconds), the master arms it against real
@@ -42,7 +53,7 @@ from pymodbus.pdu import ExceptionResponse
 
 from ..errors import BenchFault, DriveError
 from .base import AxisConfig, Drive, DriveNetwork, Mode, Sample
-from .register_map import SAMPLED, RegisterMap, load_register_map
+from .register_map import MAX_READ_WORDS, SAMPLED, RegisterMap, load_register_map
 
 EXCEPTION_NAMES = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
                    4: "device failure", 5: "acknowledge", 6: "device busy",
@@ -328,6 +339,13 @@ class ModbusNetwork(DriveNetwork):
         self.repolls = 0               # reads that came too early (a probe before the cell) and were repeated
         self.lost_sent_late = 0        # cells lost because their read was sent after the cell had ended
         self.lost_misplaced = 0        # cells lost to a read sent in time that fell in a later cell
+        self.use_history = bool(options.get("history", True))
+        self._ring: bool = False       # free-running from the drives' history rings (start())
+        self._req_next = 0             # history: the cell after the last one requested
+        self.recovered_from_history = 0   # samples read from the ring after their cell had ended
+        self.lost_history_overrun = 0  # cells whose ring entry was overwritten before it was read
+        self.history_stale = 0         # ring entries read before the drive wrote them (read again)
+        self.history_entries_max = 0   # most ring entries read in one request
 
     def _client(self, host: str, port: int) -> ModbusTcpClient:
         key = (host, port)
@@ -377,6 +395,7 @@ class ModbusNetwork(DriveNetwork):
         if not self.lockstep:
             first = next(iter(self.drives.values()))
             self.schedule = PollSchedule(first.map.counter_period_s, first._k)
+            self._ring = self.use_history and all(d.map.history for d in self.drives.values())
             self._groups = []
             for client in {id(d.client): d.client for d in self.drives.values()}.values():
                 drives = [d for d in self.drives.values() if d.client is client]
@@ -432,7 +451,12 @@ class ModbusNetwork(DriveNetwork):
                "if_the_master_dies": {n: d.master_watch for n, d in self.drives.items()}}
         if not self.lockstep:
             out.update(polls_late=self.polls_late, poll_late_max_s=self.poll_late_max_s, repolls=self.repolls,
-                       lost_sent_late=self.lost_sent_late, lost_misplaced=self.lost_misplaced)
+                       lost_sent_late=self.lost_sent_late, lost_misplaced=self.lost_misplaced,
+                       history=(", ".join(f"{n}: ring of {d.map.history[1]} samples" for n, d in self.drives.items())
+                                if self._ring else "none (the read is the sample)"),
+                       recovered_from_history=self.recovered_from_history,
+                       lost_history_overrun=self.lost_history_overrun, history_stale=self.history_stale,
+                       history_entries_max=self.history_entries_max)
         return out
 
     def _next_free_running(self) -> dict[str, Sample]:
@@ -447,6 +471,8 @@ class ModbusNetwork(DriveNetwork):
         takes the answer outstanding (``_drain``) and keeps its sample for the next call."""
         if self._held:
             return self._held.pop(0)
+        if self._ring:
+            return self._next_from_history()
         sched = self.schedule
         if self._cell is None:
             return self._lock()
@@ -472,6 +498,77 @@ class ModbusNetwork(DriveNetwork):
                 return result
             if self._held:
                 return self._held.pop(0)
+
+    def _next_from_history(self) -> dict[str, Sample]:
+        """The next sample from the drives' history rings: one wake-up per cell, ``lead`` into it;
+        the answer to a wake-up's read is taken at the next one, which then asks for every cell from
+        the first not yet taken to the current one (see the module docstring)."""
+        sched = self.schedule
+        if self._cell is None:
+            self._lock()                    # the block read may be off the grid: the ring starts after it
+            self._req_next = self._cell
+        while not self._held:
+            cell = self._req_next if self._pending is not None else self._cell
+            due = sched.phase_s + cell * sched.period_s + sched.lead_s
+            now = time.monotonic()
+            if due > now:
+                time.sleep(due - now)
+                self.poll_late_max_s = max(self.poll_late_max_s, time.monotonic() - due)
+            self._take_pending()           # fills _held, moves _cell
+            if sched.phase_s + self._cell * sched.period_s <= time.monotonic():
+                self._send_history()       # (a drive ahead of the schedule gave a cell not yet due)
+        return self._held.pop(0)
+
+    def _send_history(self) -> None:
+        """Ask every drive for the ring entries from cell ``_cell`` to the current one (by the
+        schedule), at most one read's worth and not past the ring's wrap; cells already overwritten
+        are counted lost and skipped."""
+        first, sched = next(iter(self.drives.values())), self.schedule
+        k, (_, depth) = first._k, first.map.history
+        now_cell = max(self._cell, int((time.monotonic() - sched.phase_s) // sched.period_s))
+        oldest = now_cell - depth // k + 2      # older cells' entries are (being) overwritten
+        if self._cell < oldest:
+            self.lost_history_overrun += oldest - self._cell
+            self._cell = oldest
+        a = self._cell * k                      # the first entry's counter
+        # every probe_every-th cell one entry more, the next cell's first: there only if the drive's
+        # clock runs ahead of the schedule (which then moves); a read before its entry was written
+        # says the schedule runs ahead of the drive (see _take_history)
+        ahead = now_cell % sched.probe_every == 0
+        n = min((now_cell + ahead - self._cell) * k + 1, MAX_READ_WORDS // first.map.entry_words, depth - a % depth)
+        self._send_reads({d.name: (d.map.history_address(a), n * d.map.entry_words) for d in self.drives.values()})
+        self.history_entries_max = max(self.history_entries_max, n)
+        self._pending = ("history", a, n, self._t_sent, now_cell * k)
+        self._req_next = min((a + n - 1) // k + 1, now_cell + 1)
+
+    def _take_history(self, a: int, n: int, t_sent: float, due_counter: int, words: dict) -> None:
+        """Ring entries ``a .. a+n-1`` (counters) as read at ``t_sent``, ``due_counter`` the newest one
+        the schedule had the drive at: each valid entry of a cell's first count is a sample (to
+        ``_held``); an entry the drive had not written yet ends the take (read again next time); one
+        already overwritten is a lost cell. Entries not where the schedule has them move its phase."""
+        first, sched = next(iter(self.drives.values())), self.schedule
+        k, ew = first._k, first.map.entry_words
+        modulus = 2 ** (16 * first.map.registers["sample_counter"].words)
+        for i in range(n):
+            counter = a + i
+            held = (self._counter(first, words[first.name][i * ew:(i + 1) * ew]) - counter) % modulus
+            if held > modulus // 2:            # an older sample: the drive had not reached this one
+                if counter <= due_counter:
+                    self.history_stale += 1
+                    sched.phase_s += sched.step_s    # the schedule runs ahead of the drive's clock
+                break
+            if counter > due_counter and not held:
+                sched.phase_s -= sched.step_s        # the drive's clock runs ahead of the schedule
+            self._cell = counter // k + 1
+            if held:                           # overwritten by a newer turn of the ring
+                self.lost_history_overrun += counter % k == 0
+                continue
+            if counter % k:
+                continue
+            if t_sent >= sched.cell_end_s(counter // k):
+                self.recovered_from_history += 1
+            self._held.append({d.name: d._to_sample(words[d.name][i * (w := d.map.entry_words):(i + 1) * w])
+                               for d in self.drives.values()})
 
     def _lock(self) -> dict[str, Sample]:
         """Lock the schedule on the first drive's next counter edge (reads every 1/8 counter period)."""
@@ -513,6 +610,11 @@ class ModbusNetwork(DriveNetwork):
     def _take_pending(self) -> dict[str, Sample] | None:
         """The outstanding regular read's samples, checked against its cell (``_account``)."""
         if self._pending is None:
+            return None
+        if self._pending[0] == "history":
+            _, a, n, t_sent, due_counter = self._pending
+            self._pending = None
+            self._take_history(a, n, t_sent, due_counter, self._receive_reads())
             return None
         expected, due, t_sent = self._pending
         self._pending = None
@@ -575,7 +677,7 @@ class ModbusNetwork(DriveNetwork):
         self._send_reads()
         return self._receive_reads()
 
-    def _send_reads(self) -> None:
+    def _send_reads(self, spans: dict | None = None) -> None:
         """Every drive's sample read; ``_t_sent`` = when. One request outstanding per connection (a
         Modbus TCP server may take one at a time: pymodbus's answers only the first of two sent
         together), so the reads of drives on different connections (real drives: one IP each) go
@@ -591,15 +693,17 @@ class ModbusNetwork(DriveNetwork):
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO,
                                 struct.pack("ll", int(self.timeout_s), int(self.timeout_s % 1 * 1e6)))
             for d in drives[:-1]:
-                self._words[d.name] = self._receive(sock, d, self._request(sock, d))
-            sent.append((sock, drives[-1], self._request(sock, drives[-1])))
+                self._words[d.name] = self._receive(sock, d, self._request(sock, d, spans))
+            sent.append((sock, drives[-1], self._request(sock, drives[-1], spans)))
         self._sent = sent
 
-    def _request(self, sock: socket.socket, d: ModbusDrive) -> int:
+    def _request(self, sock: socket.socket, d: ModbusDrive, spans: dict | None = None) -> int:
+        """Send a read of ``d``'s sample block (or of ``spans[d.name]`` = (address, words))."""
         self._tid = (self._tid + 1) & 0x7FFF
         tid = 0x8000 | self._tid                    # apart from pymodbus's own transaction ids
+        address, count = spans[d.name] if spans else (d.block_start, d.block_words)
         try:
-            sock.sendall(struct.pack(">HHHBBHH", tid, 0, 6, d.unit, 3, d.block_start, d.block_words))
+            sock.sendall(struct.pack(">HHHBBHH", tid, 0, 6, d.unit, 3, address, count))
         except OSError as exc:
             raise DriveError(f"{d!r}: cannot send the sample read ({exc}); check the cable and "
                              f"that the drive is powered") from None
@@ -640,7 +744,7 @@ class ModbusNetwork(DriveNetwork):
             raise DriveError(f"{d!r}: Modbus exception {code} ({EXCEPTION_NAMES.get(code, 'unknown')}) to the "
                              f"sample read at {d.block_start}; check the register map {d.map.path} against the "
                              f"drive manual")
-        return struct.unpack_from(f">{d.block_words}H", buf, 9)
+        return struct.unpack_from(f">{buf[8] // 2}H", buf, 9)
 
     def _close(self) -> None:
         for d in self.drives.values():

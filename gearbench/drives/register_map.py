@@ -97,8 +97,20 @@ class RegisterMap:
     enabled_mask: int
     enabled_value: int
     enable_timeout_s: float
+    #: drive-side ring of past samples: (first address, depth in entries), or None (no history)
+    history: tuple[int, int] | None = None
 
     # --- layout -----------------------------------------------------------
+    @property
+    def entry_words(self) -> int:
+        """Words per history entry: laid out like the one-instant sample block."""
+        return self.span(SAMPLED)[1]
+
+    def history_address(self, counter: int) -> int:
+        """Address of the history entry that holds sample ``counter`` (``counter mod depth``)."""
+        address, depth = self.history
+        return address + (counter % depth) * self.entry_words
+
     @property
     def counter_period_s(self) -> float:
         """Seconds per sample-counter count: the drive's time base."""
@@ -296,6 +308,7 @@ def register_map_problems(data, where: str = "register map") -> tuple[RegisterMa
     timeout = data.get("enable_timeout_s", 1.0)
     if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or timeout <= 0:
         bad(data, "enable_timeout_s", f"enable_timeout_s: '{timeout}' is not a positive number", "use e.g. 1.0")
+    history = _check_history(data, registers, bad)
     if out:
         return None, out
     return RegisterMap(
@@ -303,7 +316,40 @@ def register_map_problems(data, where: str = "register map") -> tuple[RegisterMa
         registers=MappingProxyType(registers), modes=MappingProxyType({m: modes[m] for m in modes}),
         control_values=MappingProxyType({k: cv[k] for k in cv}), enable_sequence=tuple(seq),
         fault_bit=fault_bit, enabled_mask=int(sw.get("enabled_mask", 0x6F)),
-        enabled_value=int(sw.get("enabled_value", 0x27)), enable_timeout_s=float(timeout)), []
+        enabled_value=int(sw.get("enabled_value", 0x27)), enable_timeout_s=float(timeout),
+        history=history), []
+
+
+def _check_history(data, registers: dict[str, Register], bad) -> tuple[int, int] | None:
+    """``history: {address, depth}``: a ring of ``depth`` entries (each laid out like the sample
+    block) after the named registers, at least 2 deep, within the address space."""
+    if "history" not in data:
+        return None
+    h = data["history"]
+    if not isinstance(h, dict) or set(h) - {"address", "depth"}:
+        bad(data, "history", "history: not a mapping of address and depth",
+            "write `history: {address: 100, depth: 64}` or leave it out (a drive without history)")
+        return None
+    addr, depth = h.get("address"), h.get("depth")
+    n = bad.count
+    if isinstance(addr, bool) or not isinstance(addr, int) or not 0 <= addr <= 65535:
+        bad(h, "address", f"history.address: '{addr}' is not a register address", "use a 0-based PDU address")
+    if isinstance(depth, bool) or not isinstance(depth, int) or depth < 2:
+        bad(h, "depth", f"history.depth: '{depth}' is not a whole number of entries >= 2",
+            "give the ring's length in samples, e.g. 64")
+    if bad.count > n or any(r not in registers for r in SAMPLED):
+        return None
+    regs = [registers[r] for r in SAMPLED]
+    words = max(r.address + r.words for r in regs) - min(r.address for r in regs)
+    end = addr + depth * words
+    clash = next((r for r in registers.values() if r.address < end and r.address + r.words > addr), None)
+    if end > 65536:
+        bad(h, "depth", f"history: {depth} entries of {words} words from {addr} pass address 65535",
+            "lower the depth or the address")
+    elif clash is not None:
+        bad(h, "address", f"history: the ring {addr}..{end - 1} overlaps registers.{clash.name} at "
+            f"{clash.address}", "move the ring past the named registers")
+    return (addr, depth)
 
 
 def _check_registers(data, bad) -> tuple[dict, dict[str, Register]]:

@@ -11,6 +11,10 @@ armed, a unit that hears no request for that long quick-stops an enabled axis, a
 real drive whose master died (free-running only: in lockstep nothing moves without
 the master's sync).
 
+History (a map's ``history: {address, depth}``): after every drive cycle the sample block of
+each unit is written into its ring entry ``counter mod depth``; a read inside the ring returns
+the entries as written (what a drive with a trace ring does).
+
 Time: free-running by default (a thread advances the world every period on the
 monotonic clock, catching up when late). With ``lockstep=True`` the world
 advances only when a master writes the ``sync`` register: writing n advances n
@@ -63,6 +67,11 @@ class ModbusServerHandle:
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._serve, name="modbus-emulator", daemon=True)
         self._pacer = None if lockstep else threading.Thread(target=self._pace, name="modbus-pacer", daemon=True)
+        self._ring: dict[int, list[int]] = {}        # unit -> the history ring's words
+        self._ring_counter = -1                       # the newest counter written into the rings
+        if regmap.history:
+            self._ring = {unit: [0] * (regmap.history[1] * regmap.entry_words) for unit in bench.axes}
+            self._record()
 
     # --- lifecycle -------------------------------------------------------------
     def _start(self) -> "ModbusServerHandle":
@@ -103,8 +112,12 @@ class ModbusServerHandle:
         self._server = server
 
     def _layout(self) -> list[SimData]:
-        return [SimData(address=r.address, count=r.words, datatype=DataType.REGISTERS,
-                        readonly=r.access == "r") for r in self.map.registers.values()]
+        out = [SimData(address=r.address, count=r.words, datatype=DataType.REGISTERS,
+                       readonly=r.access == "r") for r in self.map.registers.values()]
+        if self.map.history:
+            out.append(SimData(address=self.map.history[0], count=self.map.history[1] * self.map.entry_words,
+                               datatype=DataType.REGISTERS, readonly=True))
+        return out
 
     def stop(self) -> None:
         self._stop.set()
@@ -136,6 +149,7 @@ class ModbusServerHandle:
             while next_t <= now:
                 self.late_periods += now - next_t >= period
                 self.bench.advance()
+                self._record()
                 next_t += period
             time.sleep(max(0.0, next_t - time.monotonic()))
 
@@ -172,13 +186,36 @@ class ModbusServerHandle:
         try:
             if set_values is not None:
                 return self._write(unit, start_address, address, list(set_values), registers)
-            self._fill(unit, start_address, registers)
+            self._fill(unit, start_address, registers, address, count)
         except ValueError:
             return ExcCodes.ILLEGAL_VALUE
         return None
 
-    def _fill(self, unit: int, start: int, registers: list[int]) -> None:
+    def _record(self) -> None:
+        """Write this drive cycle's sample block into every unit's history ring (the counters the
+        cycle spans, at most one turn of the ring)."""
+        if not self._ring:
+            return
+        m = self.map
+        start, words = m.span()
+        ew, depth = m.entry_words, m.history[1]
+        for unit, ring in self._ring.items():
+            block = [0] * words
+            counter = self._fill(unit, start, block)
+            for n in range(max(self._ring_counter + 1, counter - depth + 1), counter + 1):
+                block_n = list(block)
+                self._put(block_n, start, "sample_counter", m.encode_raw("sample_counter", n, wrap=True))
+                j = n % depth * ew
+                ring[j:j + ew] = block_n
+        self._ring_counter = counter
+
+    def _fill(self, unit: int, start: int, registers: list[int], address: int = 0, count: int = 0) -> int:
+        """Put the named registers of this instant into ``registers`` (whose first is ``start``), and
+        the history ring as of the last drive cycle where the read (``address``, ``count``) reaches
+        it. Returns the sample counter."""
         m, bench = self.map, self.bench
+        if self._ring and address + count > m.history[0] and 0 <= (off := m.history[0] - start):
+            registers[off:off + len(self._ring[unit])] = self._ring[unit]
         with bench.lock:
             axis = self.bench.drive(unit)
             meas = bench.latest.get(bench.axes[unit])     # None before the first step
@@ -192,9 +229,12 @@ class ModbusServerHandle:
                 self._put(registers, start, name, m.encode_raw(name, raw, wrap=wrap))
         for name, value in si.items():
             self._put(registers, start, name, m.encode(name, value, wrap=True))
+        return counter
 
     def _put(self, registers, start, name, words) -> None:
         off = self.map.registers[name].address - start
+        if off < 0 or off + len(words) > len(registers):
+            return                                  # not in this block (a map register outside it)
         registers[off:off + len(words)] = words
 
     def _write(self, unit, start, address, values, registers):
@@ -228,6 +268,7 @@ class ModbusServerHandle:
                 return ExcCodes.ILLEGAL_VALUE
             for _ in range(round(steps)):
                 bench.advance()
+                self._record()
         return None
 
 

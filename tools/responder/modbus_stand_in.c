@@ -15,7 +15,14 @@
    SWITCH ON DISABLED; the comm_timeout register arms a watchdog that quick-stops a unit no
    request reached for that long (a real drive whose master died).
 
-   usage: modbus_stand_in COUNTER_PERIOD_S CELL_COUNTS LATE_S FIFO_PRIORITY
+   History (optional HISTORY_ADDRESS DEPTH): a ring of the last DEPTH samples, one per counter
+   period, entry j = counter mod DEPTH at HISTORY_ADDRESS + 9*j, laid out like the sample block
+   (status, counter, position, velocity, current), as drivers/generic-modbus-servo.yaml's
+   `history:`. An entry holds the newest counter n <= now with n mod DEPTH = j, its values those of
+   the instant n (the motion is a function of time; the status is today's), so a master that was
+   not run for less than DEPTH counter periods reads back every sample it missed.
+
+   usage: modbus_stand_in COUNTER_PERIOD_S CELL_COUNTS LATE_S FIFO_PRIORITY [HISTORY_ADDRESS DEPTH]
           (CELL_COUNTS: counter periods per sampling period of the master: a "cell" is the span
           of one sample index; LATE_S: an answer sent later than this after the kernel received
           the request (SO_TIMESTAMPNS) is counted late). Prints "ready PORT1 PORT2 PRIORITY".
@@ -23,7 +30,8 @@
    Counters: requests; block_reads (reads that include the sample counter); late_answers;
    answer_delay_max_s; cells_unread (per unit, sample cells between two successive block reads
    that no read fell in: the samples the master lost, as the drive sees it); repeat_reads (a
-   cell read twice); exceptions; watchdog_trips; connections. */
+   cell read twice); exceptions; watchdog_trips; connections; history_reads (reads of the ring);
+   history_entries (cell samples the ring delivered for the first time). */
 #define _GNU_SOURCE
 #include <arpa/inet.h>
 #include <errno.h>
@@ -60,6 +68,7 @@ typedef struct { int fd; uint8_t buf[1024]; int len; } Conn;
 static Unit unit[UNITS + 1];
 static Conn conn[MAX_CONN];
 static double counter_period_s, late_s, t0_s, delay_max_s;
+static long long hist_addr = -1, hist_depth, history_reads, history_entries;
 static long long cell_counts, requests, block_reads, late_answers, cells_unread, repeat_reads, exceptions,
     watchdog_trips, connections;
 static char granted[64] = "normal";
@@ -113,6 +122,31 @@ static void count_cell(Unit *u) {
     u->last_cell = cell;
 }
 
+/* the history ring's word at address a (>= hist_addr) for instant t: entry j holds counter n */
+static uint16_t ring_word(Unit *u, int a, double t) {
+    long long j = (a - hist_addr) / 9, w = (a - hist_addr) % 9;
+    long long now = (long long)floor((t - t0_s) / counter_period_s);
+    long long n = now - (((now - j) % hist_depth) + hist_depth) % hist_depth;
+    if (n < 0) return 0;                        /* not written since the start */
+    double tn = t0_s + n * counter_period_s, pos = u->pos_rad + u->vel_rad_s * (tn - u->since_s);
+    int enabled = (u->reg[STATUS] & 0x6F) == 0x27;
+    double current_a = enabled ? (u->reg[MODE] == 4 ? get32(u->reg, TARGET_CUR) * CUR_SCALE : 0.05 * u->vel_rad_s / 50) : 0.0;
+    if (w == 0 && n % cell_counts == 0 && n / cell_counts > u->last_cell) {   /* a cell sample first read */
+        if (u->last_cell >= 0 && n / cell_counts > u->last_cell + 1) cells_unread += n / cell_counts - u->last_cell - 1;
+        u->last_cell = n / cell_counts;
+        history_entries++;
+    }
+    uint32_t v;
+    switch (w) {
+    case 0: return u->reg[STATUS];
+    case 1: case 2: v = (uint32_t)n; break;
+    case 3: case 4: v = (uint32_t)(int32_t)llround(fmod(pos / POS_SCALE, 2147483648.0)); break;
+    case 5: case 6: v = (uint32_t)(int32_t)llround(u->vel_rad_s / VEL_SCALE); break;
+    default: v = (uint32_t)(int32_t)llround(current_a / CUR_SCALE); break;
+    }
+    return (w % 2 == 1) ? v >> 16 : v & 0xFFFF;      /* odd word: high half (big word order) */
+}
+
 static void apply_writes(Unit *u, int addr, const uint8_t *p, int n, double t) {
     for (int i = 0; i < n; i++) {
         int a = addr + i;
@@ -146,7 +180,12 @@ static int answer(const uint8_t *q, int n, uint8_t *out, double t) {
         } else if (fc != 0x03) err = 0x01;
         if (!err && fc == 0x10) { memcpy(out + 8, q + 8, 4); len = 4; }
         if (!err && (fc == 0x03 || fc == 0x17)) {
-            if (ra + rc > NREG || rc > 125) err = 0x02;
+            if (hist_addr >= 0 && ra >= hist_addr && ra + rc <= hist_addr + 9 * hist_depth && rc <= 125) {
+                history_reads++;
+                out[8] = (uint8_t)(2 * rc);
+                for (int i = 0; i < rc; i++) { uint16_t v = ring_word(u, ra + i, t); out[9 + 2 * i] = v >> 8; out[10 + 2 * i] = v & 0xFF; }
+                len = 1 + 2 * rc;
+            } else if (ra + rc > NREG || rc > 125) err = 0x02;
             else {
                 fill(u, t);
                 if (ra <= COUNTER && ra + rc > COUNTER) { block_reads++; count_cell(u); }
@@ -164,8 +203,9 @@ static int answer(const uint8_t *q, int n, uint8_t *out, double t) {
 static void print_counters(void) {
     printf("{\"requests\": %lld, \"block_reads\": %lld, \"late_answers\": %lld, \"answer_delay_max_s\": %.6f, "
            "\"cells_unread\": %lld, \"repeat_reads\": %lld, \"exceptions\": %lld, \"watchdog_trips\": %lld, "
-           "\"connections\": %lld, \"priority\": \"%s\"}\n", requests, block_reads, late_answers, delay_max_s,
-           cells_unread, repeat_reads, exceptions, watchdog_trips, connections, granted);
+           "\"connections\": %lld, \"history_reads\": %lld, \"history_entries\": %lld, \"priority\": \"%s\"}\n",
+           requests, block_reads, late_answers, delay_max_s, cells_unread, repeat_reads, exceptions, watchdog_trips,
+           connections, history_reads, history_entries, granted);
     fflush(stdout);
 }
 
@@ -191,6 +231,14 @@ int main(int argc, char **argv) {
     late_s = atof(argv[3]);
     int prio = atoi(argv[4]);
     if (counter_period_s <= 0 || cell_counts < 1) { fprintf(stderr, "bad counter period or cell\n"); return 2; }
+    if (argc >= 7) {
+        hist_addr = atoll(argv[5]);
+        hist_depth = atoll(argv[6]);
+        if (hist_addr < NREG || hist_depth < 2 || hist_addr + 9 * hist_depth > 65536) {
+            fprintf(stderr, "bad history address or depth\n");
+            return 2;
+        }
+    }
     struct sched_param sp = {.sched_priority = prio};
     if (prio > 0 && sched_setscheduler(0, SCHED_FIFO, &sp) == 0) snprintf(granted, sizeof granted, "SCHED_FIFO %d", prio);
     if (mlockall(MCL_CURRENT | MCL_FUTURE) == 0) strncat(granted, ", mlockall", sizeof granted - strlen(granted) - 1);
@@ -269,7 +317,7 @@ int main(int argc, char **argv) {
                 int n = 6 + (q[4] << 8 | q[5]);
                 if (n < 8 || n > (int)sizeof c->buf) { c->len = used = 0; break; }
                 if (c->len - used < n) break;
-                if (olen + 8 + 2 * NREG + 4 > (int)sizeof out) break;
+                if (olen + 8 + 2 * 125 + 4 > (int)sizeof out) break;
                 olen += answer(q, n, out + olen, t);
                 requests++;
                 used += n;
