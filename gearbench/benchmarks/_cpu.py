@@ -10,8 +10,10 @@ import os
 import threading
 
 
-def threads(pid: int | str = "self") -> dict[str, tuple[str, float, float, int]]:
-    """{tid: (thread name, run s, run-queue wait s, times put on a CPU)} of every live thread of ``pid``."""
+def threads(pid: int | str = "self", exclude: frozenset[str] = frozenset()) -> dict[str, tuple[str, float, float, int]]:
+    """{tid: (thread name, run s, run-queue wait s, wake-ups)} of every live thread of ``pid`` but
+    ``exclude``. Wake-ups are the voluntary context switches (each sleep or blocking call that
+    ended): a preemption by another process is not the thread's doing and a loaded host adds many."""
     out = {}
     base = f"/proc/{pid}/task"
     try:
@@ -20,15 +22,27 @@ def threads(pid: int | str = "self") -> dict[str, tuple[str, float, float, int]]
         return out
     named = {str(t.native_id): t.name for t in threading.enumerate()} if pid == "self" else {}
     for tid in tids:
+        if tid in exclude:
+            continue
         try:
             with open(f"{base}/{tid}/comm") as f:
                 name = named.get(tid) or f.read().strip()
             with open(f"{base}/{tid}/schedstat") as f:
-                run_ns, wait_ns, slices = (int(v) for v in f.read().split()[:3])
+                run_ns, wait_ns = (int(v) for v in f.read().split()[:2])
+            with open(f"{base}/{tid}/status") as f:
+                slices = next(int(ln.split()[1]) for ln in f if ln.startswith("voluntary_ctxt_switches"))
         except (OSError, ValueError):
             continue
         out[tid] = (name, run_ns / 1e9, wait_ns / 1e9, slices)
     return out
+
+
+def foreign_threads() -> frozenset[str]:
+    """The threads of this process alive now but the caller's: whatever earlier work left running
+    (in a test session, e.g. the Rerun batcher threads of earlier runs), excluded from a
+    measurement of the master started after this call."""
+    me = str(threading.get_native_id())
+    return frozenset(t for t in os.listdir("/proc/self/task") if t != me)
 
 
 def user_system(pid: int | str = "self") -> tuple[float, float]:
@@ -50,8 +64,8 @@ def delta(before: dict, after: dict) -> dict[str, float]:
 
 
 def wakeups(before: dict, after: dict) -> int:
-    """Times the threads were put on a CPU between two ``threads()`` snapshots (each wake-up of a
-    sleeping thread is one; on a VM each costs microseconds of CPU the figures above include)."""
+    """Times the threads woke from a sleep or blocking call between two ``threads()`` snapshots
+    (on a VM each costs microseconds of CPU the figures above include)."""
     return sum(s - (before[tid][3] if tid in before else 0) for tid, (_, _, _, s) in after.items())
 
 

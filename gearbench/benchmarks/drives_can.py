@@ -117,6 +117,7 @@ def run_once(interface: str, duration_s: float, period_s: float, paced: bool, ho
              stand_in: str = "responder") -> dict:
     """One run; ``stand_in`` (udp_multicast, paced): "responder" (the compiled one, see
     ``_responder``) or "emulator" (``gearbench emulate`` answering SYNC itself, at SCHED_FIFO)."""
+    foreign = _cpu.foreign_threads()   # the master's threads only: not what earlier work left running
     proc = server = responder = None
     if interface == "udp_multicast":
         bus = BusSpec("udp_multicast", "239.74.163.2", free_udp_port())
@@ -175,12 +176,12 @@ def run_once(interface: str, duration_s: float, period_s: float, paced: bool, ho
                 got, lost0, skipped0, late0 = 1, net.lost_samples, net.late_syncs, net.syncs_sent_late
                 us0 = _cpu.user_system()
                 pid = responder.pid if responder is not None else proc.pid if proc is not None else None
-                cpu0, emu0, t0 = _cpu.threads(), _cpu.threads(pid) if pid else {}, time.perf_counter()
+                cpu0, emu0, t0 = _cpu.threads(exclude=foreign), _cpu.threads(pid) if pid else {}, time.perf_counter()
                 while got + net.lost_samples - lost0 < n + 1:
                     net.sample()
                     got += 1
                 wall = time.perf_counter() - t0
-                cpu1, emu1 = _cpu.threads(), _cpu.threads(pid) if pid else {}
+                cpu1, emu1 = _cpu.threads(exclude=foreign), _cpu.threads(pid) if pid else {}
                 us1 = _cpu.user_system()
                 counters1 = _stand_in_counters(proc, responder)
                 if responder is not None:     # the drives' stop at close is SDO: the emulator answers it

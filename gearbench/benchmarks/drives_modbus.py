@@ -136,6 +136,7 @@ def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3,
             stand_in: str = "compiled", latency_reads: int = 2000, history: bool = False) -> dict:
     """Sample both drives for ``seconds``, then time ``latency_reads`` single reads (pymodbus, normal
     priority); returns figures (see module docstring)."""
+    foreign = _cpu.foreign_threads()   # the master's threads only: not what earlier work left running
     srv, why_not = _stand_in(regmap, lockstep, period_s, stand_in, history)
     hogs: list[subprocess.Popen] = []
     own0 = own1 = {}
@@ -162,14 +163,14 @@ def measure(regmap: str, seconds: float, lockstep: bool, period_s: float = 1e-3,
                 lost0, first_index = net.lost_samples, samples["in"].index
                 late0 = (net.polls_late, net.lost_sent_late, net.lost_misplaced, net.recovered_from_history,
                          net.lost_history_overrun, net.history_stale)
-                cpu0, srv0, t0 = _cpu.threads(), _cpu.threads(srv.pid), time.perf_counter()
+                cpu0, srv0, t0 = _cpu.threads(exclude=foreign), _cpu.threads(srv.pid), time.perf_counter()
                 per_sample, n = [], 0
                 while (now := time.perf_counter()) - t0 < seconds:
                     samples = net.sample()
                     per_sample.append(time.perf_counter() - now)
                     n += 1
                 wall = time.perf_counter() - t0
-                cpu1, srv1 = _cpu.threads(), _cpu.threads(srv.pid)
+                cpu1, srv1 = _cpu.threads(exclude=foreign), _cpu.threads(srv.pid)
                 own1 = srv.counters()
             load1 = load_average()
             cpu, srv_cpu = sum(_cpu.delta(cpu0, cpu1).values()), sum(_cpu.delta(srv0, srv1).values())
