@@ -26,9 +26,10 @@ SYNCS = 1000
 # The bound leaves over 2x for a loaded CI host and still fails a return of any regression above.
 MAX_CPU_PER_SYNC_S = 250e-6
 # Thread wake-ups (voluntary context switches: a sleep or blocking call that ended) per SYNC, all
-# the threads the master started together (not what earlier tests left running): one for the acquisition thread, a quarter for the sample loop (woken
-# once per 4 ms), supervision's ticks (1.37-1.41 measured); a receiver that wakes for every frame
-# adds five, a sample loop woken per sample one.
+# the threads the master started together (not what earlier tests left running): one for the
+# acquisition thread, a quarter for the sample loop (woken once per 4 ms), supervision's ticks
+# (1.37-1.41 measured); a receiver that wakes for every frame adds five, a sample loop woken per
+# sample one.
 MAX_WAKEUPS_PER_SYNC = 2.0
 
 pytestmark = [pytest.mark.skipif(not os.path.exists("/proc/self/task"), reason="needs Linux schedstat"),
