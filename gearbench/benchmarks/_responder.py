@@ -60,8 +60,27 @@ def last_tpdos(bus: can.BusABC, cob_ids, timeout_s: float = 2.0) -> dict[int, by
     return got
 
 
-class Responder:
-    """The running stand-in: ``counters()`` while it runs, ``stop()`` returns the last ones."""
+class _StandIn:
+    """A compiled stand-in process speaking a line protocol on stdin/stdout: ``counters()`` while
+    it runs, ``stop()`` returns the last ones (stdin closed = stop)."""
+    proc: subprocess.Popen
+
+    def counters(self) -> dict:
+        self.proc.stdin.write("status\n")
+        self.proc.stdin.flush()
+        return json.loads(self.proc.stdout.readline())
+
+    def stop(self) -> dict:
+        if self.proc.poll() is not None:
+            return {}
+        self.proc.stdin.close()
+        out = self.proc.stdout.readline()
+        self.proc.wait(5)
+        return json.loads(out) if out.strip() else {}
+
+
+class Responder(_StandIn):
+    """The running CAN stand-in: ``counters()`` while it runs, ``stop()`` returns the last ones."""
 
     def __init__(self, group: str, port: int, period_s: float, late_limit_s: float,
                  tpdos: dict[int, tuple[bytes, int]], priority: int):
@@ -77,17 +96,6 @@ class Responder:
         self.priority = line.removeprefix("ready").strip()
         self.pid = self.proc.pid
 
-    def counters(self) -> dict:
-        self.proc.stdin.write("status\n")
-        self.proc.stdin.flush()
-        return json.loads(self.proc.stdout.readline())
-
-    def stop(self) -> dict:
-        self.proc.stdin.close()
-        out = self.proc.stdout.readline()
-        self.proc.wait(5)
-        return json.loads(out) if out.strip() else {}
-
     def sync_stamps(self) -> np.ndarray:
         """After ``stop()``: (kernel receive time s, counter) of every SYNC it heard, in order."""
         raw = np.fromfile(self.stamps_path, dtype=np.int64).reshape(-1, 2) if self.stamps_path.exists() \
@@ -96,7 +104,7 @@ class Responder:
         return np.column_stack([raw[:, 0] * 1e-9, raw[:, 1]])
 
 
-class ModbusStandIn:
+class ModbusStandIn(_StandIn):
     """Two Modbus TCP drives (unit ids 1, 2, the generic register map) on two loopback ports the OS
     picks (``ports``: one connection per drive, as drives with an IP each); ``counters()`` while it
     runs, ``stop()`` returns the last ones."""
@@ -114,16 +122,3 @@ class ModbusStandIn:
         self.ports = (int(words[1]), int(words[2]))
         self.priority = words[3].strip() if len(words) > 3 else "normal"
         self.pid = self.proc.pid
-
-    def counters(self) -> dict:
-        self.proc.stdin.write("status\n")
-        self.proc.stdin.flush()
-        return json.loads(self.proc.stdout.readline())
-
-    def stop(self) -> dict:
-        if self.proc.poll() is not None:
-            return {}
-        self.proc.stdin.close()
-        out = self.proc.stdout.readline()
-        self.proc.wait(5)
-        return json.loads(out) if out.strip() else {}
