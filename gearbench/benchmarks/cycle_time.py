@@ -174,7 +174,7 @@ def score(res: dict) -> dict:
              and max(inc) <= GOAL["inc_pp"])
     return {"kt": kt, "inc": inc, "abs": ab, "bench_time_s": res["bench_time_s"], "meets": meets,
             "meets_all": meets and max(ab, default=math.inf) <= ABS_PP,
-            "why_missed": why_missed(res, kt, inc, ab),
+            "why_missed": why_missed(res, kt, inc, ab), "causes": classify_misses(res, kt, inc, ab),
             "stopped_by_max": sum(m.get("stopped_by") == "max" for m in res.get("measurements", []))}
 
 
@@ -207,6 +207,56 @@ def why_missed(res: dict, kt: list, inc: list, ab: list) -> list[str]:
         why = "extrapolated loss" if extrap else (f"biased ({e / sd:.1f} sd)" if e > BIASED_SIGMAS * sd
                                                   else "noise")
         out.append(f"abs {e:.2f}pp {why}")
+    return out
+
+
+def classify_misses(res: dict, kt: list, inc: list, ab: list) -> list[str]:
+    """One cause per missed target, from the run's own record (the issue-23 triage):
+    ``Kt|incr|abs`` + ``: `` + one of *stopped early* (every measurement that carries it
+    stopped on its target, yet the error is outside the target: the stopping rule's
+    interval was too optimistic), *at max_s* (a measurement that carries it ended at
+    max_s short of its target: too little information per second), *unsettled* (a level
+    never settled within max_s), *extrapolated loss* (a motor loss used outside its
+    calibrated speeds), *noise* (none of these: within its reported uncertainty);
+    ``(biased)`` is appended when the error is beyond ``BIASED_SIGMAS`` of the run's own
+    standard uncertainty."""
+    out = []
+    truth = res["simulation_truth"]
+    meas = res.get("measurements", [])
+
+    def short(m):
+        return m.get("stopped_by") == "max" and (m.get("interval_reached") or 0) > m["target"]
+    for (m, e) in zip(res["motors"], kt):
+        if e <= GOAL["kt_pct"]:
+            continue
+        runs = [r for r in meas if r["kind"] == "calibrate" and r.get("motor") == m]
+        why = "at max_s" if any(short(r) for r in runs) else "stopped early"
+        sd = 100 * res["motors"][m]["Kt_std"] / truth["motors"][m]["Kt"]
+        out.append(f"Kt: {why}" + (" (biased)" if e > BIASED_SIGMAS * sd else ""))
+    pts = res["efficiency"]
+    for q, errs, limit in (("incr", inc, GOAL["inc_pp"]), ("abs", ab, ABS_PP)):
+        bad = [k for k, e in enumerate(errs) if e > limit]
+        if not bad:
+            continue
+        k = max(bad, key=lambda j: errs[j])
+        p = pts[k]
+        speed = p.get("speed_setpoint_rad_s")
+        levels = [r for r in meas if r["kind"] == "efficiency" and r.get("speed_in_rad_s") == speed]
+        if q == "abs":
+            levels = [r for r in levels if r["reference"] or
+                      abs(r["torque_out_nm"] - p.get("torque_setpoint_nm", math.nan)) < 1e-9]
+        std = 100 * p[f"eta_{'incremental' if q == 'incr' else 'absolute'}_std"]
+        if q == "abs" and p.get("loss_extrapolated"):
+            why = "extrapolated loss"
+        elif any(not r.get("settled_in_time", True) for r in levels):
+            why = "unsettled"
+        elif any(short(r) for r in levels):
+            why = "at max_s"
+        elif levels and q == "incr":
+            why = "stopped early"
+        else:
+            why = "noise"
+        out.append(f"{q}: {why}" + (" (biased)" if errs[k] > BIASED_SIGMAS * std else ""))
     return out
 
 
@@ -511,6 +561,16 @@ def print_plants(rows: list[dict], procedure: str = "adaptive") -> None:
             r["why_missed"] + ([] if r["bench_time_s"] <= r["bound_s"] + 1e-9 else ["over the bound"]))
         print(f"{r['plant']:>7} {kind:<5}{r.get('ratio', math.nan):6.1f}{max(r['kt']):7.3f}{max(r['inc']):8.3f}"
               f"{max(r['abs']):7.3f}{r['bench_time_s']:7.1f}/{r['bound_s']:<6.1f}{r['stopped_by_max']:7d}  {verdict}")
+        if not r["in_time"]:
+            print(f"{'':>14}causes: {', '.join(r['causes'] or ['over the bound'])}")
+    tally: dict[str, int] = {}
+    for r in rows:
+        if r["group"] == "random plants" and r["procedure"] == procedure and not r["in_time"]:
+            for c in (r.get("causes") or [r["error"][:40] if "error" in r else "over the bound"]):
+                tally[c] = tally.get(c, 0) + 1
+    if tally:
+        print("misses by cause (a plant may miss several targets): " +
+              "; ".join(f"{c} {n}" for c, n in sorted(tally.items(), key=lambda kv: -kv[1])))
 
 
 def plot(rows: list[dict], path: Path) -> Path | None:
