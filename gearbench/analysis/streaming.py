@@ -163,7 +163,10 @@ class LevelMean:
     def _steady(self, j: int) -> bool:
         xi = np.concatenate(self.raw_in[j:])
         h = len(xi) // 2
-        half_se = self._sigma(j)[0] * np.sqrt(TAPER_VARIANCE / max(h, 1))
+        # the halves' noise from the window's own batch means (coloured: a speed loop's
+        # response to cogging and ripple is several times what white noise would leave),
+        # by successive differences so a decaying tail does not pass for noise
+        half_se = _long_run_sigma(xi) * np.sqrt(TAPER_VARIANCE / max(h, 1))
         return abs(_tapered_mean(xi[:h]) - _tapered_mean(xi[h:])) <= STEADY_SIGMAS * np.sqrt(2.0) * half_se
 
     def stats(self) -> dict | None:
@@ -178,12 +181,32 @@ class LevelMean:
         if len(self.n) - j < MIN_SETTLED_CHUNKS:
             return None
         xi, xo = np.concatenate(self.raw_in[j:]), np.concatenate(self.raw_out[j:])
-        n = len(xi)
-        sig_in, sig_out = self._sigma(j)
-        return {"settle_chunk": j, "steady_chunk": steady, "samples": n, "steady": True,
-                "mean_in": _tapered_mean(xi), "mean_out": _tapered_mean(xo),
-                "sem_in": float(sig_in * np.sqrt(TAPER_VARIANCE / n)),
-                "sem_out": float(sig_out * np.sqrt(TAPER_VARIANCE / n))}
+        return {"settle_chunk": j, "steady_chunk": steady, "samples": len(xi), "steady": True,
+                **window_stats(xi, xo)}
+
+
+def window_stats(current_in_a: np.ndarray, current_out_a: np.ndarray) -> dict:
+    """Tapered means of a level's settled window with the standard errors and degrees of
+    freedom the final analysis gives them (``efficiency._mean_sem``: block means, robust
+    to coloured noise), so a level stops on the interval its result will carry."""
+    from .efficiency import _mean_sem      # efficiency imports this module
+
+    mi, si, di = _mean_sem(np.asarray(current_in_a, float))
+    mo, so, do = _mean_sem(np.asarray(current_out_a, float))
+    return {"mean_in": mi, "mean_out": mo, "sem_in": si, "sem_out": so, "dof": min(di, do)}
+
+
+def _long_run_sigma(x: np.ndarray, blocks: int = 10) -> float:
+    """Per-sample noise level that the mean of ``x`` sees: √(block length) times the spread
+    of ``blocks`` block means from their successive differences (von Neumann), so coloured
+    noise counts as it acts on a mean while a slow trend barely does; the white-noise
+    level from second differences when the window is too short for blocks."""
+    nb = min(blocks, len(x) // 10)
+    if nb < 3:
+        return float(np.sqrt(np.mean(np.diff(x, 2) ** 2) / 6.0)) if len(x) > 2 else 0.0
+    size = len(x) // nb
+    bm = x[: nb * size].reshape(nb, size).mean(axis=1)
+    return float(np.sqrt(np.mean(np.diff(bm) ** 2) / 2.0 * size))
 
 
 def _tapered_mean(x: np.ndarray) -> float:
