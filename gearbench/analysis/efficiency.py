@@ -39,6 +39,7 @@ from ..errors import ExcitationError, GearbenchError, TraceError
 from ..trace import BENCH_COLUMNS, Trace
 from .calibration import MotorCalibration
 from .streaming import slope_fit
+from .streaming import tapered_mean_sem as _mean_sem
 from .uncertainty import DOF_MAX, effective_dof, interval
 from .windows import TAPER_ALPHA, taper  # noqa: F401  (taper: public here since 0.1)
 
@@ -310,22 +311,6 @@ def steady_windows(time_s: np.ndarray, in_command: np.ndarray, out_command: np.n
 
 
 
-def _mean_sem(x: np.ndarray, blocks: int = 10) -> tuple[float, float, float]:
-    """Tukey-weighted mean (see ``taper``), its standard error and that error's degrees
-    of freedom: the block-means standard error of the flat mean (robust to coloured
-    noise, blocks − 1 dof) times the taper's white-noise variance factor."""
-    w = taper(len(x))
-    m = float(w @ x / w.sum())
-    inflate = np.sqrt(len(x) * float(w @ w)) / float(w.sum())
-    nb = min(blocks, len(x) // 10)
-    if nb < 3:
-        return (m, inflate * float(np.std(x) / np.sqrt(max(len(x) - 1, 1))),
-                float(max(len(x) - 1, 1)))
-    size = len(x) // nb
-    bm = x[: nb * size].reshape(nb, size).mean(axis=1)
-    return m, inflate * float(np.std(bm, ddof=1) / np.sqrt(nb)), float(nb - 1)
-
-
 def measure_windows(trace: Trace, *, settle_s: float = 0.5,
                     ranges: list[tuple[int, int]] | None = None) -> list[SteadyWindow]:
     """Steady windows from the command levels minus ``settle_s``, or exactly ``ranges``
@@ -519,9 +504,9 @@ def inertia_corrected_current(current_a: np.ndarray, position_rad: np.ndarray, p
     Examples
     --------
     >>> import numpy as np
-    >>> t = np.arange(100) * 1e-3
-    >>> i = inertia_corrected_current(np.ones(100), 50.0 * t ** 2, 1e-3, 1e-4, 0.1)
-    >>> float(i[50].round(6)), float(i[0])
+    >>> t = np.arange(300) * 1e-3
+    >>> i = inertia_corrected_current(np.ones(300), 50.0 * t ** 2, 1e-3, 1e-4, 0.1)
+    >>> float(i[150].round(6)), float(i[0])
     (0.9, 1.0)
     """
     th = np.asarray(position_rad, float)

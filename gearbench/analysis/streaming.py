@@ -185,28 +185,47 @@ class LevelMean:
                 **window_stats(xi, xo)}
 
 
+def tapered_mean_sem(x: np.ndarray, blocks: int = 10) -> tuple[float, float, float]:
+    """Tukey-weighted mean (see ``taper``), its standard error and that error's degrees
+    of freedom: the block-means standard error of the flat mean (robust to coloured
+    noise, blocks − 1 dof) times the taper's white-noise variance factor. The final
+    analysis's window means (``efficiency.measure_windows``) and the adaptive levels'
+    stopping both use it."""
+    w = taper(len(x))
+    m = float(w @ x / w.sum())
+    inflate = np.sqrt(len(x) * float(w @ w)) / float(w.sum())
+    nb = min(blocks, len(x) // 10)
+    if nb < 3:
+        return (m, inflate * float(np.std(x) / np.sqrt(max(len(x) - 1, 1))),
+                float(max(len(x) - 1, 1)))
+    size = len(x) // nb
+    bm = x[: nb * size].reshape(nb, size).mean(axis=1)
+    return m, inflate * float(np.std(bm, ddof=1) / np.sqrt(nb)), float(nb - 1)
+
+
 def window_stats(current_in_a: np.ndarray, current_out_a: np.ndarray) -> dict:
     """Tapered means of a level's settled window with the standard errors and degrees of
-    freedom the final analysis gives them (``efficiency._mean_sem``: block means, robust
-    to coloured noise), so a level stops on the interval its result will carry."""
-    from .efficiency import _mean_sem      # efficiency imports this module
-
-    mi, si, di = _mean_sem(np.asarray(current_in_a, float))
-    mo, so, do = _mean_sem(np.asarray(current_out_a, float))
+    freedom the final analysis gives them (``tapered_mean_sem``: block means, robust to
+    coloured noise), so a level stops on the interval its result will carry."""
+    mi, si, di = tapered_mean_sem(np.asarray(current_in_a, float))
+    mo, so, do = tapered_mean_sem(np.asarray(current_out_a, float))
     return {"mean_in": mi, "mean_out": mo, "sem_in": si, "sem_out": so, "dof": min(di, do)}
 
 
 def _long_run_sigma(x: np.ndarray, blocks: int = 10) -> float:
     """Per-sample noise level that the mean of ``x`` sees: √(block length) times the spread
-    of ``blocks`` block means from their successive differences (von Neumann), so coloured
-    noise counts as it acts on a mean while a slow trend barely does; the white-noise
-    level from second differences when the window is too short for blocks."""
+    of ``blocks`` block means from the median of their successive differences (von Neumann,
+    made robust), so coloured noise counts as it acts on a mean while a slow trend or a
+    transient's first block barely does; the white-noise level from second differences
+    when the window is too short for blocks."""
     nb = min(blocks, len(x) // 10)
     if nb < 3:
         return float(np.sqrt(np.mean(np.diff(x, 2) ** 2) / 6.0)) if len(x) > 2 else 0.0
     size = len(x) // nb
     bm = x[: nb * size].reshape(nb, size).mean(axis=1)
-    return float(np.sqrt(np.mean(np.diff(bm) ** 2) / 2.0 * size))
+    # median absolute successive difference (normal: 0.6745·√2·σ): the one step a
+    # transient's first block makes does not pass for noise
+    return float(np.median(np.abs(np.diff(bm))) / (0.6745 * np.sqrt(2.0)) * np.sqrt(size))
 
 
 def _tapered_mean(x: np.ndarray) -> float:

@@ -243,8 +243,8 @@ def classify_misses(res: dict, kt: list, inc: list, ab: list) -> list[str]:
         speed = p.get("speed_setpoint_rad_s")
         levels = [r for r in meas if r["kind"] == "efficiency" and r.get("speed_in_rad_s") == speed]
         if q == "abs":
-            levels = [r for r in levels if r["reference"] or
-                      abs(r["torque_out_nm"] - p.get("torque_setpoint_nm", math.nan)) < 1e-9]
+            levels = [r for r in levels if r.get("reference") or
+                      abs(r.get("torque_out_nm", math.nan) - p.get("torque_setpoint_nm", math.nan)) < 1e-9]
         std = 100 * p[f"eta_{'incremental' if q == 'incr' else 'absolute'}_std"]
         if q == "abs" and p.get("loss_extrapolated"):
             why = "extrapolated loss"
