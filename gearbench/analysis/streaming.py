@@ -121,7 +121,8 @@ class LevelMean:
     disagree and the level goes on.
     """
 
-    def __init__(self, settle_floor_chunks: int = 0):
+    def __init__(self, settle_floor_chunks: int = 0, margin: float = SETTLE_MARGIN):
+        self.margin = margin
         self.n: list[int] = []
         self.d2_in: list[float] = []
         self.d2_out: list[float] = []
@@ -177,7 +178,7 @@ class LevelMean:
         # halves; as long again lets it decay as far once more (a speed loop's recovery
         # is close to exponential), so what is left of it in the mean is below the noise
         steady = self.settle_chunk()
-        j = SETTLE_MARGIN * steady
+        j = int(round(self.margin * steady))
         if len(self.n) - j < MIN_SETTLED_CHUNKS:
             return None
         xi, xo = np.concatenate(self.raw_in[j:]), np.concatenate(self.raw_out[j:])

@@ -30,6 +30,7 @@ from ..analysis.identify import t_quantile
 from ..analysis.efficiency import SPEED_SPAN_S, inertia_corrected_current
 from ..analysis.streaming import MIN_SETTLED_CHUNKS, SETTLE_MARGIN, LevelMean, StreamingB2, Z95, slope_fit, slope_target_sem, window_stats
 
+CORRECTED_MARGIN = 1.0      # inertia-corrected levels: the window starts where found steady
 CHECK_S = 0.1                # calibration: how often the running b2 estimates are updated
 LEVEL_CHUNK_S = 0.02         # efficiency: chunk of the level means (below the ripple periods' tens)
 
@@ -312,7 +313,8 @@ class Staircase:
                                     else (k - self.level_start) // self.chunk))
         self.level += 1
         self.level_start = k
-        self.acc = LevelMean(self.settle_floor)
+        # a corrected current carries no speed-loop tail to let decay further
+        self.acc = LevelMean(self.settle_floor, margin=CORRECTED_MARGIN if self.corrected else SETTLE_MARGIN)
         if self.level >= len(self.levels):
             self.stop_start = k
 
