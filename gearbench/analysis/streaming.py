@@ -34,6 +34,7 @@ BLOCK_FILTER_LENGTHS = 2     # a block spans two FIR lengths: residuals correlat
 MIN_BLOCKS = 4               # fewer blocks: the spread of their scores says nothing yet
 SETTLE_MARGIN = 2            # the window starts at twice the point found steady
 MIN_SETTLED_CHUNKS = 8       # settled chunks before a level may stop
+SPEED_TOLERANCE = 0.01       # a settled level's mean input speed within 1 % of its command
 STEADY_SIGMAS = 2.0          # the settled window's halves must agree within 2 sigma
 TAPER_VARIANCE = 1.22        # white-noise variance factor of the Tukey-tapered mean (efficiency.taper)
 
@@ -121,8 +122,15 @@ class LevelMean:
     disagree and the level goes on.
     """
 
-    def __init__(self, settle_floor_chunks: int = 0, margin: float = SETTLE_MARGIN):
+    def __init__(self, settle_floor_chunks: int = 0, margin: float = SETTLE_MARGIN,
+                 speed_rad_s: float | None = None, dt_s: float = 1e-3):
         self.margin = margin
+        # the commanded input speed: a level counts as settled only where the measured
+        # speed is back at it (a slow speed loop sags for long after a braking step, and
+        # the efficiency belongs to the commanded operating point)
+        self.speed = speed_rad_s
+        self.travel: list[float] = []       # input angle travelled per chunk (rad)
+        self.dt_s = dt_s
         self.n: list[int] = []
         self.d2_in: list[float] = []
         self.d2_out: list[float] = []
@@ -132,8 +140,9 @@ class LevelMean:
         # on a short window the halves test is weak against a slow loop's tail
         self._settled_at = settle_floor_chunks
 
-    def add_chunk(self, current_in_a: np.ndarray, current_out_a: np.ndarray) -> None:
+    def add_chunk(self, current_in_a: np.ndarray, current_out_a: np.ndarray, travel_rad: float = 0.0) -> None:
         xi, xo = np.asarray(current_in_a, float).copy(), np.asarray(current_out_a, float).copy()
+        self.travel.append(float(travel_rad))
         self.n.append(len(xi))
         self.d2_in.append(float(np.sum(np.diff(xi, 2) ** 2)))
         self.d2_out.append(float(np.sum(np.diff(xo, 2) ** 2)))
@@ -161,7 +170,16 @@ class LevelMean:
         return (float(np.sqrt(sum(self.d2_in[j:]) / (6.0 * cnt))),
                 float(np.sqrt(sum(self.d2_out[j:]) / (6.0 * cnt))))
 
+    def _speed_ok(self, j: int, dt_s: float) -> bool:
+        """The mean input speed from chunk j on within ``SPEED_TOLERANCE`` of the command."""
+        if not self.speed:
+            return True
+        w = sum(self.travel[j:]) / (sum(self.n[j:]) * dt_s)
+        return abs(w - self.speed) <= SPEED_TOLERANCE * abs(self.speed)
+
     def _steady(self, j: int) -> bool:
+        if self.speed and not self._speed_ok(j, self.dt_s):
+            return False
         xi = np.concatenate(self.raw_in[j:])
         h = len(xi) // 2
         # the halves' noise from the window's own batch means (coloured: a speed loop's

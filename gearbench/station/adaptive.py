@@ -170,10 +170,13 @@ class Staircase:
         self.level_start = self.n_ramp
         self.stop_start: int | None = None
         self.settle_floor = settle_floor_chunks   # chunks: slowest settling of a braking step so far
-        self.acc = LevelMean()
-        self.acc_raw = LevelMean() if self.corrected else None
+        self.acc = self._level_mean(CORRECTED_MARGIN if self.corrected else SETTLE_MARGIN)
+        self.acc_raw = self._level_mean(SETTLE_MARGIN) if self.corrected else None
         self.done_levels: list[dict] = []
         self._cols: dict | None = None
+
+    def _level_mean(self, margin: float) -> LevelMean:
+        return LevelMean(self.settle_floor, margin=margin, speed_rad_s=self.speed, dt_s=self.period_s)
 
     def _currents(self, cols: dict, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
         """Input and output currents of samples a..b-1 as the analysis takes them (inertia
@@ -246,10 +249,11 @@ class Staircase:
         if k <= self.n_ramp or b <= self.level_start or (b - self.level_start) % self.chunk:
             return False
         a = b - self.chunk
-        self.acc.add_chunk(*self._currents(cols, a, b))
+        travel = float(cols["in.position_rad"][b] - cols["in.position_rad"][a])
+        self.acc.add_chunk(*self._currents(cols, a, b), travel)
         st = self.acc.stats()
         if self.acc_raw is not None:                 # the zero-load level: both series
-            self.acc_raw.add_chunk(cols["in.current_a"][a:b], cols["out.current_a"][a:b])
+            self.acc_raw.add_chunk(cols["in.current_a"][a:b], cols["out.current_a"][a:b], travel)
             st = _quieter(st, self.acc_raw.stats())
         if st is None or k - self.level_start < self.min_n:
             return False
@@ -314,7 +318,7 @@ class Staircase:
         self.level += 1
         self.level_start = k
         # a corrected current carries no speed-loop tail to let decay further
-        self.acc = LevelMean(self.settle_floor, margin=CORRECTED_MARGIN if self.corrected else SETTLE_MARGIN)
+        self.acc = self._level_mean(CORRECTED_MARGIN if self.corrected else SETTLE_MARGIN)
         if self.level >= len(self.levels):
             self.stop_start = k
 
@@ -334,9 +338,11 @@ class Staircase:
         """Fill in levels that ended at ``max_s`` inside ``setpoints`` (no columns there)."""
         for rec in self.done_levels:
             if rec.pop("pending", False):
-                acc = LevelMean(rec.get("floor", 0))
+                acc = LevelMean(rec.get("floor", 0), margin=CORRECTED_MARGIN if self.corrected else SETTLE_MARGIN,
+                                speed_rad_s=self.speed, dt_s=self.period_s)
                 for a in range(rec["start"], rec["stop"] - self.chunk, self.chunk):
-                    acc.add_chunk(*self._currents(cols, a, a + self.chunk))
+                    acc.add_chunk(*self._currents(cols, a, a + self.chunk),
+                                  float(cols["in.position_rad"][a + self.chunk] - cols["in.position_rad"][a]))
                 st = acc.stats()
                 # never settled within max_s: the level's last half, the least disturbed part
                 # (its standard error from the whole level's chunks; flagged in result.json)
