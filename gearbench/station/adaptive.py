@@ -18,7 +18,13 @@ shrinks (docs/profile-format.md, "Adaptive measurement"):
   come on top in the reported Kt interval.
 - efficiency: ``targets.eta_pp`` is the 95 % half-width of the staircase slope's
   statistical part (eq. 18 as a slope), in percentage points; each level stops when
-  its settled mean's standard error is what the slope needs (``slope_target_sem``).
+  its settled mean's standard error is what the slope needs (``slope_target_sem``),
+  the error computed as the final analysis computes it (block means,
+  ``streaming.tapered_mean_sem``, with its t quantile). Levels are judged on the input
+  current less its rotor's inertial part where that is the quieter series
+  (``efficiency.inertia_corrected_current``: no waiting for a slow speed loop's
+  recovery), count as settled only with the input speed back at its command, and may
+  use what earlier levels of the staircase left of their max_s (issue 23).
 """
 from __future__ import annotations
 
@@ -175,6 +181,13 @@ class Staircase:
         self.done_levels: list[dict] = []
         self._cols: dict | None = None
 
+    def _level_max(self) -> int:
+        """Samples the current level may take: its max_s plus what the levels before it in
+        this staircase left unused (the staircase never exceeds its levels' max_s summed,
+        the profile's bench-time bound; the time goes where the slope still needs it)."""
+        used = sum(r["stop"] - r["start"] for r in self.done_levels)
+        return self.max_n * (len(self.done_levels) + 1) - used
+
     def _level_mean(self, margin: float) -> LevelMean:
         return LevelMean(self.settle_floor, margin=margin, speed_rad_s=self.speed, dt_s=self.period_s)
 
@@ -198,7 +211,7 @@ class Staircase:
             return {"in": float(self.up[k]), "out": 0.0}
         if self.level < 0:
             self.level = 0
-        if self.stop_start is None and self.level < len(self.levels) and k - self.level_start >= self.max_n:
+        if self.stop_start is None and self.level < len(self.levels) and k - self.level_start >= self._level_max():
             self._next(k, "max", self._cols)
         if self.stop_start is not None:
             j = k - self.stop_start
