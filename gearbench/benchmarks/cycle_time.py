@@ -212,7 +212,8 @@ def why_missed(res: dict, kt: list, inc: list, ab: list) -> list[str]:
 
 def classify_misses(res: dict, kt: list, inc: list, ab: list) -> list[str]:
     """One cause per missed target, from the run's own record (the issue-23 triage):
-    ``Kt|incr|abs`` + ``: `` + one of *stopped early* (every measurement that carries it
+    ``Kt|incr|abs`` + ``: `` + one of *from Kt* (incremental: the two Kt errors make most
+    of it), *stopped early* (every measurement that carries it
     stopped on its target, yet the error is outside the target: the stopping rule's
     interval was too optimistic), *at max_s* (a measurement that carries it ended at
     max_s short of its target: too little information per second), *unsettled* (a level
@@ -246,8 +247,15 @@ def classify_misses(res: dict, kt: list, inc: list, ab: list) -> list[str]:
             levels = [r for r in levels if r.get("reference") or
                       abs(r.get("torque_out_nm", math.nan) - p.get("torque_setpoint_nm", math.nan)) < 1e-9]
         std = 100 * p[f"eta_{'incremental' if q == 'incr' else 'absolute'}_std"]
+        # η = K_out/(n K_in b): the Kt errors alone move the incremental efficiency by
+        # η·(e_out − e_in); where that is most of the miss, the miss is the calibration's
+        kt_part = 100 * p["eta_incremental"] * (res["motors"]["out"]["Kt"] / truth["motors"]["out"]["Kt"]
+                                                - res["motors"]["in"]["Kt"] / truth["motors"]["in"]["Kt"]) \
+            if q == "incr" and {"in", "out"} <= set(res["motors"]) else 0.0
         if q == "abs" and p.get("loss_extrapolated"):
             why = "extrapolated loss"
+        elif abs(kt_part) > 0.5 * errs[k]:
+            why = "from Kt"
         elif any(not r.get("settled_in_time", True) for r in levels):
             why = "unsettled"
         elif any(short(r) for r in levels):
