@@ -442,12 +442,24 @@ def run_plants(n_plants: int, seeds, *, which=("classic", "adaptive", "paper"), 
     for seed in seeds:
         for index in range(n_plants):
             case, _ = random_plant(index, seed, base["classic"])
-            profs = {k: random_plant(index, seed, base[k],
-                                     excitation=adaptive_excitation if k == "adaptive" else "drawn")[1]
-                     for k in ("classic", "adaptive")}
+            profs, failed = {}, {}
+            for k in ("classic", "adaptive"):
+                try:
+                    profs[k] = random_plant(index, seed, base[k],
+                                            excitation=adaptive_excitation if k == "adaptive" else "drawn")[1]
+                except ValueError as exc:      # the excitation design finds no waveform: a result
+                    profs[k], failed[k] = base[k], f"excitation design: {exc}"
             step = float(min(0.9 * case.bench_speed_rad_s * 1.2, 330.0))
             for name, (prof, method) in procedures(profs, step).items():
                 if name not in which:
+                    continue
+                if name in failed:
+                    rows.append({"group": "random plants", "plant": f"{seed}/{index}", "seed": case.plant.seed,
+                                 "procedure": name, "bound_s": math.nan, "reversing": case.reversing,
+                                 "ratio": case.plant.ratio, "error": failed[name][:160],
+                                 "bench_time_s": math.nan, "in_time": False})
+                    if log:
+                        log(f"  random plants  {seed}/{index:<4} {name:<9} ERROR {failed[name][:160]}")
                     continue
                 rows.append(_one("random plants", f"{seed}/{index}", case.plant.seed, name, prof,
                                  case.plant, method, log,
@@ -527,7 +539,7 @@ def summary(rows: list[dict]) -> list[dict]:
                     "meets_all": sum(bool(r.get("meets_all")) for r in rs) / max(len(rs), 1),
                     "in_time": sum(bool(r.get("in_time")) for r in rs) / max(len(rs), 1),
                     "bench_p95": float(np.percentile([r["bench_time_s"] for r in ok], 95)) if ok else math.nan,
-                    "bound": float(np.mean([r.get("bound_s", math.nan) for r in rs])),
+                    "bound": float(np.nanmean([r.get("bound_s", math.nan) for r in rs])),
                     "at_max": float(np.mean([r.get("stopped_by_max", 0) for r in ok])) if ok else math.nan})
     return out
 
