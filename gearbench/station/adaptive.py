@@ -350,9 +350,11 @@ class Staircase:
         if self.loss_out is None or span <= 0 or not zero_load.get("dth_out"):
             return
         loss = abs(self.loss_out(zero_load["dth_out"] / span))
-        # a motor whose own friction brakes more than the lightest level asks: compensated,
-        # the levels would merge at zero current (no slope); its points then carry t + loss
-        if not np.isfinite(loss) or loss >= min((abs(t) for t in self.torques[1:] if t), default=0.0):
+        # a motor whose own friction brakes more than half what the lightest level asks:
+        # compensated, that level would brake with next to no current (random plant 3/3: 0.01 A
+        # left, its input-current rise within the noise, the analysis refused it) or the
+        # levels would merge at zero (no slope); its points then carry t + loss
+        if not np.isfinite(loss) or loss >= 0.5 * min((abs(t) for t in self.torques[1:] if t), default=0.0):
             return
         self.compensated_nm = loss
         self.levels[1:] = [-max(abs(t) - loss, 0.0) / self.kt_out for t in self.torques[1:]]
