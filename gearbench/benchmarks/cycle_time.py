@@ -36,12 +36,19 @@ bound (``bench_time_bound_s``: every measurement at max_s). ``--per-plant`` prin
 line per random plant with why each missed target was missed (``why_missed``).
 Writes a PNG of error versus bench time.
 
+``--per-plant`` also prints each missed target's cause (``classify_misses``: from Kt,
+stopped early, at max_s, unsettled, extrapolated loss, noise; "biased" beyond 2 sd)
+and a tally; a plant the excitation design finds no waveform for is an ERROR row.
+
 The adaptive procedure's incremental error on the cvt plant is mostly where each level
 happened to stop: the output motor's calibrated friction sets the braking levels and
-the stops, and a 0.1 % change of it (far inside its interval) moved noise seed 0 from
-0.075 to 0.229 pp (main, issue 23). Its target (0.15 pp, 95 %) leaves a miss of the
-0.2 pp goal a few times in a hundred runs; compare calibrations with ``--cvt-runs 30``,
-not 5 (main 30/30 meet, mean/max 0.075/0.142 pp; issue 23's 29/30, 0.084/0.226 pp).
+the stops. Its target (0.15 pp, 95 %) leaves a miss of the 0.2 pp goal a few times in a
+hundred runs; compare calibrations with ``--cvt-runs 30``, not 5 (main 9396cc8: 29/30
+meet, bench 16.4 s mean, incremental mean/max 0.084/0.226 pp; issue 23's staircase
+— block-means stop, inertia-corrected levels, speed check: 30/30, 16.8 s,
+0.076/0.169 pp). Random plants, every target within the bound, draws 0-3 x 20: main
+20/35/60/30 % (36 %), issue 23's staircase 55/80/65/55 % (64 %); draws 4-5 crash main
+(no designed waveform for 4/9).
 """
 from __future__ import annotations
 
