@@ -408,6 +408,7 @@ class Staircase:
                  "window_samples": r.get("window_samples"),
                  "out_command_a": r.get("out_command"),
                  "friction_compensated_nm": self.compensated_nm if r["torque_out_nm"] else None,
+                 "inertia_corrected": self.corrected,
                  "stopped_by": r["stopped_by"]} for r in self.done_levels]
 
 

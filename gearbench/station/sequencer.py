@@ -436,6 +436,7 @@ class Sequencer:
         ratio = self.profile.reducer.ratio if self.profile.reducer else None
         if "windows" not in seg.meta and ("windows", action.segment) in self._recorded:
             seg.meta["windows"] = self._recorded[("windows", action.segment)]
+            seg.meta["inertia_corrected"] = self._recorded.get(("inertia_corrected", action.segment), False)
         adaptive = "windows" in seg.meta or action.adaptive
         res = analyse.efficiency(seg, self._calibration("in"), self._calibration("out"),
                                  ratio=ratio, settle_s=seg.meta["settle_s"],
@@ -479,6 +480,8 @@ class Sequencer:
                 self._recorded[("run", m["segment"], m["motor"])] = m["run_samples"]
             elif m.get("kind") == "efficiency" and m.get("window_samples"):
                 self._recorded.setdefault(("windows", m["segment"]), []).append(tuple(m["window_samples"]))
+                if m.get("inertia_corrected") is not None:     # the series the staircase chose
+                    self._recorded[("inertia_corrected", m["segment"])] = bool(m["inertia_corrected"])
 
     # ---------------------------------------------------------------- limits
     def check_limits(self) -> list[dict]:
