@@ -39,6 +39,7 @@ from ..errors import ExcitationError, GearbenchError, TraceError
 from ..trace import BENCH_COLUMNS, Trace
 from .calibration import MotorCalibration
 from .streaming import slope_fit
+from .streaming import tapered_mean_sem as _mean_sem
 from .uncertainty import DOF_MAX, effective_dof, interval
 from .windows import TAPER_ALPHA, taper  # noqa: F401  (taper: public here since 0.1)
 
@@ -310,22 +311,6 @@ def steady_windows(time_s: np.ndarray, in_command: np.ndarray, out_command: np.n
 
 
 
-def _mean_sem(x: np.ndarray, blocks: int = 10) -> tuple[float, float, float]:
-    """Tukey-weighted mean (see ``taper``), its standard error and that error's degrees
-    of freedom: the block-means standard error of the flat mean (robust to coloured
-    noise, blocks − 1 dof) times the taper's white-noise variance factor."""
-    w = taper(len(x))
-    m = float(w @ x / w.sum())
-    inflate = np.sqrt(len(x) * float(w @ w)) / float(w.sum())
-    nb = min(blocks, len(x) // 10)
-    if nb < 3:
-        return (m, inflate * float(np.std(x) / np.sqrt(max(len(x) - 1, 1))),
-                float(max(len(x) - 1, 1)))
-    size = len(x) // nb
-    bm = x[: nb * size].reshape(nb, size).mean(axis=1)
-    return m, inflate * float(np.std(bm, ddof=1) / np.sqrt(nb)), float(nb - 1)
-
-
 def measure_windows(trace: Trace, *, settle_s: float = 0.5,
                     ranges: list[tuple[int, int]] | None = None) -> list[SteadyWindow]:
     """Steady windows from the command levels minus ``settle_s``, or exactly ``ranges``
@@ -484,16 +469,72 @@ def absolute_efficiency(current_in_a: float, current_out_a: float, speed_in_rad_
 
 
 # ------------------------------------------------------------------------ the job
+SPEED_SPAN_S = 0.1           # inertia correction: speed averaged over 100 ms (encoder quantum, shaft ripple)
+
+
+def inertia_corrected_current(current_a: np.ndarray, position_rad: np.ndarray, period_s: float,
+                              inertia_kgm2: float, kt_nm_a: float) -> np.ndarray:
+    """A motor's current less what accelerates its own rotor, i − J θ''/Kt: from the
+    motor's equation J θ'' + D θ' + Tc s(θ') + T_shaft = Kt i (eq. 1), the current that
+    carries its friction and the shaft torque alone. After a load step a speed loop's
+    recovery moves the current for hundreds of milliseconds while the shaft torque is
+    already steady; the corrected current is steady as soon as the shaft torque is, so a
+    level's window can start right after the step (the mean of J θ''/Kt over a window is
+    J Δω/(T Kt): it only needs the speeds at the window's ends to be right).
+
+    Parameters
+    ----------
+    current_a, position_rad : ndarray
+        The motor's current and encoder angle, one sample per ``period_s``.
+    period_s : float
+        Sample period (s).
+    inertia_kgm2, kt_nm_a : float
+        The motor's calibrated J and Kt.
+
+    Returns
+    -------
+    ndarray
+        The corrected current (A); θ'' as the difference of the speed averaged over
+        ``SPEED_SPAN_S`` (so the encoder's quantum does not dominate), 0 at the two ends.
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", eq. 1-2.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> t = np.arange(300) * 1e-3
+    >>> i = inertia_corrected_current(np.ones(300), 50.0 * t ** 2, 1e-3, 1e-4, 0.1)
+    >>> float(i[150].round(6)), float(i[0])
+    (0.9, 1.0)
+    """
+    th = np.asarray(position_rad, float)
+    h = max(1, int(round(SPEED_SPAN_S / 2 / period_s)))
+    acc = np.zeros_like(th)
+    if len(th) > 2 * h + 2:
+        # speed as the angle travelled over 2h samples (the encoder's quantum over one
+        # sample would put a 1/dt² noise on θ''); θ'' its first difference
+        w = (th[2 * h:] - th[:-2 * h]) / (2 * h * period_s)          # at samples h .. n-h-1
+        acc[h + 1:len(th) - h - 1] = (w[2:] - w[:-2]) / (2 * period_s)
+    return np.asarray(current_a, float) - inertia_kgm2 * acc / kt_nm_a
+
+
 def efficiency(trace: Trace, motor_in: MotorCalibration, motor_out: MotorCalibration, *,
                ratio: float | None = None, settle_s: float = 0.5,
                windows: list[tuple[int, int]] | None = None,
-               incremental: str = "secant") -> EfficiencyResult:
+               incremental: str = "secant", inertia_corrected: bool = False) -> EfficiencyResult:
     """Efficiency points of a bench trace (see module docstring).
 
     ``windows``: the steady index ranges (else found from the commands and ``settle_s``).
     ``incremental="slope"``: eq. 18 as the weighted regression slope of input on output
     current over all levels at the same speed (``incremental_slope``), one value per
-    speed; every point keeps its own secant beside it.
+    speed; every point keeps its own secant beside it. ``inertia_corrected``: the input
+    motor's current less its own rotor's inertial part (``inertia_corrected_current``,
+    its calibrated J and Kt) before the window means: levels that start while its speed
+    loop is still recovering (the adaptive staircase) carry no transient. The output
+    motor, current-controlled, is left as measured (corrected, the shaft ripple its
+    rotor's inertia passes on would add more noise than a braking step's transient).
 
     Parameters
     ----------
@@ -520,6 +561,12 @@ def efficiency(trace: Trace, motor_in: MotorCalibration, motor_out: MotorCalibra
         raise GearbenchError(f"--ratio must be a positive number, got {ratio}")
     if incremental not in ("secant", "slope"):
         raise GearbenchError(f"incremental must be 'secant' or 'slope', got {incremental!r}")
+    if inertia_corrected:
+        dt = float(np.median(np.diff(trace.time_s)))
+        trace = trace.with_columns(**{
+            f"{side}_current_a": inertia_corrected_current(trace[f"{side}_current_a"], trace[f"{side}_position_rad"],
+                                                           dt, cal.J, cal.Kt)
+            for side, cal in (("in", motor_in),)})
     wins = measure_windows(trace, settle_s=settle_s, ranges=windows)
     refs = [w for w in wins if w.is_reference]
     loaded = [w for w in wins if not w.is_reference]

@@ -34,6 +34,7 @@ BLOCK_FILTER_LENGTHS = 2     # a block spans two FIR lengths: residuals correlat
 MIN_BLOCKS = 4               # fewer blocks: the spread of their scores says nothing yet
 SETTLE_MARGIN = 2            # the window starts at twice the point found steady
 MIN_SETTLED_CHUNKS = 8       # settled chunks before a level may stop
+SPEED_TOLERANCE = 0.01       # a settled level's mean input speed within 1 % of its command
 STEADY_SIGMAS = 2.0          # the settled window's halves must agree within 2 sigma
 TAPER_VARIANCE = 1.22        # white-noise variance factor of the Tukey-tapered mean (efficiency.taper)
 
@@ -121,7 +122,15 @@ class LevelMean:
     disagree and the level goes on.
     """
 
-    def __init__(self, settle_floor_chunks: int = 0):
+    def __init__(self, settle_floor_chunks: int = 0, margin: float = SETTLE_MARGIN,
+                 speed_rad_s: float | None = None, dt_s: float = 1e-3):
+        self.margin = margin
+        # the commanded input speed: a level counts as settled only where the measured
+        # speed is back at it (a slow speed loop sags for long after a braking step, and
+        # the efficiency belongs to the commanded operating point)
+        self.speed = speed_rad_s
+        self.travel: list[float] = []       # input angle travelled per chunk (rad)
+        self.dt_s = dt_s
         self.n: list[int] = []
         self.d2_in: list[float] = []
         self.d2_out: list[float] = []
@@ -131,8 +140,9 @@ class LevelMean:
         # on a short window the halves test is weak against a slow loop's tail
         self._settled_at = settle_floor_chunks
 
-    def add_chunk(self, current_in_a: np.ndarray, current_out_a: np.ndarray) -> None:
+    def add_chunk(self, current_in_a: np.ndarray, current_out_a: np.ndarray, travel_rad: float = 0.0) -> None:
         xi, xo = np.asarray(current_in_a, float).copy(), np.asarray(current_out_a, float).copy()
+        self.travel.append(float(travel_rad))
         self.n.append(len(xi))
         self.d2_in.append(float(np.sum(np.diff(xi, 2) ** 2)))
         self.d2_out.append(float(np.sum(np.diff(xo, 2) ** 2)))
@@ -160,10 +170,22 @@ class LevelMean:
         return (float(np.sqrt(sum(self.d2_in[j:]) / (6.0 * cnt))),
                 float(np.sqrt(sum(self.d2_out[j:]) / (6.0 * cnt))))
 
+    def _speed_ok(self, j: int, dt_s: float) -> bool:
+        """The mean input speed from chunk j on within ``SPEED_TOLERANCE`` of the command."""
+        if not self.speed:
+            return True
+        w = sum(self.travel[j:]) / (sum(self.n[j:]) * dt_s)
+        return abs(w - self.speed) <= SPEED_TOLERANCE * abs(self.speed)
+
     def _steady(self, j: int) -> bool:
+        if self.speed and not self._speed_ok(j, self.dt_s):
+            return False
         xi = np.concatenate(self.raw_in[j:])
         h = len(xi) // 2
-        half_se = self._sigma(j)[0] * np.sqrt(TAPER_VARIANCE / max(h, 1))
+        # the halves' noise from the window's own batch means (coloured: a speed loop's
+        # response to cogging and ripple is several times what white noise would leave),
+        # by successive differences so a decaying tail does not pass for noise
+        half_se = _long_run_sigma(xi) * np.sqrt(TAPER_VARIANCE / max(h, 1))
         return abs(_tapered_mean(xi[:h]) - _tapered_mean(xi[h:])) <= STEADY_SIGMAS * np.sqrt(2.0) * half_se
 
     def stats(self) -> dict | None:
@@ -174,16 +196,55 @@ class LevelMean:
         # halves; as long again lets it decay as far once more (a speed loop's recovery
         # is close to exponential), so what is left of it in the mean is below the noise
         steady = self.settle_chunk()
-        j = SETTLE_MARGIN * steady
+        j = int(round(self.margin * steady))
         if len(self.n) - j < MIN_SETTLED_CHUNKS:
             return None
         xi, xo = np.concatenate(self.raw_in[j:]), np.concatenate(self.raw_out[j:])
-        n = len(xi)
-        sig_in, sig_out = self._sigma(j)
-        return {"settle_chunk": j, "steady_chunk": steady, "samples": n, "steady": True,
-                "mean_in": _tapered_mean(xi), "mean_out": _tapered_mean(xo),
-                "sem_in": float(sig_in * np.sqrt(TAPER_VARIANCE / n)),
-                "sem_out": float(sig_out * np.sqrt(TAPER_VARIANCE / n))}
+        return {"settle_chunk": j, "steady_chunk": steady, "samples": len(xi), "steady": True,
+                **window_stats(xi, xo)}
+
+
+def tapered_mean_sem(x: np.ndarray, blocks: int = 10) -> tuple[float, float, float]:
+    """Tukey-weighted mean (see ``taper``), its standard error and that error's degrees
+    of freedom: the block-means standard error of the flat mean (robust to coloured
+    noise, blocks − 1 dof) times the taper's white-noise variance factor. The final
+    analysis's window means (``efficiency.measure_windows``) and the adaptive levels'
+    stopping both use it."""
+    w = taper(len(x))
+    m = float(w @ x / w.sum())
+    inflate = np.sqrt(len(x) * float(w @ w)) / float(w.sum())
+    nb = min(blocks, len(x) // 10)
+    if nb < 3:
+        return (m, inflate * float(np.std(x) / np.sqrt(max(len(x) - 1, 1))),
+                float(max(len(x) - 1, 1)))
+    size = len(x) // nb
+    bm = x[: nb * size].reshape(nb, size).mean(axis=1)
+    return m, inflate * float(np.std(bm, ddof=1) / np.sqrt(nb)), float(nb - 1)
+
+
+def window_stats(current_in_a: np.ndarray, current_out_a: np.ndarray) -> dict:
+    """Tapered means of a level's settled window with the standard errors and degrees of
+    freedom the final analysis gives them (``tapered_mean_sem``: block means, robust to
+    coloured noise), so a level stops on the interval its result will carry."""
+    mi, si, di = tapered_mean_sem(np.asarray(current_in_a, float))
+    mo, so, do = tapered_mean_sem(np.asarray(current_out_a, float))
+    return {"mean_in": mi, "mean_out": mo, "sem_in": si, "sem_out": so, "dof": min(di, do)}
+
+
+def _long_run_sigma(x: np.ndarray, blocks: int = 10) -> float:
+    """Per-sample noise level that the mean of ``x`` sees: √(block length) times the spread
+    of ``blocks`` block means from the median of their successive differences (von Neumann,
+    made robust), so coloured noise counts as it acts on a mean while a slow trend or a
+    transient's first block barely does; the white-noise level from second differences
+    when the window is too short for blocks."""
+    nb = min(blocks, len(x) // 10)
+    if nb < 3:
+        return float(np.sqrt(np.mean(np.diff(x, 2) ** 2) / 6.0)) if len(x) > 2 else 0.0
+    size = len(x) // nb
+    bm = x[: nb * size].reshape(nb, size).mean(axis=1)
+    # median absolute successive difference (normal: 0.6745·√2·σ): the one step a
+    # transient's first block makes does not pass for noise
+    return float(np.median(np.abs(np.diff(bm))) / (0.6745 * np.sqrt(2.0)) * np.sqrt(size))
 
 
 def _tapered_mean(x: np.ndarray) -> float:

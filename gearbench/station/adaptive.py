@@ -18,7 +18,13 @@ shrinks (docs/profile-format.md, "Adaptive measurement"):
   come on top in the reported Kt interval.
 - efficiency: ``targets.eta_pp`` is the 95 % half-width of the staircase slope's
   statistical part (eq. 18 as a slope), in percentage points; each level stops when
-  its settled mean's standard error is what the slope needs (``slope_target_sem``).
+  its settled mean's standard error is what the slope needs (``slope_target_sem``),
+  the error computed as the final analysis computes it (block means,
+  ``streaming.tapered_mean_sem``, with its t quantile). Levels are judged on the input
+  current less its rotor's inertial part where that is the quieter series
+  (``efficiency.inertia_corrected_current``: no waiting for a slow speed loop's
+  recovery), count as settled only with the input speed back at its command, and may
+  use what earlier levels of the staircase left of their max_s (issue 23).
 """
 from __future__ import annotations
 
@@ -27,8 +33,10 @@ import math
 import numpy as np
 
 from ..analysis.identify import t_quantile
-from ..analysis.streaming import LevelMean, StreamingB2, Z95, slope_fit, slope_target_sem
+from ..analysis.efficiency import SPEED_SPAN_S, inertia_corrected_current
+from ..analysis.streaming import MIN_SETTLED_CHUNKS, SETTLE_MARGIN, LevelMean, StreamingB2, Z95, slope_fit, slope_target_sem, window_stats
 
+CORRECTED_MARGIN = 1.0      # inertia-corrected levels: the window starts where found steady
 CHECK_S = 0.1                # calibration: how often the running b2 estimates are updated
 LEVEL_CHUNK_S = 0.02         # efficiency: chunk of the level means (below the ripple periods' tens)
 
@@ -135,8 +143,16 @@ class Staircase:
     def __init__(self, *, speed: float, currents_out_a: list[float], torques_out_nm: list[float],
                  period_s: float, min_s: float, max_s: float, eta_pp: float, kt_in: float,
                  kt_out: float, eta_prior: float, ratio_prior: float | None, ramp_rad_s2: float,
-                 segment: str, settle_floor_chunks: int = 0, loss_out=None):
+                 segment: str, settle_floor_chunks: int = 0, loss_out=None, inertia_kgm2: dict | None = None):
         self.speed = speed
+        # with both rotors' J calibrated, levels are judged on the currents less each rotor's
+        # inertial part (efficiency.inertia_corrected_current, as the final analysis then
+        # takes them): the speed loop's recovery after a braking step no longer has to die
+        # out in the current before a level counts as settled
+        self.inertia = dict(inertia_kgm2 or {})
+        self.corrected = all(self.inertia.get(m, 0) > 0 for m in ("in", "out"))
+        # samples a corrected current waits for (the speed averaged over SPEED_SPAN_S after it)
+        self.lag = int(round(SPEED_SPAN_S / 2 / period_s)) + 1 if self.corrected else 0
         self.levels = [0.0] + list(currents_out_a)
         # the output motor's own friction (D, Tc from its calibration) brakes the reducer too:
         # once the zero-load level shows the output speed, each braking current is lowered by
@@ -160,9 +176,37 @@ class Staircase:
         self.level_start = self.n_ramp
         self.stop_start: int | None = None
         self.settle_floor = settle_floor_chunks   # chunks: slowest settling of a braking step so far
-        self.acc = LevelMean()
+        self.acc = self._level_mean(CORRECTED_MARGIN if self.corrected else SETTLE_MARGIN)
+        self.acc_raw = self._level_mean(SETTLE_MARGIN) if self.corrected else None
         self.done_levels: list[dict] = []
         self._cols: dict | None = None
+
+    def _level_max(self) -> int:
+        """Samples the current level may take: its max_s plus what the levels before it in
+        this staircase left unused (the staircase never exceeds its levels' max_s summed,
+        the profile's bench-time bound; the time goes where the slope still needs it).
+        Not a share by leverage up front: the cvt's first zero-load level then took up to
+        1.4 s where it met its target in less (--sim bench 16.0 -> 17.4 s) for one plant
+        in eighty more within the bound."""
+        used = sum(r["stop"] - r["start"] for r in self.done_levels)
+        return self.max_n * (len(self.done_levels) + 1) - used
+
+    def _level_mean(self, margin: float) -> LevelMean:
+        return LevelMean(self.settle_floor, margin=margin, speed_rad_s=self.speed, dt_s=self.period_s)
+
+    def _currents(self, cols: dict, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+        """Input and output currents of samples a..b-1 as the analysis takes them (inertia
+        corrected when the rotors' J are known; needs the angle at sample b)."""
+        if not self.corrected:
+            return cols["in.current_a"][a:b], cols["out.current_a"][a:b]
+        out = [cols["out.current_a"][a:b]]        # the output motor as measured (efficiency())
+        pad = self.lag + 1
+        for m, kt in (("in", self.kt_in),):
+            lo = max(a - pad, 0)
+            cur = inertia_corrected_current(cols[f"{m}.current_a"][lo:b + pad], cols[f"{m}.position_rad"][lo:b + pad],
+                                            self.period_s, self.inertia[m], kt)
+            out.insert(0, cur[a - lo:a - lo + (b - a)])
+        return out[0], out[1]
 
     # -- commands
     def setpoints(self, k: int) -> dict[str, float]:
@@ -170,7 +214,7 @@ class Staircase:
             return {"in": float(self.up[k]), "out": 0.0}
         if self.level < 0:
             self.level = 0
-        if self.stop_start is None and self.level < len(self.levels) and k - self.level_start >= self.max_n:
+        if self.stop_start is None and self.level < len(self.levels) and k - self.level_start >= self._level_max():
             self._next(k, "max", self._cols)
         if self.stop_start is not None:
             j = k - self.stop_start
@@ -215,17 +259,25 @@ class Staircase:
         self._cols = cols          # the recorder's buffers: a level ending at max_s reads them
         if self.stop_start is not None:
             return k >= self.stop_start + len(self.down)
-        if k <= self.n_ramp or (k - self.level_start) % self.chunk:
+        # a corrected current needs the angles after it: chunks lag by self.lag + 1 samples,
+        # aligned on the level's start as the windows are
+        b = k - self.lag - 1
+        if k <= self.n_ramp or b <= self.level_start or (b - self.level_start) % self.chunk:
             return False
-        a = k - self.chunk
-        self.acc.add_chunk(cols["in.current_a"][a:k], cols["out.current_a"][a:k])
+        a = b - self.chunk
+        travel = float(cols["in.position_rad"][b] - cols["in.position_rad"][a])
+        self.acc.add_chunk(*self._currents(cols, a, b), travel)
         st = self.acc.stats()
+        if self.acc_raw is not None:                 # the zero-load level: both series
+            self.acc_raw.add_chunk(cols["in.current_a"][a:b], cols["out.current_a"][a:b], travel)
+            st = _quieter(st, self.acc_raw.stats())
         if st is None or k - self.level_start < self.min_n:
             return False
         rec = self._level_record(k, cols, None, st)
         b, eta = self._slope_now(rec)
         need = slope_target_sem(self.eta_pp, eta, b, self._x_levels(), self.level)
-        have = math.hypot(st["sem_in"], b * st["sem_out"])
+        # the final interval is t(dof) wide on block-means errors, not 1.96
+        have = math.hypot(st["sem_in"], b * st["sem_out"]) * t_quantile(st["dof"]) / Z95
         if have <= need and st["steady"]:
             self._next(k, "target", cols, st)
         return False
@@ -235,10 +287,21 @@ class Staircase:
 
     def _next(self, k: int, why: str, cols: dict | None = None, st: dict | None = None) -> None:
         """Close the current level at sample ``k``; start the next one or the stop."""
+        if self.acc_raw is not None:
+            # the zero-load level decides the staircase's series: the corrected current where
+            # its mean is known better (a slow speed loop still recovering), else as measured
+            # (a shaft ripple the rotor's inertia passes on makes the correction noisier)
+            st_c, st_r = self.acc.stats(), self.acc_raw.stats()
+            if _quieter(st_c, st_r) is st_r and st_r is not None:
+                self.corrected, self.lag, self.acc, st = False, 0, self.acc_raw, st_r
+            else:
+                st = st_c
+            self.acc_raw = None
         if st is None:
             st = self.acc.stats()
         if st is None and cols is not None:       # never settled within max_s: its last half
-            st = _unsettled_stats(cols, self.level_start + (k - self.level_start) // 2, k)
+            st = {"settle_chunk": 0, **window_stats(*self._currents(cols, self.level_start + (k - self.level_start) // 2,
+                                                                        k - self.lag - 1))}
             st["settle_chunk"] = (k - self.level_start) // 2 // self.chunk
             st["unsettled"] = True
         rec = self._level_record(k, cols, why, st) if cols is not None else {
@@ -254,20 +317,24 @@ class Staircase:
             rec["settle_s"] = st["settle_chunk"] * self.chunk * self.period_s
             # the slope's half-width if every level had its share of the error like this one
             need = slope_target_sem(self.eta_pp, eta, b, self._x_levels(), self.level)
-            rec["interval_reached"] = (self.eta_pp * math.hypot(st["sem_in"], b * st["sem_out"]) / need
-                                       if need > 0 else math.inf)
+            have = math.hypot(st["sem_in"], b * st["sem_out"]) * t_quantile(st.get("dof", 1e9)) / Z95
+            rec["interval_reached"] = self.eta_pp * have / need if need > 0 else math.inf
         self.done_levels.append(rec)
         if self.level == 0:
             self._compensate_friction(rec)
         if self.level >= 1:
             # a braking step settles no faster than the slowest one before it on this drive
             # (the point found steady, not the window start: that doubles it once per level)
-            self.settle_floor = max(self.settle_floor, st.get("steady_chunk", st["settle_chunk"])
+            # (a level that never settled raises it only as far as still lets the next one
+            # settle within max_s: the whole level as the floor left every later one unsettled)
+            cap = (self.max_n // self.chunk - MIN_SETTLED_CHUNKS) // SETTLE_MARGIN
+            self.settle_floor = max(self.settle_floor, min(cap, st.get("steady_chunk", st["settle_chunk"])
                                     if st is not None and not st.get("unsettled")
-                                    else (k - self.level_start) // self.chunk)
+                                    else (k - self.level_start) // self.chunk))
         self.level += 1
         self.level_start = k
-        self.acc = LevelMean(self.settle_floor)
+        # a corrected current carries no speed-loop tail to let decay further
+        self.acc = self._level_mean(CORRECTED_MARGIN if self.corrected else SETTLE_MARGIN)
         if self.level >= len(self.levels):
             self.stop_start = k
 
@@ -276,9 +343,11 @@ class Staircase:
         if self.loss_out is None or span <= 0 or not zero_load.get("dth_out"):
             return
         loss = abs(self.loss_out(zero_load["dth_out"] / span))
-        # a motor whose own friction brakes more than the lightest level asks: compensated,
-        # the levels would merge at zero current (no slope); its points then carry t + loss
-        if not np.isfinite(loss) or loss >= min((abs(t) for t in self.torques[1:] if t), default=0.0):
+        # a motor whose own friction brakes more than half what the lightest level asks:
+        # compensated, that level would brake with next to no current (random plant 3/3: 0.01 A
+        # left, its input-current rise within the noise, the analysis refused it) or the
+        # levels would merge at zero (no slope); its points then carry t + loss
+        if not np.isfinite(loss) or loss >= 0.5 * min((abs(t) for t in self.torques[1:] if t), default=0.0):
             return
         self.compensated_nm = loss
         self.levels[1:] = [-max(abs(t) - loss, 0.0) / self.kt_out for t in self.torques[1:]]
@@ -287,9 +356,11 @@ class Staircase:
         """Fill in levels that ended at ``max_s`` inside ``setpoints`` (no columns there)."""
         for rec in self.done_levels:
             if rec.pop("pending", False):
-                acc = LevelMean(rec.get("floor", 0))
-                for a in range(rec["start"], rec["stop"] - self.chunk + 1, self.chunk):
-                    acc.add_chunk(cols["in.current_a"][a:a + self.chunk], cols["out.current_a"][a:a + self.chunk])
+                acc = LevelMean(rec.get("floor", 0), margin=CORRECTED_MARGIN if self.corrected else SETTLE_MARGIN,
+                                speed_rad_s=self.speed, dt_s=self.period_s)
+                for a in range(rec["start"], rec["stop"] - self.chunk, self.chunk):
+                    acc.add_chunk(*self._currents(cols, a, a + self.chunk),
+                                  float(cols["in.position_rad"][a + self.chunk] - cols["in.position_rad"][a]))
                 st = acc.stats()
                 # never settled within max_s: the level's last half, the least disturbed part
                 # (its standard error from the whole level's chunks; flagged in result.json)
@@ -297,7 +368,7 @@ class Staircase:
                 a = rec["start"] + settle_n
                 k = rec["stop"]
                 if st is None:
-                    st = _unsettled_stats(cols, a, k)
+                    st = {"settle_chunk": 0, **window_stats(*self._currents(cols, a, k - self.lag - 1))}
                     rec["settled_in_time"] = False
                 rec.update(settled=a, settle_s=settle_n * self.period_s,
                            dth_in=float(cols["in.position_rad"][k - 1] - cols["in.position_rad"][a]),
@@ -318,7 +389,8 @@ class Staircase:
         """Settled part of each level as sample-counter values [first, last)."""
         out = []
         for r in self.done_levels:
-            a, b = r.get("settled", r["start"]), r["stop"]
+            # the corrected current's last samples use angles from the next level's start
+            a, b = r.get("settled", r["start"]), r["stop"] - self.lag - 1 if self.lag else r["stop"]
             if b - a >= 2:
                 out.append((int(counter[a]), int(counter[b - 1]) + 1))
                 r["window_samples"] = list(out[-1])
@@ -336,15 +408,13 @@ class Staircase:
                  "window_samples": r.get("window_samples"),
                  "out_command_a": r.get("out_command"),
                  "friction_compensated_nm": self.compensated_nm if r["torque_out_nm"] else None,
+                 "inertia_corrected": self.corrected,
                  "stopped_by": r["stopped_by"]} for r in self.done_levels]
 
 
-def _unsettled_stats(cols: dict, a: int, k: int) -> dict:
-    """Means and white-noise standard errors of samples a..k (a level that did not settle)."""
-    acc = LevelMean()
-    acc.add_chunk(cols["in.current_a"][a:k], cols["out.current_a"][a:k])
-    sig_in, sig_out = acc._sigma(0)
-    n = max(k - a, 1)
-    return {"settle_chunk": 0, "mean_in": float(np.mean(cols["in.current_a"][a:k])),
-            "mean_out": float(np.mean(cols["out.current_a"][a:k])),
-            "sem_in": sig_in * math.sqrt(1.22 / n), "sem_out": sig_out * math.sqrt(1.22 / n)}
+def _quieter(a: dict | None, b: dict | None) -> dict | None:
+    """Of two level statistics (either None while unsettled), the one whose input-current
+    mean has the smaller standard error."""
+    if a is None or b is None:
+        return a if b is None else b
+    return b if b["sem_in"] < a["sem_in"] else a

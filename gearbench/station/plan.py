@@ -96,6 +96,7 @@ class Known:
     kt: Mapping[str, float]                       # each motor's Kt: calibrated, else datasheet
     loss_out: Callable | None = None              # output motor's friction torque(ω), once calibrated
     b2_unloaded: Callable[[str, str], float] = lambda segment, motor: float("nan")
+    inertia_kgm2: Mapping[str, float] = field(default_factory=dict)   # calibrated rotor J per motor
 
     @classmethod
     def from_datasheet(cls, profile) -> "Known":
@@ -258,11 +259,13 @@ def staircase_segment(profile, step, k: int, speed: float, known: Known) -> Segm
                     kt_in=known.kt["in"], kt_out=kt_out,
                     eta_prior=sum(reducer.efficiency_range) / 2 if reducer else 0.8,
                     ratio_prior=reducer.ratio if reducer else None,
-                    ramp_rad_s2=RAMP_RAD_S2, segment=f"efficiency-{k}")
+                    ramp_rad_s2=RAMP_RAD_S2, segment=f"efficiency-{k}",
+                    inertia_kgm2=dict(known.inertia_kgm2))
     return Segment(f"efficiency-{k}", "efficiency",
                    {"in": (Mode.VELOCITY, None), "out": (Mode.TORQUE, None)},
                    f"input {speed:g} rad/s, staircase of {len(step.torques_out_nm)} braking torques",
-                   meta=dict(speed=speed, settle_s=0.0, n_ramp=ctl.n_ramp), controller=ctl)
+                   meta=dict(speed=speed, settle_s=0.0, n_ramp=ctl.n_ramp, inertia_corrected=ctl.corrected),
+                   controller=ctl)
 
 
 def output_friction_nm(profile, speed_in_rad_s: float, known: Known) -> float:

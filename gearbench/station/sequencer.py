@@ -156,7 +156,8 @@ class Sequencer:
         out = self.calibrations.get("out")
         return Known(kt={m: self._kt(m) for m in self.profile.motors},
                      loss_out=out.loss_torque_nm if out else None,
-                     b2_unloaded=self._b2_unloaded)
+                     b2_unloaded=self._b2_unloaded,
+                     inertia_kgm2={m: c.J for m, c in self.calibrations.items()})
 
     def plan(self) -> list:
         """The whole run's actions (``gearbench.station.plan``), datasheet values standing in
@@ -357,6 +358,8 @@ class Sequencer:
             ctl.finish(cols, done)
             seg.meta["windows"] = ctl.windows(buf_idx[:done])
             self.traces[seg.name].meta["windows"] = seg.meta["windows"]
+            if hasattr(ctl, "corrected"):       # the series the staircase chose (adaptive.Staircase)
+                seg.meta["inertia_corrected"] = self.traces[seg.name].meta["inertia_corrected"] = ctl.corrected
         self.adaptive[seg.name] = ctl
         for rec in ctl.measurements():
             self.measurements.append(rec)
@@ -433,12 +436,14 @@ class Sequencer:
         ratio = self.profile.reducer.ratio if self.profile.reducer else None
         if "windows" not in seg.meta and ("windows", action.segment) in self._recorded:
             seg.meta["windows"] = self._recorded[("windows", action.segment)]
+            seg.meta["inertia_corrected"] = self._recorded.get(("inertia_corrected", action.segment), False)
         adaptive = "windows" in seg.meta or action.adaptive
         res = analyse.efficiency(seg, self._calibration("in"), self._calibration("out"),
                                  ratio=ratio, settle_s=seg.meta["settle_s"],
                                  speed_setpoint_rad_s=action.speed_rad_s,
                                  skip_samples=seg.meta["n_ramp"], windows=seg.meta.get("windows"),
-                                 incremental="slope" if adaptive else "secant")
+                                 incremental="slope" if adaptive else "secant",
+                                 inertia_corrected=bool(seg.meta.get("inertia_corrected")))
         self.ratio = res.ratio
         for pt in res.points:
             self.points.append(pt)
@@ -475,6 +480,8 @@ class Sequencer:
                 self._recorded[("run", m["segment"], m["motor"])] = m["run_samples"]
             elif m.get("kind") == "efficiency" and m.get("window_samples"):
                 self._recorded.setdefault(("windows", m["segment"]), []).append(tuple(m["window_samples"]))
+                if m.get("inertia_corrected") is not None:     # the series the staircase chose
+                    self._recorded[("inertia_corrected", m["segment"])] = bool(m["inertia_corrected"])
 
     # ---------------------------------------------------------------- limits
     def check_limits(self) -> list[dict]:
