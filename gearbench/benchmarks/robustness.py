@@ -91,6 +91,7 @@ class Outcome:
     abs_cover: list = field(default_factory=list)
     error: str = ""
     abs_extrapolated: list = field(default_factory=list)   # per abs point: loss extrapolated
+    motors: list = field(default_factory=list)   # per motor: what its calibration saw (``_motor_notes``)
 
     def _quantities(self):
         return (("kt_pct", self.kt_err_pct, self.kt_std_pct),
@@ -258,6 +259,7 @@ def run_case(case: Case, methods=METHODS, data: dict | None = None) -> dict[str,
                 oc.kt_err_pct.append(100 * (cal.Kt / motor.Kt - 1))
                 oc.kt_std_pct.append(100 * cal.Kt_std / motor.Kt)
                 oc.kt_cover.append(cal.Kt_ci95[0] <= motor.Kt <= cal.Kt_ci95[1])
+                oc.motors.append(_motor_notes(cal, motor))
             res = efficiency(data["bench"], cals["in"], cals["out"])
             for p in res.points:
                 if abs(p.window.out_command) < 0.5 * plant.motor_out.rated_current_a - 1e-12:
@@ -273,6 +275,64 @@ def run_case(case: Case, methods=METHODS, data: dict | None = None) -> dict[str,
         except Exception as exc:            # a failure is a result here, not a crash
             oc.error = f"{type(exc).__name__}: {str(exc)[:160]}"
     return out
+
+
+def _motor_notes(cal, motor) -> dict:
+    """What one motor's calibration saw: the share of each run left out as stuck, whether
+    the setpoint-step term was kept, and the drive's setpoint/current sampling (truth)."""
+    sp = cal.fit.get("setpoint_step") or {}
+    return {"left_out": tuple(float((cal.fit.get(r) or {}).get("left_out_share", 0.0))
+                              for r in ("unloaded", "loaded")),
+            "step_kept": bool(sp.get("kept", False)),
+            "stepping_sampled": bool(not motor.setpoint_interpolation and not motor.current_avg_s)}
+
+
+def causes(o: Outcome) -> str:
+    """Which quantities miss their target, each motor's Kt error ± its standard
+    uncertainty, and the conditions measured to go with misses:
+
+    * ``stuck NN%``: a calibration run left NN % of itself out as stuck (the drive's
+      current stays below the breakaway while its speed loop winds up; no Kt information
+      there: seed 7 case 94's output motor sits still on 98 % of a ±56 rad/s command);
+    * ``stepping``: the drawn drive steps its speed setpoint at each SYNC *and* reports
+      an instantaneous current sample (``+term``: the shared setpoint-step term was
+      kept). The unloaded run's b2 then comes out high by 0.5-2.5 % at any filter cutoff
+      (10-150 Hz) and with a noise-free current; interpolating the setpoint or averaging
+      the current over the period removes it (seed 8 case 11 input: +0.89 % -> +0.09 %
+      / +0.04 %), and a Δcmd-shaped term at lags -1, 0, +1 samples does not (Wald < 1).
+    """
+    if o.error:
+        return "exception"
+    missed = [q for q, errs, _ in o._quantities() if max(map(abs, errs), default=0.0) > TARGETS[q]]
+    tags = []
+    for side, m, e, sd in zip(("in", "out"), o.motors, o.kt_err_pct, o.kt_std_pct):
+        t = [f"Kt {e:+.3f}±{sd:.3f} %"]
+        if max(m["left_out"]) > 0.5:
+            t.append(f"stuck {100 * max(m['left_out']):.0f}%")
+        if m["stepping_sampled"]:
+            t.append("stepping" + ("+term" if m["step_kept"] else ""))
+        tags.append(f"{side}: {', '.join(t)}")
+    tagged = any("stuck" in t or "stepping" in t for t in tags)
+    return (f"missed {','.join(missed) or '-'}; " + "; ".join(tags)
+            + ("" if tagged else "; no tagged condition"))
+
+
+def print_causes(cases, outcomes, method: str = "default") -> None:
+    """Every case that misses a target, its verdict and ``causes``, then counts per tag."""
+    print(f"\ncases missing a target ({method}):")
+    tally = {}
+    for c, out in zip(cases, outcomes):
+        o = out[method]
+        v = o.verdict()
+        if v == "meet":
+            continue
+        text = causes(o)
+        print(f"  case {c.index:3d} {'rev' if c.reversing else 'fwd'} {v:>6}: {text}")
+        for tag in ("stuck", "stepping", "no tagged condition", "exception"):
+            if tag in text:
+                tally[(v, tag)] = tally.get((v, tag), 0) + 1
+    for (v, tag), n in sorted(tally.items()):
+        print(f"  {v:>6} with {tag}: {n}")
 
 
 def run(cases: int, seed: int = 0, *, quick: bool = False, methods=METHODS):
@@ -389,6 +449,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="12 cases, shorter bench levels")
     ap.add_argument("--seed", type=int, default=0, help="draw seed (default 0)")
     ap.add_argument("--worst", type=int, default=0, help="list the K worst cases of the default")
+    ap.add_argument("--causes", action="store_true",
+                    help="list every case the default misses with its measured conditions")
     ap.add_argument("--methods", default=",".join(METHODS),
                     help=f"comma-separated identification methods (default {','.join(METHODS)}; "
                          f"also accel, torque, iv: the default's formulations side by side)")
@@ -412,5 +474,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{100 * s['cover_abs_extrapolated']:.0f} %")
     if args.worst:
         print_worst(cases, outcomes, args.worst)
+    if args.causes:
+        print_causes(cases, outcomes)
     print(f"benchmark time {time.perf_counter() - t0:.1f} s")
     return 0
