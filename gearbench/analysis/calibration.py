@@ -370,6 +370,13 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
     disk_std_kgm2, disk_name : the disk's standard uncertainty and name.
     **options : ``identify_default`` options.
 
+    The traces' drive description (``meta["drive"]``, ``identify.drive_sampling``)
+    sets the setpoint-step term: a drive that steps its setpoint and samples its current
+    at one instant gets the physical kick relation (``identify._setpoint_steps``: the
+    term always kept, no current delay, the spread to the delay fit added as model error,
+    ``DELAY_MODEL_SPREAD``); one that says it interpolates or averages gets none; a
+    trace that does not say gets the term where it is significant.
+
     Returns
     -------
     MotorCalibration
@@ -434,8 +441,11 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
     if warnings:
         cal.fit["warnings"] = warnings
     if kick and options.get("setpoint_step") and "lag" not in given:
-        alt = calibrate_motor(unloaded, loaded, disk_kgm2, method, disk_std_kgm2=disk_std_kgm2,
-                              disk_name=disk_name, **{**given, "lag": True})
+        try:
+            alt = calibrate_motor(unloaded, loaded, disk_kgm2, method, disk_std_kgm2=disk_std_kgm2,
+                                  disk_name=disk_name, **{**given, "lag": True})
+        except ExcitationError:     # the other model is refused: no spread to measure
+            return cal
         cal = _with_delay_model_spread(cal, alt)
     return cal
 
