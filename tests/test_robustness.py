@@ -284,14 +284,36 @@ def test_stepping_drive_with_sampled_current_gives_kt_within_target():
     assert not m.setpoint_interpolation and not m.current_avg_s
     assert u.meta["drive"] == {"setpoint": "step", "current": "instant"}
     cal = calibrate_motor(u, lo, case.disks_kgm2["in"])
-    assert cal.fit["setpoint_step"]["kept"] and cal.fit["setpoint_step"]["declared"]
+    step = cal.fit["setpoint_step"]
+    assert step["kept"] and step["declared"]
     assert abs(cal.Kt / m.Kt - 1) <= 0.002
     assert cal.Kt_ci95[0] <= m.Kt <= cal.Kt_ci95[1]
+    # the fitted c (A per rad/s of setpoint step) is the kick the derivation predicts:
+    # −Kp·h(τ/T) to first order, the closed loop adding ~30 % (seed 8: cases 11/12/89
+    # give 1.28/1.37/1.40 x h)
+    c_per_kp = step["coefficient_a_s2_per_rad"] / R.PERIOD_S / m.vel_kp
+    h = _kick_factor(m.current_lag_s / R.PERIOD_S, round(R.PERIOD_S / m.loop_period_s))
+    assert -1.6 * h < c_per_kp < -1.0 * h, (c_per_kp, h)
     # without the description: the term judged by its Wald, a delay fitted: biased
     for t in (u, lo):
         del t.meta["drive"]
     plain = calibrate_motor(u, lo, case.disks_kgm2["in"])
     assert abs(plain.Kt / m.Kt - 1) > 2 * abs(cal.Kt / m.Kt - 1)
+
+
+def _kick_factor(tau_per_period: float, ticks: int, n: int = 400) -> float:
+    """Period mean minus end value of a first-order lag's periodic response to the
+    step-minus-ramp current command pattern (1 − (m+1)/M at speed-loop tick m, mean
+    removed), per unit Kp·Δcmd (``identify._setpoint_steps``)."""
+    u = np.repeat(1.0 - (np.arange(ticks) + 1.0) / ticks, n // ticks)
+    u -= u.mean()
+    a = 1.0 - np.exp(-1.0 / (len(u) * tau_per_period))
+    i, trace = 0.0, np.empty(len(u))
+    for _ in range(40):                     # settle to the periodic steady state
+        for k, uk in enumerate(u):
+            i += (uk - i) * a
+            trace[k] = i
+    return float(trace.mean() - trace[-1])
 
 
 def test_a_drive_that_says_it_interpolates_gets_no_setpoint_step_term():

@@ -335,6 +335,8 @@ def share_setpoint_step(unloaded: IdentificationResult, loaded: IdentificationRe
                                    "identified": {**fit.extras["identified"], KT_J: b2_known},
                                    "setpoint_step": {
                                "coefficient_a_s2_per_rad": float(x[ku]) if kept else 0.0,
+                               "coefficient_std_a_s2_per_rad": (float(np.sqrt(max(S[ku, ku], 0.0)))
+                                                                if kept else 0.0),
                                "wald": float(wald), "kept": kept,
                                "declared": declared}}))
     # cov(b2_u, b2_l) = dv_u/dp_u · cov(p_u, p_l) · dv_l/dp_l, v = 1/p
