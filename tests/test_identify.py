@@ -444,3 +444,18 @@ def test_speed_step_from_rest_keeps_its_acceleration():
     assert fu.extras.get("left_out_share", 0.0) == 0.0
     cal = A._calibrate(u, lo, "default")
     assert abs(cal.Kt / motor.Kt - 1) < 0.002
+
+
+def test_drive_sampling_reads_the_description_and_names_a_bad_field():
+    from gearbench.analysis.identify import drive_sampling
+    from gearbench.errors import TraceError
+
+    def trace(drive):
+        return Trace(np.arange(3.0), {"position_rad": np.zeros(3)}, {"drive": drive}, "run.csv")
+    assert drive_sampling(trace({"setpoint": "step", "current": "instant"})) == "kick"
+    assert drive_sampling(trace({"setpoint": "step", "current": "mean"})) == "plain"
+    assert drive_sampling(trace({"setpoint": "interpolated", "current": "instant"})) == "plain"
+    assert drive_sampling(trace({"setpoint": "step"})) is None
+    assert drive_sampling(Trace(np.arange(3.0), {"position_rad": np.zeros(3)}, {}, "x")) is None
+    with pytest.raises(TraceError, match=r"run.csv: meta drive.current is 'sampled'"):
+        drive_sampling(trace({"setpoint": "step", "current": "sampled"}))

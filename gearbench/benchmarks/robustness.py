@@ -222,6 +222,15 @@ def draw_case(index: int, seed: int = 0, *, duration_s: float = 3.0, dwell_s: fl
 
 
 # ----------------------------------------------------------------------- running
+def drive_description(motor) -> dict:
+    """What a station knows of the drawn drive from its description, as the analysis
+    reads it (``identify.drive_sampling``): whether it ramps between SYNC setpoints
+    (CiA 402 cyclic synchronous velocity with 0x60C2 set) or steps, and whether its
+    current object is a period mean or one sample. Nothing of the motor."""
+    return {"setpoint": "interpolated" if motor.setpoint_interpolation else "step",
+            "current": "mean" if motor.current_avg_s > 0 else "instant"}
+
+
 def simulate_case(case: Case) -> dict:
     """Calibration runs per side (unloaded, loaded) and the bench trace."""
     from ..sim import simulate_bench, simulate_motor
@@ -234,6 +243,8 @@ def simulate_case(case: Case) -> dict:
         runs[side] = (simulate_motor(motor, cmd, seed=s, period_s=PERIOD_S),
                       simulate_motor(motor, cmd, disk_kgm2=case.disks_kgm2[side], seed=s + 1,
                                      period_s=PERIOD_S))
+        for trace in runs[side]:
+            trace.meta["drive"] = drive_description(motor)
     t = wf.time_base(case.dwell_s * len(case.levels_a), PERIOD_S)
     cin = wf.ramp(t, slope=360.0, final=case.bench_speed_rad_s)
     cout = -wf.staircase(t, levels=list(case.levels_a), dwell_s=case.dwell_s)
@@ -296,10 +307,12 @@ def causes(o: Outcome) -> str:
       there: seed 7 case 94's output motor sits still on 98 % of a ±56 rad/s command);
     * ``stepping``: the drawn drive steps its speed setpoint at each SYNC *and* reports
       an instantaneous current sample (``+term``: the shared setpoint-step term was
-      kept). The unloaded run's b2 then comes out high by 0.5-2.5 % at any filter cutoff
-      (10-150 Hz) and with a noise-free current; interpolating the setpoint or averaging
-      the current over the period removes it (seed 8 case 11 input: +0.89 % -> +0.09 %
-      / +0.04 %), and a Δcmd-shaped term at lags -1, 0, +1 samples does not (Wald < 1).
+      kept). The sample then misses the kick's period mean: the unloaded run's b2 from
+      the sample is high by 0.5-2.5 % at any filter cutoff (10-150 Hz), also with a
+      noise-free current (seed 8 case 11 input: +0.87 %, +0.04 % from the period mean).
+      The calibration traces carry the drive's description (``drive_description``), so
+      the fit uses the physical model (``identify._setpoint_steps``: one c for both
+      runs, no current delay); what remains is the kick's closed-loop feedback.
     """
     if o.error:
         return "exception"
