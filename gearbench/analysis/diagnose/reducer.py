@@ -74,6 +74,9 @@ class _Sig:
     #: relation -> (white variance of the raw noise, autocorrelation of the filter it
     #: goes through): what ``held_out_floor`` propagates through the other fold's fit
     noise_model: dict
+    #: scoring groups: the smoother's support (2 L samples) — the held-out errors of
+    #: one group share their noise, of two groups hardly (what n counts in the tests)
+    chunks: np.ndarray
     noise: dict
     #: the raw angles (whole trace) and the smoother (length, kept range), for columns
     #: that must be smoothed like the currents (a motor's cogging torque)
@@ -215,6 +218,7 @@ def prepare_bench(trace: Trace, motor_in: dict | None = None,
     return _Sig(trace.time_s[cut], th_in[cut], th_out[cut], w[cut],
                 a[cut], _smooth(_smooth(i_in, L), L)[cut],
                 i_out[cut], blocks, floor, noise_model,
+                np.arange(len(th_in))[cut] // (2 * L),
                 {"in_current_a": s_iin, "out_current_a": s_iout, "in_angle": s_th_in,
                  "out_angle": s_th_out, "ratio_estimate": float(n_ratio),
                  "torque_unit": unit, "current_hold": float(hold)}, (th_in, th_out, L, cut))
@@ -383,7 +387,7 @@ def _held_out(y, X, blocks) -> tuple[np.ndarray, np.ndarray]:
 
 
 def held_out_floor(X: np.ndarray, blocks: np.ndarray, white: float,
-                   rho: np.ndarray) -> float:
+                   rho: np.ndarray, groups: np.ndarray | None = None) -> float:
     """What the two-fold held-out error of a right model is, from the noise alone.
 
     A held-out sample's residual is its own noise minus what the other fold's noise
@@ -412,7 +416,8 @@ def held_out_floor(X: np.ndarray, blocks: np.ndarray, white: float,
     Returns
     -------
     float
-        Expected held-out MSE averaged like ``_block_mse`` (per block, then blocks).
+        Expected held-out MSE averaged like ``_block_mse`` (per group — ``groups``,
+        default the blocks — then over groups).
     """
     n, p = X.shape
     e = np.full(n, white * float(rho[len(rho) // 2]))
@@ -437,7 +442,8 @@ def held_out_floor(X: np.ndarray, blocks: np.ndarray, white: float,
         M = white * (U.T @ SU)
         Z = (X[~fit] / scale) @ Vt.T / sv
         e[~fit] += np.einsum("ij,jk,ik->i", Z, M, Z)
-    return float(np.mean(_block_mse(np.sqrt(np.maximum(e, 0.0)), blocks)))
+    g = blocks if groups is None else groups
+    return float(np.mean(_block_mse(np.sqrt(np.maximum(e, 0.0)), g)))
 
 
 def _unique_share(X: np.ndarray, E: np.ndarray) -> float:
@@ -502,13 +508,13 @@ def _score(s: _Sig, state: dict, cand: _Cand):
         E = cand.cols(s, hp)
         X = np.column_stack([st["X"], E])
         r, c = _held_out(y, X, s.blocks)
-        mse = _block_mse(r, s.blocks)
+        mse = _block_mse(r, s.chunks)
         if best is None or mse.mean() < best[0].mean():
             best = (mse, hp, E, c)
     mse, hp, E, c = best
     # the floor of the larger model: its extra columns carry the other fold's noise too
     f = held_out_floor(np.column_stack([st["X"], E]), s.blocks, st["white"],
-                       s.noise_model[cand.relation][1])
+                       s.noise_model[cand.relation][1], s.chunks)
     why_not = cand.inadmissible(c[-E.shape[1]:], s, hp)
     params = cand.describe(c[-E.shape[1]:], s, hp)
     if why_not:
@@ -563,7 +569,7 @@ def _diagnose_signals(s: _Sig, max_chain: int) -> tuple[BenchDiagnosis, float]:
     for rel in (KINEMATICS, TORQUE):
         y, X, names = _nominal(s, rel)
         r, c = _held_out(y, X, s.blocks)
-        mse = _block_mse(r, s.blocks)
+        mse = _block_mse(r, s.chunks)
         white, rho = s.noise_model[rel]
         if rel == TORQUE:
             # the output current's noise enters through the load ratio (which the fit
@@ -572,7 +578,7 @@ def _diagnose_signals(s: _Sig, max_chain: int) -> tuple[BenchDiagnosis, float]:
             scale = (s.noise["out_current_a"] / s.noise["in_current_a"]) ** 2 \
                 if s.noise["in_current_a"] > 0 else 0.0
             white = white * (1.0 + scale * float(np.mean(p ** 2)))
-        f = held_out_floor(X, s.blocks, white, rho)
+        f = held_out_floor(X, s.blocks, white, rho, s.chunks)
         state[rel] = {"X": X, "mse": mse, "mse0": mse, "white": white, "floor": f,
                       "floor0": f}
         nominal[rel] = {"params": dict(zip(names, map(float, c))),
@@ -599,7 +605,8 @@ def _diagnose_signals(s: _Sig, max_chain: int) -> tuple[BenchDiagnosis, float]:
         gap0 = vd.excess(float(np.mean(st["mse0"])), st["floor0"])
         st["X"] = np.column_stack([st["X"], E])
         st["mse"] = sc.mse_h
-        st["floor"] = held_out_floor(st["X"], s.blocks, st["white"], s.noise_model[rel][1])
+        st["floor"] = held_out_floor(st["X"], s.blocks, st["white"], s.noise_model[rel][1],
+                                     s.chunks)
         gap = vd.excess(float(np.mean(sc.mse_h)), st["floor"])
         alike = [p[0].effect for p in ranked[1:] if p[0].significant and
                  vd.paired_t(p[0].mse_h, sc.mse_h) < vd.T_CONFUSED and
