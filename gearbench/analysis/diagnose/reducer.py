@@ -42,7 +42,6 @@ BLOCK_S = 0.25
 #: Orders of the input angle scanned for ratio ripple (per input revolution).
 RIPPLE_ORDERS = 12
 MAX_CHAIN = 4
-MESH_INERTIA = True
 #: Share of the trace a column must vary over (its unique part) to be testable.
 U_MIN = 0.05
 
@@ -125,12 +124,25 @@ def calibration(data: dict, source: str = "<calibration>") -> dict:
 
 
 def _shaft_torque(i, w, cal: dict, w_top: float) -> np.ndarray:
-    """Torque a calibrated motor puts on its shaft less its inertia's: Kt i - D w -
-    Tc sgn(w).  The inertia stays in the relation's fitted inertia column: taking
-    J a off with a twice-differentiated encoder angle added noise the floor does not
-    count (a clean control's torque relation went from 1.09x to 1.36x the floor)."""
+    """Torque a calibrated motor puts on its shaft less its inertia's and its viscous
+    friction's: Kt i - Tc sgn(w) (``prepare_bench`` takes D w off after smoothing, with
+    the relation's own smoothed speed: linear, so exact).  The inertia stays in the
+    relation's fitted inertia column: taking J a off with a twice-differentiated encoder
+    angle added noise the floor does not count (a clean control's torque relation went
+    from 1.09x to 1.36x the floor)."""
     sgn = np.tanh(w / (0.01 * w_top))
-    return cal["Kt"] * i - cal["D"] * w - cal["Tc"] * sgn
+    return cal["Kt"] * i - cal["Tc"] * sgn
+
+
+def _sign_speed(th: np.ndarray, dt: float, L: int) -> np.ndarray:
+    """Speed for a calibrated motor's Coulomb sign: the raw central difference through
+    a short moving average (L/5, edges held), so that the sign goes through the
+    currents' smoother once like every other term of the relation.  At the relation's
+    smoothed speed it was smoothed twice more and read the smoother's zero-padded
+    edges; the raw difference alone flips the sign on encoder steps near zero speed."""
+    from scipy.ndimage import uniform_filter1d
+
+    return uniform_filter1d(np.gradient(th, dt), max(3, L // 5), mode="nearest")
 
 
 #: Current timings tried (share of the next sample's current at each sample; see
@@ -180,17 +192,18 @@ def prepare_bench(trace: Trace, motor_in: dict | None = None,
     cut = slice(2 * L, len(th_in) - 2 * L)       # the smoothing's edges
     unit = "A"
     if motor_in is not None and motor_out is not None:
-        # the motors' own friction at the raw (central-difference) speed, so that it goes
-        # through the currents' smoother once like every other term of the relation: at
-        # the smoothed speed it was smoothed twice more, which bends it at every ramp's
-        # corner, and near the trace's ends it read the smoother's zero-padded edges (the
-        # first and last blocks of our own --sim steps, the run-up and run-down: 2-6x the
-        # floor with the true model, noise-free)
+        # the motors' Coulomb friction at a lightly smoothed speed, so that it goes
+        # through the currents' smoother once like every other term (_sign_speed);
+        # their viscous friction after smoothing.  At the smoothed speed the sign was
+        # smoothed twice more and read the smoother's zero-padded edges, whose 33,000
+        # rad/s (of a 25 rad/s output) also set the sign's width: the first and last
+        # blocks of our own --sim steps, the run-up and run-down, sat 2-6x the floor
+        # with the true model, noise-free
         w_o = np.gradient(_smooth(_smooth(th_out, L), L), dt)
         top_in = float(np.percentile(np.abs(w[cut]), 99.5)) or 1.0
         top_out = float(np.percentile(np.abs(w_o[cut]), 99.5)) or 1.0
-        i_in = _shaft_torque(i_in, np.gradient(th_in, dt), motor_in, top_in)
-        i_out = _shaft_torque(i_out, np.gradient(th_out, dt), motor_out, top_out)
+        i_in = _shaft_torque(i_in, _sign_speed(th_in, dt, L), motor_in, top_in)
+        i_out = _shaft_torque(i_out, _sign_speed(th_out, dt, L), motor_out, top_out)
         s_iin, s_iout = s_iin * motor_in["Kt"], s_iout * motor_out["Kt"]
         unit = "N m"
     n_ratio = np.ptp(th_in) / np.ptp(th_out)
@@ -211,13 +224,18 @@ def prepare_bench(trace: Trace, motor_in: dict | None = None,
     rank = np.empty(len(energy), int)
     rank[np.argsort(-energy, kind="stable")] = np.arange(len(energy))
     blocks = rank[b0]
-    i_out = _smooth(_smooth(i_out, L), L)
-    if unit == "N m" and MESH_INERTIA:
+    i_in, i_out = _smooth(_smooth(i_in, L), L), _smooth(_smooth(i_out, L), L)
+    if unit == "N m":
+        i_in = i_in - motor_in["D"] * w
+        # the output's mesh torque: what its motor puts on the shaft less what its own
+        # inertia takes (J_out from its calibration): the mesh passes the output's
+        # inertial torque through the efficiency like the load, so a speed-dependent
+        # efficiency scales both (a CVT's run-down left 2.9x the floor, noise-free,
+        # with J_out in the fitted inertia)
         a_o = np.gradient(_smooth(np.gradient(_smooth(th_out, L), dt), L), dt)
-        i_out = i_out - motor_out["J"] * a_o
+        i_out = i_out - motor_out["D"] * w_o - motor_out["J"] * a_o
     return _Sig(trace.time_s[cut], th_in[cut], th_out[cut], w[cut],
-                a[cut], _smooth(_smooth(i_in, L), L)[cut],
-                i_out[cut], blocks, floor, noise_model,
+                a[cut], i_in[cut], i_out[cut], blocks, floor, noise_model,
                 np.arange(len(th_in))[cut] // (2 * L),
                 {"in_current_a": s_iin, "out_current_a": s_iout, "in_angle": s_th_in,
                  "out_angle": s_th_out, "ratio_estimate": float(n_ratio),
