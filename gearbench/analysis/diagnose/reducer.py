@@ -17,10 +17,21 @@ torque), ``backlash`` (lost motion that flips with the torque's sign),
 changes with load, i_out |i_out|) and ``speed_load_losses`` (efficiency falling with
 speed, w_in i_out).  All signals go through one moving average (the relation stays
 exact for its linear terms; angles stay raw) and both relations are scored like the motor diagnosis:
-two-fold cross-fitting over alternating blocks, per-block held-out MSE against the
-data's own noise floor, forward selection with the same significance test
+two-fold cross-fitting over alternating blocks, held-out MSE per smoother support
+against the data's own noise floor, forward selection with the same significance test
 (verdict.score).  Thresholds come from the data (encoder steps, current noise,
 speed and current ranges), never from the user's units.
+
+With both motors' calibrations ``i_in`` is the input shaft torque and ``i_out`` the
+output's mesh torque with its sign flipped (its motor's torque less its friction and
+its inertia's J_out a_out): the mesh's efficiency then acts on the output's inertial
+torque as on its load, as it does in the simulated reducer (``sim.kernel``).
+
+The noise floor is what a right model scores on noise alone (``held_out_floor``): the
+white current noise through the relation's smoother, plus what that noise does to the
+other fold's fitted coefficients.  It assumes white current noise on both currents
+(the output's entering through the load ratio), noise-free angles in the torque
+balance and independent folds.
 """
 from __future__ import annotations
 
