@@ -17,10 +17,21 @@ torque), ``backlash`` (lost motion that flips with the torque's sign),
 changes with load, i_out |i_out|) and ``speed_load_losses`` (efficiency falling with
 speed, w_in i_out).  All signals go through one moving average (the relation stays
 exact for its linear terms; angles stay raw) and both relations are scored like the motor diagnosis:
-two-fold cross-fitting over alternating blocks, per-block held-out MSE against the
-data's own noise floor, forward selection with the same significance test
+two-fold cross-fitting over alternating blocks, held-out MSE per smoother support
+against the data's own noise floor, forward selection with the same significance test
 (verdict.score).  Thresholds come from the data (encoder steps, current noise,
 speed and current ranges), never from the user's units.
+
+With both motors' calibrations ``i_in`` is the input shaft torque and ``i_out`` the
+output's mesh torque with its sign flipped (its motor's torque less its friction and
+its inertia's J_out a_out): the mesh's efficiency then acts on the output's inertial
+torque as on its load, as it does in the simulated reducer (``sim.kernel``).
+
+The noise floor is what a right model scores on noise alone (``held_out_floor``): the
+white current noise through the relation's smoother, plus what that noise does to the
+other fold's fitted coefficients.  It assumes white current noise on both currents
+(the output's entering through the load ratio), noise-free angles in the torque
+balance and independent folds.
 """
 from __future__ import annotations
 
@@ -70,6 +81,12 @@ class _Sig:
     i_out: np.ndarray
     blocks: np.ndarray          # block index per sample
     floor: dict                 # relation -> per-sample noise MSE after smoothing
+    #: relation -> (white variance of the raw noise, autocorrelation of the filter it
+    #: goes through): what ``held_out_floor`` propagates through the other fold's fit
+    noise_model: dict
+    #: scoring groups: the smoother's support (2 L samples) — the held-out errors of
+    #: one group share their noise, of two groups hardly (what n counts in the tests)
+    chunks: np.ndarray
     noise: dict
     #: the raw angles (whole trace) and the smoother (length, kept range), for columns
     #: that must be smoothed like the currents (a motor's cogging torque)
@@ -118,12 +135,25 @@ def calibration(data: dict, source: str = "<calibration>") -> dict:
 
 
 def _shaft_torque(i, w, cal: dict, w_top: float) -> np.ndarray:
-    """Torque a calibrated motor puts on its shaft less its inertia's: Kt i - D w -
-    Tc sgn(w).  The inertia stays in the relation's fitted inertia column: taking
-    J a off with a twice-differentiated encoder angle added noise the floor does not
-    count (a clean control's torque relation went from 1.09x to 1.36x the floor)."""
+    """Torque a calibrated motor puts on its shaft less its inertia's and its viscous
+    friction's: Kt i - Tc sgn(w) (``prepare_bench`` takes D w off after smoothing, with
+    the relation's own smoothed speed: linear, so exact).  The inertia stays in the
+    relation's fitted inertia column: taking J a off with a twice-differentiated encoder
+    angle added noise the floor does not count (a clean control's torque relation went
+    from 1.09x to 1.36x the floor)."""
     sgn = np.tanh(w / (0.01 * w_top))
-    return cal["Kt"] * i - cal["D"] * w - cal["Tc"] * sgn
+    return cal["Kt"] * i - cal["Tc"] * sgn
+
+
+def _sign_speed(th: np.ndarray, dt: float, L: int) -> np.ndarray:
+    """Speed for a calibrated motor's Coulomb sign: the raw central difference through
+    a short moving average (L/5, edges held), so that the sign goes through the
+    currents' smoother once like every other term of the relation.  At the relation's
+    smoothed speed it was smoothed twice more and read the smoother's zero-padded
+    edges; the raw difference alone flips the sign on encoder steps near zero speed."""
+    from scipy.ndimage import uniform_filter1d
+
+    return uniform_filter1d(np.gradient(th, dt), max(3, L // 5), mode="nearest")
 
 
 #: Current timings tried (share of the next sample's current at each sample; see
@@ -159,11 +189,11 @@ def prepare_bench(trace: Trace, motor_in: dict | None = None,
     # of the once-smoothed velocity of the once-smoothed angle, so the currents must be
     # smoothed twice too — once smoothed they led the acceleration through every speed
     # ramp (our own --sim efficiency steps: 37x the floor at the run-up, 1-4x elsewhere)
-    kernel = np.convolve(np.ones(L), np.ones(L)) / L ** 2
+    kernel = np.convolve(np.convolve(np.ones(L), np.ones(L)) / L ** 2, [1.0 - hold, hold])
     h2 = float(np.sum(kernel ** 2))               # sum of the smoother's squares
     s_iin, s_iout = _hf_noise(i_in, 7, 2), _hf_noise(i_out, 7, 2)
-    # the timing after the noise estimate: blending two samples halves white noise,
-    # and the floor is the measurement's
+    # the timing after the noise estimate (on the raw samples); the blend is part of the
+    # relation's filter (``kernel``), so the floor carries it
     i_in, i_out = _held(i_in, hold), _held(i_out, hold)
     q_in, q_out = lattice_step(th_in) or 0.0, lattice_step(th_out) or 0.0
     s_th_in = max(_hf_noise(th_in, 9, 3), q_in / np.sqrt(12))
@@ -173,16 +203,26 @@ def prepare_bench(trace: Trace, motor_in: dict | None = None,
     cut = slice(2 * L, len(th_in) - 2 * L)       # the smoothing's edges
     unit = "A"
     if motor_in is not None and motor_out is not None:
+        # the motors' Coulomb friction at a lightly smoothed speed, so that it goes
+        # through the currents' smoother once like every other term (_sign_speed);
+        # their viscous friction after smoothing.  At the smoothed speed the sign was
+        # smoothed twice more and read the smoother's zero-padded edges, whose 33,000
+        # rad/s (of a 25 rad/s output) also set the sign's width: the first and last
+        # blocks of our own --sim steps, the run-up and run-down, sat 2-6x the floor
+        # with the true model, noise-free
         w_o = np.gradient(_smooth(_smooth(th_out, L), L), dt)
-        i_in = _shaft_torque(i_in, w, motor_in, float(np.percentile(np.abs(w), 99.5)) or 1.0)
-        i_out = _shaft_torque(i_out, w_o, motor_out,
-                              float(np.percentile(np.abs(w_o), 99.5)) or 1.0)
+        top_in = float(np.percentile(np.abs(w[cut]), 99.5)) or 1.0
+        top_out = float(np.percentile(np.abs(w_o[cut]), 99.5)) or 1.0
+        i_in = _shaft_torque(i_in, _sign_speed(th_in, dt, L), motor_in, top_in)
+        i_out = _shaft_torque(i_out, _sign_speed(th_out, dt, L), motor_out, top_out)
         s_iin, s_iout = s_iin * motor_in["Kt"], s_iout * motor_out["Kt"]
         unit = "N m"
     n_ratio = np.ptp(th_in) / np.ptp(th_out)
     # angles are not smoothed (a ratio ripple of order k at speed w would average out)
     floor = {KINEMATICS: s_th_out ** 2 + (s_th_in / n_ratio) ** 2,
              TORQUE: s_iin ** 2 * h2}
+    noise_model = {KINEMATICS: (floor[KINEMATICS], np.ones(1)),
+                   TORQUE: (s_iin ** 2, np.convolve(kernel, kernel[::-1]))}
     per = max(L * 4, int(round(BLOCK_S / dt)))
     blocks = np.arange(len(th_in))[cut] // per
     # blocks dealt to the two folds by how much the speed changes in them, alternately
@@ -195,9 +235,19 @@ def prepare_bench(trace: Trace, motor_in: dict | None = None,
     rank = np.empty(len(energy), int)
     rank[np.argsort(-energy, kind="stable")] = np.arange(len(energy))
     blocks = rank[b0]
+    i_in, i_out = _smooth(_smooth(i_in, L), L), _smooth(_smooth(i_out, L), L)
+    if unit == "N m":
+        i_in = i_in - motor_in["D"] * w
+        # the output's mesh torque: what its motor puts on the shaft less what its own
+        # inertia takes (J_out from its calibration): the mesh passes the output's
+        # inertial torque through the efficiency like the load, so a speed-dependent
+        # efficiency scales both (a CVT's run-down left 2.9x the floor, noise-free,
+        # with J_out in the fitted inertia)
+        a_o = np.gradient(_smooth(np.gradient(_smooth(th_out, L), dt), L), dt)
+        i_out = i_out - motor_out["D"] * w_o - motor_out["J"] * a_o
     return _Sig(trace.time_s[cut], th_in[cut], th_out[cut], w[cut],
-                a[cut], _smooth(_smooth(i_in, L), L)[cut],
-                _smooth(_smooth(i_out, L), L)[cut], blocks, floor,
+                a[cut], i_in[cut], i_out[cut], blocks, floor, noise_model,
+                np.arange(len(th_in))[cut] // (2 * L),
                 {"in_current_a": s_iin, "out_current_a": s_iout, "in_angle": s_th_in,
                  "out_angle": s_th_out, "ratio_estimate": float(n_ratio),
                  "torque_unit": unit, "current_hold": float(hold)}, (th_in, th_out, L, cut))
@@ -365,6 +415,66 @@ def _held_out(y, X, blocks) -> tuple[np.ndarray, np.ndarray]:
     return r, c
 
 
+def held_out_floor(X: np.ndarray, blocks: np.ndarray, white: float,
+                   rho: np.ndarray, groups: np.ndarray | None = None) -> float:
+    """What the two-fold held-out error of a right model is, from the noise alone.
+
+    A held-out sample's residual is its own noise minus what the other fold's noise
+    did to the fitted coefficients: ``r_k = n_k - x_k^T A_f n_f`` with
+    ``A_f = (X_f^T X_f)^+ X_f^T``.  With noise of white variance ``white`` through a
+    filter of autocorrelation ``rho`` (Σ = white · toeplitz(rho)) its expectation is::
+
+        E r_k^2 = white rho_0 + x_k^T A_f Σ_ff A_f^T x_k
+
+    (the two folds' noises taken independent; their correlation across a block
+    boundary only lowers it).  The second term is the prediction variance of the
+    regression (e.g. Seber & Lee, *Linear Regression Analysis*, 2nd ed., §5.3); it
+    grows with the columns and with the leverage of the held-out samples — a speed
+    ramp predicted from the other fold's one ramp.  Without it the true model sat at
+    1.07-1.14x the floor on our own --sim steps.
+
+    Parameters
+    ----------
+    X : (n, p) array
+        The relation's columns; ``blocks`` the block of each sample (folds by parity).
+    white : float
+        Variance of the raw (per-sample) noise.
+    rho : (2m+1,) array
+        Autocorrelation of the filter the noise goes through (``[1]``: none).
+
+    Returns
+    -------
+    float
+        Expected held-out MSE averaged like ``_block_mse`` (per group — ``groups``,
+        default the blocks — then over groups).
+    """
+    n, p = X.shape
+    e = np.full(n, white * float(rho[len(rho) // 2]))
+    scale = np.sqrt((X ** 2).sum(0))
+    scale[scale == 0] = 1
+    for parity in (0, 1):
+        fit = blocks % 2 == parity
+        if not fit.any() or fit.all():
+            continue
+        # A_f = V S^-1 U^T (the rank lstsq uses); the quadratic form as z M z^T with
+        # M = U^T Σ U positive semi-definite (G^T Σ G in one piece cancelled to < 0)
+        U, sv, Vt = np.linalg.svd(X[fit] / scale, full_matrices=False)
+        keep = sv > sv[0] * max(fit.sum(), p) * np.finfo(float).eps
+        U, sv, Vt = U[:, keep], sv[keep], Vt[keep]
+        if len(rho) > 1:
+            g = np.zeros((n, U.shape[1]))
+            g[fit] = U
+            SU = np.column_stack([np.convolve(g[:, j], rho, mode="same")[fit]
+                                  for j in range(U.shape[1])])
+        else:
+            SU = U * rho[0]
+        M = white * (U.T @ SU)
+        Z = (X[~fit] / scale) @ Vt.T / sv
+        e[~fit] += np.einsum("ij,jk,ik->i", Z, M, Z)
+    g = blocks if groups is None else groups
+    return float(np.mean(_block_mse(np.sqrt(np.maximum(e, 0.0)), g)))
+
+
 def _unique_share(X: np.ndarray, E: np.ndarray) -> float:
     Q, _ = np.linalg.qr(X / np.maximum(np.linalg.norm(X, axis=0), 1e-300))
     R = E - Q @ (Q.T @ E)
@@ -420,17 +530,20 @@ def _physical_nominal(params: dict, s: _Sig, brake_share: float) -> dict:
 def _score(s: _Sig, state: dict, cand: _Cand):
     """One candidate added to its relation's current model: its best grid setting by
     held-out error, scored (significant only if testable and physical)."""
-    st, f = state[cand.relation], s.floor[cand.relation]
+    st = state[cand.relation]
     y = _nominal(s, cand.relation)[0]
     best = None
     for hp in cand.grid(s):
         E = cand.cols(s, hp)
         X = np.column_stack([st["X"], E])
         r, c = _held_out(y, X, s.blocks)
-        mse = _block_mse(r, s.blocks)
+        mse = _block_mse(r, s.chunks)
         if best is None or mse.mean() < best[0].mean():
             best = (mse, hp, E, c)
     mse, hp, E, c = best
+    # the floor of the larger model: its extra columns carry the other fold's noise too
+    f = held_out_floor(np.column_stack([st["X"], E]), s.blocks, st["white"],
+                       s.noise_model[cand.relation][1], s.chunks)
     why_not = cand.inadmissible(c[-E.shape[1]:], s, hp)
     params = cand.describe(c[-E.shape[1]:], s, hp)
     if why_not:
@@ -471,6 +584,7 @@ def diagnose_bench(trace: Trace, max_chain: int = MAX_CHAIN, motor_in: dict | No
     # chosen by the torque balance's held-out error at the end of the chain — chosen on
     # the bare nominal an unmodelled motor cogging pulled it to 0 where the drive
     # averages (our own --sim efficiency step: 3.5x the floor at 0, 1.2x at 0.5)
+    # (compared as multiples of each timing's own floor: the blend filters the noise)
     runs = [_diagnose_signals(prepare_bench(trace, motor_in, motor_out, h), max_chain)
             for h in HOLDS]
     return min(runs, key=lambda r: r[1])[0]
@@ -478,17 +592,27 @@ def diagnose_bench(trace: Trace, max_chain: int = MAX_CHAIN, motor_in: dict | No
 
 def _diagnose_signals(s: _Sig, max_chain: int) -> tuple[BenchDiagnosis, float]:
     """The bench diagnosis of prepared signals and its torque balance's final
-    held-out MSE."""
+    held-out MSE over its floor."""
     state = {}
     nominal = {}
     for rel in (KINEMATICS, TORQUE):
         y, X, names = _nominal(s, rel)
         r, c = _held_out(y, X, s.blocks)
-        mse = _block_mse(r, s.blocks)
-        state[rel] = {"X": X, "mse": mse, "mse0": mse}
-        f = s.floor[rel]
+        mse = _block_mse(r, s.chunks)
+        white, rho = s.noise_model[rel]
+        if rel == TORQUE:
+            # the output current's noise enters through the load ratio (which the fit
+            # has just measured): per sample p^2 s_out^2 on top of the input's
+            p = np.where(s.i_out * s.w_in < 0, c[1], c[2])
+            scale = (s.noise["out_current_a"] / s.noise["in_current_a"]) ** 2 \
+                if s.noise["in_current_a"] > 0 else 0.0
+            white = white * (1.0 + scale * float(np.mean(p ** 2)))
+        f = held_out_floor(X, s.blocks, white, rho, s.chunks)
+        state[rel] = {"X": X, "mse": mse, "mse0": mse, "white": white, "floor": f,
+                      "floor0": f}
         nominal[rel] = {"params": dict(zip(names, map(float, c))),
                         "rms": float(np.sqrt(np.mean(mse))), "noise_floor": float(np.sqrt(f)),
+                        "noise_floor_no_fit": float(np.sqrt(white * rho[len(rho) // 2])),
                         "gap_ratio": float(np.sqrt(np.mean(mse) / f))}
     nominal["noise"] = s.noise
     brake_share = float(np.mean(s.i_out * s.w_in < 0))
@@ -507,10 +631,12 @@ def _diagnose_signals(s: _Sig, max_chain: int) -> tuple[BenchDiagnosis, float]:
         sc, E = ranked[0]
         rel = next(c.relation for c in CANDIDATES if c.name == sc.effect)
         st = state[rel]
-        gap0 = vd.excess(float(np.mean(st["mse0"])), s.floor[rel])
+        gap0 = vd.excess(float(np.mean(st["mse0"])), st["floor0"])
         st["X"] = np.column_stack([st["X"], E])
         st["mse"] = sc.mse_h
-        gap = vd.excess(float(np.mean(sc.mse_h)), s.floor[rel])
+        st["floor"] = held_out_floor(st["X"], s.blocks, st["white"], s.noise_model[rel][1],
+                                     s.chunks)
+        gap = vd.excess(float(np.mean(sc.mse_h)), st["floor"])
         alike = [p[0].effect for p in ranked[1:] if p[0].significant and
                  vd.paired_t(p[0].mse_h, sc.mse_h) < vd.T_CONFUSED and
                  frozenset({p[0].effect, sc.effect}) in EXPERIMENTS]
@@ -518,15 +644,15 @@ def _diagnose_signals(s: _Sig, max_chain: int) -> tuple[BenchDiagnosis, float]:
                       "shrink_heldout": float(sc.shrink),
                       "cumulative_shrink": float(1 - gap / gap0) if gap0 > 0 else 0.0,
                       "significant": True, "delta_bic": float(sc.delta_bic),
-                      "gap_ratio_after": float(np.sqrt(np.mean(sc.mse_h) / s.floor[rel])),
+                      "gap_ratio_after": float(np.sqrt(np.mean(sc.mse_h) / st["floor"])),
                       "confused_with": alike,
                       "experiment": "; ".join(EXPERIMENTS[frozenset({a, sc.effect})]
                                               for a in alike) or None})
         chosen.add(sc.effect)
     remaining = {}
     for rel in (KINEMATICS, TORQUE):
-        st, f = state[rel], s.floor[rel]
-        g0 = vd.excess(float(np.mean(st["mse0"])), f)
+        st, f = state[rel], state[rel]["floor"]
+        g0 = vd.excess(float(np.mean(st["mse0"])), st["floor0"])
         g = vd.excess(float(np.mean(st["mse"])), f)
         at_floor = float(np.mean(st["mse"])) <= (1 + vd.MATERIAL) * f
         t = vd.paired_t(st["mse"], np.full_like(st["mse"], f))
@@ -536,4 +662,4 @@ def _diagnose_signals(s: _Sig, max_chain: int) -> tuple[BenchDiagnosis, float]:
                           "unknown_effect": bool(not at_floor and t > vd.T_CRIT
                                                  and len(chain) < max_chain)}
     return (BenchDiagnosis(nominal, first or [], chain, remaining),
-            float(np.mean(state[TORQUE]["mse"])))
+            float(np.mean(state[TORQUE]["mse"])) / state[TORQUE]["floor"])
