@@ -501,3 +501,42 @@ def test_adaptive_fields_are_validated_with_file_line_and_field(tmp_path):
     bad.write_text(text.replace("  eta_pp: 0.15", "", 1))
     with pytest.raises(ProfileError, match=r"steps\[3\]\.min_s.*targets\.eta_pp"):
         load_profile(bad)
+
+
+# ----------------------------------------------------------------------------- drive sampling
+
+def test_drive_sampling_is_read_and_checked():
+    """``motors.<m>.sampling`` says how the drive samples; the calibration fits a stepping,
+    sampling drive's current kick only when told (identify.drive_sampling)."""
+    said = "    rotor_inertia_kgm2: 1.5e-5\n    sampling: {setpoint: step, current: instant}\n"
+    p = parse(replace_once(CVT_TEXT, "    rotor_inertia_kgm2: 1.5e-5\n", said))
+    assert p.motors["in"].sampling == {"setpoint": "step", "current": "instant"}
+    assert parse(CVT_TEXT).motors["in"].sampling is None
+    for bad, fragment in (("{setpoint: stepped, current: instant}",
+                           "motors.in.sampling.setpoint: must be one of step, interpolated (got 'stepped')"),
+                          ("{setpoint: step}", "motors.in.sampling: missing key 'current'"),
+                          ("step", "motors.in.sampling: ")):
+        text = replace_once(CVT_TEXT, "    rotor_inertia_kgm2: 1.5e-5\n",
+                            f"    rotor_inertia_kgm2: 1.5e-5\n    sampling: {bad}\n")
+        msg = error_of(text)
+        assert fragment in msg and int(LOCATED.match(msg)["line"]) == line_of(text, "sampling:"), msg
+
+
+def test_station_calibration_passes_the_drive_sampling_on():
+    """The station's calibration (analyse.calibrate) gives the profile's ``sampling`` to
+    the identification: a drive that steps and samples gets its kick fitted, as declared."""
+    from gearbench.benchmarks import robustness as R
+    from gearbench.station import analyse
+    from gearbench.trace import Trace
+
+    case = R.draw_case(11, 8)
+    runs = R.simulate_case(case)["runs"]["in"]
+    steps = []
+    for t in runs:
+        said = t.meta.pop("drive")
+        steps.append(Trace(t.time_s, {f"in.{n}": t[n] for n in t.names}, dict(t.meta), "calibrate"))
+    kt = case.plant.motor_in.Kt
+    told = analyse.calibrate(*steps, motor="in", disk_kgm2=case.disks_kgm2["in"], sampling=said)
+    untold = analyse.calibrate(*steps, motor="in", disk_kgm2=case.disks_kgm2["in"])
+    assert told.fit["setpoint_step"]["declared"] and not untold.fit["setpoint_step"].get("declared")
+    assert abs(told.Kt / kt - 1) < abs(untold.Kt / kt - 1)

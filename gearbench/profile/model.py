@@ -48,6 +48,9 @@ class MotorSpec:
     speed_limit_rad_s: float
     counts_per_rev: int = 10000
     rotor_inertia_kgm2: float | None = None   # datasheet value; used only for feasibility checks
+    # how the drive samples, as its set-up says: {"setpoint": "step"|"interpolated",
+    # "current": "instant"|"mean"} (identify.drive_sampling); None = not said
+    sampling: dict | None = None
 
 
 @dataclass(frozen=True)

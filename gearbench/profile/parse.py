@@ -55,6 +55,7 @@ MEANING = {
     "speed_limit_rad_s": "the motor's maximum speed in rad/s",
     "counts_per_rev": "the encoder counts per revolution (after quadrature), e.g. 10000",
     "rotor_inertia_kgm2": "the rotor inertia from the datasheet in kg m^2, e.g. 1.5e-5",
+    "sampling": "how the drive samples: {setpoint: step | interpolated, current: instant | mean}",
     "ratio": "the nominal reduction ratio n (input/output speed) or 'measure'",
     "cvt_setting": "the CVT adjuster position as a fraction of its travel, 0 < s <= 1",
     "efficiency_range": "the expected efficiency as [low, high], e.g. [0.6, 0.9]",
@@ -344,7 +345,7 @@ def _motors(c: _Checker, top, bench: BenchSpec, base_dir: Path) -> dict[str, Mot
         mp = p + (name,)
         d = c.mapping(raw, mp, f"motors.{name}: {{drive, address, kt_datasheet, rated_current_a, ...}}")
         c.keys(d, mp, ("drive", "address", "kt_datasheet", "rated_current_a", "current_limit_a",
-                       "speed_limit_rad_s", "counts_per_rev", "rotor_inertia_kgm2"),
+                       "speed_limit_rad_s", "counts_per_rev", "rotor_inertia_kgm2", "sampling"),
                required=("drive", "address", "kt_datasheet", "rated_current_a", "current_limit_a",
                          "speed_limit_rad_s"))
         drive_text = c.string(d, mp, "drive")
@@ -370,8 +371,22 @@ def _motors(c: _Checker, top, bench: BenchSpec, base_dir: Path) -> dict[str, Mot
         inertia = c.number(d, mp, "rotor_inertia_kgm2", None, gt=0.0, le=10.0)
         motors[name] = MotorSpec(name=name, drive=drive, address=address, kt_datasheet=kt, rated_current_a=rated,
                                  current_limit_a=limit, speed_limit_rad_s=speed, counts_per_rev=cpr,
-                                 rotor_inertia_kgm2=inertia)
+                                 rotor_inertia_kgm2=inertia, sampling=_sampling(c, d, mp))
     return motors
+
+
+def _sampling(c: _Checker, d: dict, mp) -> dict | None:
+    """``sampling:`` of a motor: how its drive samples, from its set-up (CiA 402: cyclic
+    synchronous velocity with interpolation 0x60C2, or setpoints taken as steps; a current
+    object that is a period mean, or one current-loop sample). The identification fits a
+    stepping, sampling drive's current kick (identify._setpoint_steps) only when told."""
+    if d.get("sampling") is None:
+        return None
+    sp = mp + ("sampling",)
+    s = c.mapping(d["sampling"], sp, "sampling: {setpoint: step | interpolated, current: instant | mean}")
+    c.keys(s, sp, ("setpoint", "current"), required=("setpoint", "current"))
+    return {"setpoint": c.string(s, sp, "setpoint", choices=("step", "interpolated")),
+            "current": c.string(s, sp, "current", choices=("instant", "mean"))}
 
 
 def _reducer(c: _Checker, top) -> ReducerSpec | None:

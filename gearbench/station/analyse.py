@@ -59,13 +59,17 @@ def fill_lost_samples(step: Trace) -> Trace:
 
 
 def calibrate(unloaded: Trace, loaded: Trace, *, motor: str, disk_kgm2: float,
-              method: str = "default", disk_std_kgm2: float = 0.0, disk_name: str = "") -> MotorCalibration:
+              method: str = "default", disk_std_kgm2: float = 0.0, disk_name: str = "",
+              sampling: dict | None = None) -> MotorCalibration:
     """Kt, J, D, Tc of ``motor`` from its unloaded and disk runs (corrected eq. 17);
     ``disk_std_kgm2`` (the disk's standard uncertainty) enters Kt's uncertainty and
-    ``disk_name`` records which disk (motors sharing one share its error)."""
+    ``disk_name`` records which disk (motors sharing one share its error); ``sampling``
+    (the profile's ``motors.<m>.sampling``) says how the drive samples."""
     fu, fl = fill_lost_samples(unloaded), fill_lost_samples(loaded)
     u, l_ = motor_trace(fu, motor), motor_trace(fl, motor)
     u.source, l_.source = f"step {unloaded.source}", f"step {loaded.source}"
+    if sampling:
+        u.meta["drive"] = l_.meta["drive"] = dict(sampling)
     cal = calibrate_motor(u, l_, disk_kgm2, method=method, disk_std_kgm2=disk_std_kgm2, disk_name=disk_name)
     # interpolated samples are stated with the result they entered (positions: result.json lost_at_sample)
     filled = fu.meta.get("interpolated_samples", 0) + fl.meta.get("interpolated_samples", 0)

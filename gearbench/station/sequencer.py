@@ -428,7 +428,8 @@ class Sequencer:
             # runs played together: each motor's own run, up to the end of its stop ramp
             unloaded, loaded = (self._motor_run(self.traces[name], m) for name in (action.unloaded, action.loaded))
             cal = analyse.calibrate(unloaded, loaded, motor=m, disk_kgm2=action.disk_kgm2, method=self.method,
-                                    disk_std_kgm2=action.disk_std_kgm2, disk_name=action.disk_name)
+                                    disk_std_kgm2=action.disk_std_kgm2, disk_name=action.disk_name,
+                                    sampling=self.profile.motors[m].sampling)
             self.calibrations[m] = cal
             self.emit(Calibration(m, cal))
             return
