@@ -130,7 +130,11 @@ def run(args) -> int:
     print("\nadding the effects the simulation lacks, by held-out gain:")
     chain = F.add_effects(prob, params, max_effects=args.max_effects, verbose=print, last=res)
     report["chain"] = chain
+    report["profiles"] = prob.profiles
+    report["ambiguities"] = prob.ambiguities
     _print_chain(chain)
+    for amb in prob.ambiguities:
+        print(f"  AMBIGUOUS: {amb}")
     fitted = F.with_params(prob.block, params)
     fitted_values = F.written_values(params)
     report["parameters"] = [{"path": p.path, "start": start_values.get(p.path, 0.0), "fitted": fitted_values[p.path],
