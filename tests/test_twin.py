@@ -262,7 +262,9 @@ def test_cli_twin_on_a_sim_run_gives_the_proof(tmp_path):
     doc = json.loads(rep.read_text())
     assert doc["proof"]["real"]["motors"] and doc["proof"]["twin"]["motors"]
     for p in doc["parameters"]:
-        assert p["interval95"] == pytest.approx(1.96 * p["sigma"] + abs(p["model_bias"]))
+        # (+ the angles' resolution for the ratio: one output count over the travel)
+        assert p["interval95"] == pytest.approx(1.96 * p["sigma"] + abs(p["model_bias"]) + p["resolution"])
+        assert (p["resolution"] > 0) == (p["path"] == "ratio")
     assert "interval = 1.96·sigma" in r.stdout
     load_twin_block(str(tmp_path / "twin.yaml"))
 
@@ -354,4 +356,4 @@ def test_the_ratio_interval_is_no_finer_than_one_output_count_over_the_travel():
     params = [F.Param("ratio", 10.0, 10.0)]
     n = len(prob.blocks())
     F._intervals(prob, params, np.ones((n, 1)) * 1e6, np.zeros(n), np.zeros(n), np.ones(n, bool))
-    assert params[0].interval == pytest.approx(10.0 * prob.ratio_resolution())
+    assert params[0].interval == pytest.approx(10.0 * prob.ratio_resolution()) == pytest.approx(params[0].resolution)

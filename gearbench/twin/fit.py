@@ -134,6 +134,7 @@ class Param:
     interval: float = float("nan")
     sigma: float = float("nan")       # standard error (the largest of the three covariances)
     model_bias: float = float("nan")  # b, the model-error share (module docstring)
+    resolution: float = 0.0           # the data's resolution, added linearly (the ratio's)
 
     def written(self, v: float | None = None, kt: dict | None = None) -> float:
         v = self.value if v is None else v
@@ -599,7 +600,8 @@ def _intervals(prob, params, J, r, r_exact, sel) -> None:
         p.interval = Z95 * p.sigma + abs(p.model_bias)
         if p.path == "ratio":
             # plus the angles' resolution, added linearly like the bias (``ratio_resolution``)
-            p.interval += abs(p.value) * prob.ratio_resolution()
+            p.resolution = abs(p.value) * prob.ratio_resolution()
+            p.interval += p.resolution
 
 
 def folds(prob: Problem) -> tuple[np.ndarray, np.ndarray]:
