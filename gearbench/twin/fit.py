@@ -700,10 +700,13 @@ def add_effects(prob: Problem, params: list[Param], *, max_effects: int = 4, ver
                 sub.evaluations = 0
                 best = min(S for _, S in table) if table else float("inf")
                 nf = int(fit_fold.sum())
-                if best / nf < SCAN_REFIT * float(r[fit_fold] @ r[fit_fold]) / nf:
-                    # the scan promises most of S: the effect changes the model's regime (a drive
-                    # clipping at its current limit), which one linear step cannot follow: screen
-                    # it by a short refit from the scan's anchor
+                if k > 0 and best / nf < SCAN_REFIT * float(r[fit_fold] @ r[fit_fold]) / nf:
+                    # the scan from the profile's values promises most of S: the fit had
+                    # compensated the effect elsewhere, and one linear step from the fit cannot
+                    # undo that: screen it by a short refit from the profile's values. From the
+                    # fit's own values the one-step screen stays: a 2-iteration refit from there
+                    # (the alt cyclo run's 3 A saturation) left the chain's refit stuck at S/n
+                    # 603, the one-step screen's refit reached S/n 33 in 6 iterations
                     anchor = anchors[k]
                 scanned = (f", started at {extra[0].written(None, _kts(params)):.4g} by a scan"
                            + (" from the profile's values" if k else ""))
