@@ -107,6 +107,7 @@ REFIT_ITERATIONS = 10   # LM iterations of the chain's refit after an effect is 
 # the profile (``profile_interval``): the grid around the value, in its Jacobian half-widths
 PROFILE_STEPS = (-2.0, -1.0, -0.5, 0.5, 1.0, 2.0)
 CHI2_1_95 = 3.841     # χ²(1) at 95 %: the rise of S (in s² units) at the profile's interval
+PROFILE_WIDEN = (1.0, 5.0)  # the profile's grid × these, the next when no minimum is inside
 DEBUG = False
 FIT_SIGNALS = ("position_rad", "velocity_rad_s", "current_a")
 # position counts in S with its floor times POSITION_SCALE: a model error accumulates in
@@ -953,6 +954,19 @@ def profile_interval(prob: Problem, params: list[Param], i: int, jac: np.ndarray
     kappa = max(1.0, max(c[i, i] for c in covs) / max(covs[0][i, i], 1e-300))
     half = p.interval / abs(_dwritten(p, params)) if p.interval == p.interval and _dwritten(p, params) else 0.0
     half = max(half, 0.05 * abs(p.value), 0.5 * p.scale * FD_REL * p.fd_factor)
+    for widen in PROFILE_WIDEN:
+        # a Jacobian half-width that understates (the column is noise) puts the profile's
+        # minimum outside ±2 of it: the grid is widened (the cyclo run's backlash: no
+        # minimum inside ±2 of a ±0.0002 rad Jacobian interval)
+        out = _profile_on(prob, params, i, u, J, half * widen, s2, kappa, verbose)
+        if out is not None:
+            return out
+    return None
+
+
+def _profile_on(prob, params, i, u, J, half, s2, kappa, verbose) -> dict | None:
+    """``profile_interval`` on the grid value + PROFILE_STEPS × ``half``."""
+    p = params[i]
     vs = sorted({max(p.value + f * half, p.lo) for f in PROFILE_STEPS} | {p.value})
     curves = {}
     for smooth in (True, False):
