@@ -262,7 +262,9 @@ def test_cli_twin_on_a_sim_run_gives_the_proof(tmp_path):
     doc = json.loads(rep.read_text())
     assert doc["proof"]["real"]["motors"] and doc["proof"]["twin"]["motors"]
     for p in doc["parameters"]:
-        assert p["interval95"] == pytest.approx(1.96 * p["sigma"] + abs(p["model_bias"]))
+        # (+ the angles' resolution for the ratio: one output count over the travel)
+        assert p["interval95"] == pytest.approx(1.96 * p["sigma"] + abs(p["model_bias"]) + p["resolution"])
+        assert (p["resolution"] > 0) == (p["path"] == "ratio")
     assert "interval = 1.96·sigma" in r.stdout
     load_twin_block(str(tmp_path / "twin.yaml"))
 
@@ -292,3 +294,66 @@ def test_fit_stops_once_an_iteration_moves_nothing_the_intervals_can_tell():
     # one replay for the start, a Jacobian (3) and a few steps per iteration, the final Jacobian
     # and the exact replay of the interval: far under 8 iterations' worth (8 x 4 = 32)
     assert prob.evaluations < 22
+
+
+def test_a_saturation_near_the_peak_current_is_found_from_its_scan():
+    """Kt_eff = Kt/(1+(i/s)²) with s at the run's peak current: from "off" a Gauss-Newton
+    step sees only its first-order, flat start; the scan of s over multiples of the
+    peak current puts the screen in the right basin and the chain names it."""
+    segs = _segments(n_cal=800, n_eff=1200)
+    probe = _record(BLOCK, segs)
+    peak = F.Problem(probe, copy.deepcopy(BLOCK), Q).peak_currents()["in"]
+    hidden = copy.deepcopy(BLOCK)
+    hidden["motors"]["in"]["kt_sat_a"] = round(0.8 * peak, 3)
+    rec = _record(hidden, segs)
+    prob = F.Problem(rec, copy.deepcopy(BLOCK), Q)
+    params = [p for p in F.base_params(BLOCK)
+              if p.path in ("motors.in.Kt", "motors.in.Tc", "motors.out.Kt", "eta_mesh")]
+    F.fit(prob, params, iterations=3)
+    chain = F.add_effects(prob, params, max_effects=1)
+    assert chain[0]["effect"] == "kt_saturation" and chain[0]["significant"], chain
+    got = chain[0]["values"]["motors.in.kt_sat_a"]
+    assert got == pytest.approx(hidden["motors"]["in"]["kt_sat_a"], rel=0.25)
+
+
+def test_the_profile_interval_of_a_backlash_holds_its_truth():
+    """The backlash's interval comes from the profile of S (others linearised), not its
+    Jacobian column; started off the truth, its minimum moves to it."""
+    hidden = copy.deepcopy(BLOCK) | {"backlash_rad": 0.02}
+    segs = _segments(n_cal=300, n_eff=1600)
+    rec = _record(hidden, segs)
+    prob = F.Problem(rec, copy.deepcopy(BLOCK) | {"backlash_rad": 0.014}, Q)
+    params = [p for p in F.base_params(BLOCK) if p.path in ("motors.in.Kt", "ratio", "eta_mesh")]
+    params.append(F.Param("backlash_rad", 0.014, 0.005, 1e-5, fd_factor=40.0, profile=True))
+    res = F.fit(prob, params, iterations=2)
+    prof = F.apply_profiles(prob, params, res["jac"], res["r"])
+    assert prof and prof[0]["path"] == "backlash_rad"
+    bl = params[-1]
+    assert bl.interval == pytest.approx(prof[0]["interval"])
+    assert abs(bl.value - 0.02) <= bl.interval < 0.02, (bl.value, bl.interval)
+
+
+def test_ripple_and_cogging_of_one_order_are_said_ambiguous_when_collinear():
+    block = copy.deepcopy(BLOCK)
+    block["motors"]["in"]["cog_amp"] = 0.002
+    params = [F.Param("motors.in.cog_amp", 0.002, 0.002), F.Param("motors.in.ripple_amp", 0.0, 0.01)]
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=500)
+    same = np.stack([a, -2 * a], axis=1)
+    note = F.ripple_cogging_ambiguity(params[:1], same, params[1], {"motors.in.ripple_order": 6}, block)
+    assert "not separable" in note and "two loads" in note
+    apart = np.stack([a, rng.normal(size=500)], axis=1)
+    assert F.ripple_cogging_ambiguity(params[:1], apart, params[1], {"motors.in.ripple_order": 6}, block) == ""
+    # another order than the cogging's is never ambiguous with it
+    assert F.ripple_cogging_ambiguity(params[:1], same, params[1], {"motors.in.ripple_order": 4}, block) == ""
+
+
+def test_the_ratio_interval_is_no_finer_than_one_output_count_over_the_travel():
+    rec = _record(BLOCK, _segments(n_cal=300, n_eff=1200))
+    prob = F.Problem(rec, copy.deepcopy(BLOCK), Q)
+    travel = float(np.sum(np.abs(np.diff(np.asarray(rec[-1].trace["out.position_rad"], float)))))
+    assert prob.ratio_resolution() == pytest.approx(2 * math.pi / 1e4 / travel, rel=0.01)
+    params = [F.Param("ratio", 10.0, 10.0)]
+    n = len(prob.blocks())
+    F._intervals(prob, params, np.ones((n, 1)) * 1e6, np.zeros(n), np.zeros(n), np.ones(n, bool))
+    assert params[0].interval == pytest.approx(10.0 * prob.ratio_resolution()) == pytest.approx(params[0].resolution)

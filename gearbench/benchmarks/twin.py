@@ -124,6 +124,12 @@ def main(argv=None) -> int:
             extra = found - set(HIDDEN[case]["effects"])
             if extra:
                 print(f"effects added that were not hidden: {', '.join(sorted(extra))}")
+            for amb in rep.get("ambiguities") or []:
+                print(f"reported ambiguous: {amb}")
+            for pr in rep.get("profiles") or []:
+                t = tv(pr["path"])
+                print(f"profile interval of {pr['path']}: {pr['written']:.5g} ± {pr['interval']:.3g}"
+                      + (f" (truth {t:.5g})" if t is not None else ""))
             gt = rep.get("gap_total", {})
             print(f"total gap (rms, noise floors): profile {gt.get('before', float('nan')):.2f} -> "
                   f"twin {gt.get('after', float('nan')):.2f}")

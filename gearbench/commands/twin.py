@@ -130,12 +130,17 @@ def run(args) -> int:
     print("\nadding the effects the simulation lacks, by held-out gain:")
     chain = F.add_effects(prob, params, max_effects=args.max_effects, verbose=print, last=res)
     report["chain"] = chain
+    report["profiles"] = prob.profiles
+    report["ambiguities"] = prob.ambiguities
     _print_chain(chain)
+    for amb in prob.ambiguities:
+        print(f"  AMBIGUOUS: {amb}")
     fitted = F.with_params(prob.block, params)
     fitted_values = F.written_values(params)
     report["parameters"] = [{"path": p.path, "start": start_values.get(p.path, 0.0), "fitted": fitted_values[p.path],
                              "before_effects": base_values.get(p.path),
                              "interval95": p.interval, "sigma": p.sigma, "model_bias": p.model_bias,
+                             "resolution": p.resolution,
                              "effect": p.effect} for p in params]
     _print_params(report["parameters"])
     s_n = chain[-1]["remaining"] if chain else res["S"] / res["n"]
@@ -297,7 +302,8 @@ def _print_params(rows: list[dict]) -> None:
               f"{r.get('sigma', float('nan')):10.3g} {r.get('model_bias', float('nan')):+11.3g} "
               f"{'' if shift != shift else format(shift, '+.1f') + ' ivl':>17}")
     print("  interval = 1.96·sigma (largest of white and block-sandwich covariances) + |model bias| "
-          "(smoothed vs exact replay)")
+          "(smoothed vs exact replay); the ratio's + one output encoder count over the output's travel; "
+          "backlash, Kt saturation and current lag from the profile of S (printed above the chain)")
     if biased:
         print(f"  fitted against an effect the simulation lacked (moved by more than their interval once "
               f"the effects were added): {', '.join(biased)}")
