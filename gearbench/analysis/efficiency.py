@@ -588,12 +588,14 @@ def efficiency(trace: Trace, motor_in: MotorCalibration, motor_out: MotorCalibra
         ref = _reference(w, refs, trace.source)
         p = _point(w, ref, motor_in, motor_out, n_signed, n_rel_std, trace.source)
         same = [v for v in wins if _same_speed(v, w)]
-        off_line = zero_load_off_line(same) > OFF_LINE_SIGMAS
-        if incremental == "slope" or off_line:
-            # off the line: the zero-load level is no anchor for eq. 18, the slope over
-            # the braking levels is (the secant stays beside it)
-            p = _with_slope(p, [v for v in same if not (off_line and v.is_reference)],
-                            motor_in, motor_out, n_signed, n_rel_std, trace.source)
+        fit = staircase_fit(same)
+        if fit is not None and fit["off_line_sigmas"] > OFF_LINE_SIGMAS:
+            # off the line: the zero-load level is no anchor for eq. 18, the braking
+            # levels' slope is (drift taken out by the zero-load levels; the secant stays beside)
+            p = _slope_point(p, fit["slope"], fit["slope_sem"], fit["dof"], motor_in, motor_out,
+                             n_signed, n_rel_std, trace.source)
+        elif incremental == "slope":
+            p = _with_slope(p, same, motor_in, motor_out, n_signed, n_rel_std, trace.source)
         points.append(p)
     return EfficiencyResult(n_abs, sign, abs(n_meas), tuple(points), tuple(refs))
 
@@ -615,10 +617,11 @@ def with_level_scatter(windows: list[SteadyWindow]) -> list[SteadyWindow]:
     over seconds (seed 7 case 16 of the robustness benchmark: 0.25 s means of the input
     current wander by ±3 mA at every level while the windows claim 0.3-0.5 mA) moves whole
     levels, and eq. 18's Δi with them. The levels of one speed lie on a straight line
-    (input on output current, slope = eq. 18), so their residuals measure it: when the
-    weighted χ² of three or more braking levels exceeds its ``SCATTER_LEVEL`` quantile,
+    (input on output current, slope = eq. 18), so their residuals about ``staircase_fit`` (the line, the
+    zero-load levels' drift and offset free) measure it: when that χ² (three or more
+    braking levels) exceeds its ``SCATTER_LEVEL`` quantile,
     every window of that speed has its errors (both currents) multiplied by the Birge
-    ratio √(χ²/ν) with ν = levels − 2 degrees of freedom. Below the quantile (a straight
+    ratio √(χ²/ν), ν = windows − fitted parameters their degrees of freedom. Below the quantile (a straight
     line within the errors, ~99 % of plain runs) nothing changes.
 
     Parameters
@@ -651,10 +654,10 @@ def with_level_scatter(windows: list[SteadyWindow]) -> list[SteadyWindow]:
             continue
         done.add(w.in_command)
         idx = [k for k, v in enumerate(windows) if _same_speed(v, w)]
-        loaded = [windows[k] for k in idx if not windows[k].is_reference]
-        chi2, dof = _line_chi2(loaded)
-        if dof < 1 or chi2 <= stats.chi2.ppf(SCATTER_LEVEL, dof):
+        fit = staircase_fit([windows[k] for k in idx])
+        if fit is None or fit["chi2_dof"] < 1 or fit["chi2"] <= stats.chi2.ppf(SCATTER_LEVEL, fit["chi2_dof"]):
             continue
+        chi2, dof = fit["chi2"], fit["chi2_dof"]
         r = float(np.sqrt(chi2 / dof))
         for k in idx:
             v = windows[k]
@@ -664,40 +667,30 @@ def with_level_scatter(windows: list[SteadyWindow]) -> list[SteadyWindow]:
     return out
 
 
-def _line_chi2(loaded: list[SteadyWindow]) -> tuple[float, int]:
-    """Weighted χ² of the braking levels about ``slope_fit``'s line and its dof (levels − 2)."""
-    if len(loaded) < 3:
-        return 0.0, 0
-    x = np.array([w.current_out_a for w in loaded])
-    y = np.array([w.current_in_a for w in loaded])
-    sy = np.array([w.current_in_sem for w in loaded])
-    sx = np.array([w.current_out_sem for w in loaded])
-    a, b, _ = slope_fit(x, y, sy, sx)
-    if not np.isfinite(b):
-        return 0.0, 0
-    var = np.maximum(sy ** 2 + (b * sx) ** 2, 1e-300)
-    return float(np.sum((y - a - b * x) ** 2 / var)), len(loaded) - 2
-
-
-# A zero-load level further than this many standard errors from the braking levels' line
+# A zero-load level further than this many standard errors off the braking levels' line
 # is not on the one-way branch of eq. 18 (two-sided, ~0.3 % false alarms on a straight line)
 OFF_LINE_SIGMAS = 3.0
 
 
-def zero_load_off_line(windows: list[SteadyWindow]) -> float:
-    """How far, in standard errors, one speed's zero-load level lies off the straight
-    line of input on output current through its braking levels (0 with fewer than two
-    braking levels or no zero-load level).
+def staircase_fit(windows: list[SteadyWindow]) -> dict | None:
+    """One speed's staircase as a straight line with the zero-load level allowed off it:
+    weighted least squares of the window means
+
+        i_in = a + b·i_out + d·(t − t̄) + δ·[zero load]
+
+    (``d`` only with two or more zero-load levels: the drift they measure; ``δ`` only
+    with a zero-load level and two or more braking levels). Errors in i_out enter as
+    ``slope_fit`` does (effective variance σ² = σ_in² + b² σ_out², two passes).
 
     Eq. 18 differentiates T_in = T_out/(n η) + drag, which holds while power flows from
     input to output. At zero load the mesh carries only the output motor's friction; where
     that is smaller than the torque ripple passing the mesh (cogging of either motor, the
     speed loop's correction), the mesh's power flow reverses within each ripple period and
     the backward part passes with 1/η instead of η: the zero-load currents leave the line
-    the braking levels lie on and a secant from them is biased by an offset / Δi (seed 1
-    case 45 of the robustness benchmark: output Tc 0, cogging 2 mN m, +1.8 pp at 50 %
-    load, the braking levels' slope -0.01 pp). A level with braking current is far onto
-    the one-way branch, so their line is the reference to test against.
+    the braking levels lie on, and a secant from them is off by δ/Δi_in (seed 1 case 45
+    of the robustness benchmark: output Tc 0, cogging 2 mN m, δ 27 standard errors,
+    +1.8 pp at 50 % load; this slope b: −0.01 pp). A braking level is far onto the
+    one-way branch, so b (δ free) is eq. 18 there.
 
     Parameters
     ----------
@@ -705,41 +698,55 @@ def zero_load_off_line(windows: list[SteadyWindow]) -> float:
 
     Returns
     -------
-    float
-        |zero-load mean input current − the braking levels' line at its output current|
-        over its standard error (window means' errors, the line's at that point, the
-        output current's through the slope).
+    dict or None
+        ``slope`` b and ``slope_sem``, ``offset`` δ and ``off_line_sigmas`` |δ|/σ_δ (0
+        without δ), ``chi2`` of the residuals and its ``chi2_dof`` (windows − parameters),
+        ``dof`` the smallest window dof (each mean's error is known from its own blocks);
+        None when fewer than two braking levels.
 
     References
     ----------
     T. Yukawa et al., "Estimation of gear efficiency in reduction gears", eq. 18;
-    J. R. Taylor, *An Introduction to Error Analysis*, 2nd ed., sec. 8.4 (line fit with
-    errors in both variables).
+    J. R. Taylor, *An Introduction to Error Analysis*, 2nd ed., sec. 8.4 (errors in both
+    variables, effective variance).
 
     Examples
     --------
-    >>> zero_load_off_line(ws)   # doctest: +SKIP
+    >>> staircase_fit(ws)["slope"]   # doctest: +SKIP
     """
     refs = [w for w in windows if w.is_reference]
     loaded = [w for w in windows if not w.is_reference]
-    if not refs or len(loaded) < 2:
-        return 0.0
-    x = np.array([w.current_out_a for w in loaded])
-    y = np.array([w.current_in_a for w in loaded])
-    sy = np.array([w.current_in_sem for w in loaded])
-    sx = np.array([w.current_out_sem for w in loaded])
-    a, b, _ = slope_fit(x, y, sy, sx)
-    if not np.isfinite(b):
-        return 0.0
-    wt = 1.0 / np.maximum(sy ** 2 + (b * sx) ** 2, 1e-300)      # slope_fit's final weights
-    xm = float(wt @ x / wt.sum())
-    sxx = float(wt @ (x - xm) ** 2)
-    # the zero-load windows' mean (equal weights: each is one record of the same level)
-    x0 = float(np.mean([r.current_out_a for r in refs]))
-    y0 = float(np.mean([r.current_in_a for r in refs]))
-    v0 = float(np.sum([r.current_in_sem ** 2 + (b * r.current_out_sem) ** 2 for r in refs])) / len(refs) ** 2
-    var = v0 + 1.0 / wt.sum() + (x0 - xm) ** 2 / sxx
-    return float(abs(y0 - (a + b * x0)) / np.sqrt(var))
+    if len(loaded) < 2:
+        return None
+    ws = loaded + refs
+    x = np.array([w.current_out_a for w in ws])
+    y = np.array([w.current_in_a for w in ws])
+    sy = np.array([w.current_in_sem for w in ws])
+    sx = np.array([w.current_out_sem for w in ws])
+    t = np.array([w.t_mid_s for w in ws])
+    cols = [np.ones_like(x), x]
+    if len(refs) >= 2 and np.ptp([r.t_mid_s for r in refs]) > 0:
+        cols.append(t - t.mean())
+    if refs:
+        cols.append(np.array([0.0] * len(loaded) + [1.0] * len(refs)))
+    X = np.column_stack(cols)
+    b = 0.0
+    for _ in range(2):
+        var = np.maximum(sy ** 2 + (b * sx) ** 2, 1e-24)     # 1 pA floor: noise-free traces
+        xtw = X.T / var
+        try:
+            cov = np.linalg.inv(xtw @ X)
+        except np.linalg.LinAlgError:
+            return None
+        beta = cov @ (xtw @ y)
+        b = float(beta[1])
+    chi2 = float(np.sum((y - X @ beta) ** 2 / var))
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    off = abs(beta[-1]) / sd[-1] if refs and sd[-1] > 0 else 0.0
+    dof = min(min(w.current_in_dof for w in ws), min(w.current_out_dof for w in ws))
+    return {"slope": b, "slope_sem": float(sd[1]),
+            "offset": float(beta[-1]) if refs else 0.0, "off_line_sigmas": float(off),
+            "chi2": chi2, "chi2_dof": len(ws) - X.shape[1], "dof": float(dof)}
 
 
 def incremental_slope(windows: list[SteadyWindow]) -> tuple[float, float, float]:
@@ -774,12 +781,18 @@ def _with_slope(p: EfficiencyPoint, same_speed: list[SteadyWindow], m_in, m_out,
                 n_rel_std, source) -> EfficiencyPoint:
     """``p`` with its incremental efficiency from the speed's slope, η = −K_out/(n_s K_in b):
     variance = the slope's + the Kt ratio's (shared-disk covariance included) + the ratio's."""
-    from dataclasses import replace
-
     if len(same_speed) < 2:
         raise TraceError(f"{source}: one level at in_command = {p.window.in_command:g}; a slope "
                          f"needs the zero-load level and at least one braking level")
     b, sb, dof_b = incremental_slope(same_speed)
+    return _slope_point(p, b, sb, dof_b, m_in, m_out, n_signed, n_rel_std, source)
+
+
+def _slope_point(p: EfficiencyPoint, b, sb, dof_b, m_in, m_out, n_signed, n_rel_std,
+                 source) -> EfficiencyPoint:
+    """``p`` with eq. 18 from a slope b = dI_in/dI_out of its speed's staircase."""
+    from dataclasses import replace
+
     if not (np.isfinite(b) and b * np.sign(p.window.speed_in_rad_s or 1.0) < 0):
         raise ExcitationError(f"{source}: input current does not rise with braking at in_command = "
                               f"{p.window.in_command:g} (slope {b:.4g}); check the current signs")
