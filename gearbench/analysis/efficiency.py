@@ -28,6 +28,12 @@ itself. Each point stores its standard uncertainties and Welch–Satterthwaite d
 of freedom; the 95 % intervals are Student-t on them (``analysis.uncertainty``).
 Each point records whether either motor's loss was extrapolated beyond the
 speed range its calibration runs covered (``loss_extrapolated``).
+
+Per speed the levels are also fitted as one straight line (``staircase_fit``): a
+zero-load level off the braking levels' line (the mesh's power flow reversing at no
+load) is no anchor for eq. 18, so those points take the braking levels' slope; levels
+scattering about the line beyond their window errors widen those errors
+(``with_level_scatter``).
 """
 from __future__ import annotations
 
@@ -535,6 +541,9 @@ def efficiency(trace: Trace, motor_in: MotorCalibration, motor_out: MotorCalibra
     loop is still recovering (the adaptive staircase) carry no transient. The output
     motor, current-controlled, is left as measured (corrected, the shaft ripple its
     rotor's inertia passes on would add more noise than a braking step's transient).
+    Either way, a speed whose zero-load level lies off its braking levels' line by more
+    than ``OFF_LINE_SIGMAS`` takes eq. 18 from their slope (``staircase_fit``), and a
+    speed whose levels scatter beyond their errors has them widened (``with_level_scatter``).
 
     Parameters
     ----------
