@@ -239,3 +239,42 @@ def test_calibration_runs_that_disagree_on_losses_widen_the_loss_covariance():
     np.testing.assert_allclose(extra, LOSS_RUN_SPREAD * np.outer(delta, delta), rtol=1e-6, atol=1e-22)
     assert differ.fit["loss_run_difference"] == pytest.approx(list(delta))
     assert differ.fit["speed_range_rad_s"] == [20.0, 200.0]
+
+
+def _with_level_offsets(tr, lvl, offsets_a):
+    """``tr`` with the input current shifted by ``offsets_a[level]`` on each level's samples."""
+    i_in = tr["in_current_a"].copy()
+    for level, off in offsets_a.items():
+        i_in[lvl == level] += off
+    return tr.with_columns(in_current_a=i_in)
+
+
+def test_a_zero_load_level_off_the_braking_line_is_not_the_reference():
+    """A mesh whose power flow reverses at no load puts the zero-load current off the line
+    of the braking levels (``staircase_fit``); eq. 18 then comes from their slope, with
+    the drift the two zero-load levels measure taken out, and the biased secant kept."""
+    tr, _, lvl = hand_bench(noise=0.002, seed=1, drift_a_per_s=0.0005)
+    clean = efficiency(tr, M_IN, M_OUT)
+    assert all(p.incremental_method == "secant" for p in clean.points)   # on the line: unchanged
+    res = efficiency(_with_level_offsets(tr, lvl, {0.0: 0.003}), M_IN, M_OUT)
+    for p in res.points:
+        assert p.incremental_method == "slope"
+        lo, hi = p.eta_incremental_secant_ci95                           # 3 mA / Δi_in off
+        assert abs(p.eta_incremental_secant - 0.9) > 0.005 and not lo <= 0.9 <= hi
+        assert abs(p.eta_incremental - 0.9) < min(0.002, 3 * p.eta_incremental_std)
+        assert p.eta_incremental_ci95[0] <= 0.9 <= p.eta_incremental_ci95[1]
+
+
+def test_levels_scattering_beyond_their_window_errors_widen_the_intervals():
+    """A disturbance slower than a window's blocks moves whole levels: their scatter about
+    the straight line (χ² beyond its 99 % quantile) widens every window error of the speed
+    by the Birge ratio, so the intervals hold the truth the shifted levels miss."""
+    levels = (0, 0.5, 1.0, 1.5, 2.0, 0)
+    tr, _, lvl = hand_bench(noise=0.002, seed=2, levels=levels)
+    plain = efficiency(tr, M_IN, M_OUT)
+    wander = {0.0: 0.0, 0.5: 0.002, 1.0: -0.002, 1.5: 0.002, 2.0: -0.002}
+    res = efficiency(_with_level_offsets(tr, lvl, wander), M_IN, M_OUT)
+    for p, q in zip(plain.points, res.points):
+        assert q.eta_incremental_std > 5 * p.eta_incremental_std
+        assert q.eta_incremental_ci95[0] <= 0.9 <= q.eta_incremental_ci95[1]
+        assert p.eta_incremental_dof > q.eta_incremental_dof >= 2     # ν of the scatter: 6 − 4

@@ -28,6 +28,12 @@ itself. Each point stores its standard uncertainties and Welch–Satterthwaite d
 of freedom; the 95 % intervals are Student-t on them (``analysis.uncertainty``).
 Each point records whether either motor's loss was extrapolated beyond the
 speed range its calibration runs covered (``loss_extrapolated``).
+
+Per speed the levels are also fitted as one straight line (``staircase_fit``): a
+zero-load level off the braking levels' line (the mesh's power flow reversing at no
+load) is no anchor for eq. 18, so those points take the braking levels' slope; levels
+scattering about the line beyond their window errors widen those errors
+(``with_level_scatter``).
 """
 from __future__ import annotations
 
@@ -535,6 +541,9 @@ def efficiency(trace: Trace, motor_in: MotorCalibration, motor_out: MotorCalibra
     loop is still recovering (the adaptive staircase) carry no transient. The output
     motor, current-controlled, is left as measured (corrected, the shaft ripple its
     rotor's inertia passes on would add more noise than a braking step's transient).
+    Either way, a speed whose zero-load level lies off its braking levels' line by more
+    than ``OFF_LINE_SIGMAS`` takes eq. 18 from their slope (``staircase_fit``), and a
+    speed whose levels scatter beyond their errors has them widened (``with_level_scatter``).
 
     Parameters
     ----------
@@ -567,7 +576,7 @@ def efficiency(trace: Trace, motor_in: MotorCalibration, motor_out: MotorCalibra
             f"{side}_current_a": inertia_corrected_current(trace[f"{side}_current_a"], trace[f"{side}_position_rad"],
                                                            dt, cal.J, cal.Kt)
             for side, cal in (("in", motor_in),)})
-    wins = measure_windows(trace, settle_s=settle_s, ranges=windows)
+    wins = with_level_scatter(measure_windows(trace, settle_s=settle_s, ranges=windows))
     refs = [w for w in wins if w.is_reference]
     loaded = [w for w in wins if not w.is_reference]
     if not refs:
@@ -587,13 +596,173 @@ def efficiency(trace: Trace, motor_in: MotorCalibration, motor_out: MotorCalibra
     for w in loaded:
         ref = _reference(w, refs, trace.source)
         p = _point(w, ref, motor_in, motor_out, n_signed, n_rel_std, trace.source)
+        same = [v for v in wins if _same_speed(v, w)]
+        fit = staircase_fit(same)
+        if fit is not None and fit["off_line_sigmas"] > OFF_LINE_SIGMAS:
+            # off the line: the zero-load level is no anchor for eq. 18, the braking
+            # levels' slope is (drift taken out by the zero-load levels; the secant stays beside)
+            p = _slope_point(p, fit["slope"], fit["slope_sem"], fit["dof"], motor_in, motor_out,
+                             n_signed, n_rel_std, trace.source)
+        elif incremental == "slope":
+            p = _with_slope(p, same, motor_in, motor_out, n_signed, n_rel_std, trace.source)
         points.append(p)
-    if incremental == "slope":
-        points = [_with_slope(p, [w for w in wins if np.isclose(w.in_command, p.window.in_command,
-                                                                  rtol=1e-6, atol=1e-9)],
-                              motor_in, motor_out, n_signed, n_rel_std, trace.source)
-                  for p in points]
     return EfficiencyResult(n_abs, sign, abs(n_meas), tuple(points), tuple(refs))
+
+
+def _same_speed(a: SteadyWindow, b: SteadyWindow) -> bool:
+    return bool(np.isclose(a.in_command, b.in_command, rtol=1e-6, atol=1e-9))
+
+
+# The braking levels' scatter about their line is tested at this level (chi-square)
+SCATTER_LEVEL = 0.99
+
+
+def with_level_scatter(windows: list[SteadyWindow]) -> list[SteadyWindow]:
+    """The windows with each speed's standard errors widened when its braking levels
+    scatter about their straight line beyond what their own errors allow.
+
+    A window's standard error comes from its block means (``tapered_mean_sem``), so it
+    sees noise faster than a block (~0.3 s) and nothing slower. A disturbance that wanders
+    over seconds (seed 7 case 16 of the robustness benchmark: 0.25 s means of the input
+    current wander by ±3 mA at every level while the windows claim 0.3-0.5 mA) moves whole
+    levels, and eq. 18's Δi with them. The levels of one speed lie on a straight line
+    (input on output current, slope = eq. 18), so their residuals about ``staircase_fit`` (the line, the
+    zero-load levels' drift and offset free) measure it: when that χ² (three or more
+    braking levels) exceeds its ``SCATTER_LEVEL`` quantile,
+    every window of that speed has its errors (both currents) multiplied by the Birge
+    ratio √(χ²/ν), ν = windows − fitted parameters their degrees of freedom. Below the quantile (a straight
+    line within the errors, ~99 % of plain runs) nothing changes.
+
+    Parameters
+    ----------
+    windows : the steady windows of a bench trace, any speeds.
+
+    Returns
+    -------
+    list of SteadyWindow
+        Same order; widened where a speed's levels scatter.
+
+    References
+    ----------
+    R. T. Birge, "The calculation of errors by the method of least squares", Phys. Rev.
+    40 (1932) 207; T. Yukawa et al., "Estimation of gear efficiency in reduction gears",
+    eq. 18 (the levels' straight line).
+
+    Examples
+    --------
+    >>> with_level_scatter(ws)   # doctest: +SKIP
+    """
+    from dataclasses import replace
+
+    from scipy import stats
+
+    out = list(windows)
+    done = set()
+    for w in windows:
+        if w.in_command in done:
+            continue
+        done.add(w.in_command)
+        idx = [k for k, v in enumerate(windows) if _same_speed(v, w)]
+        fit = staircase_fit([windows[k] for k in idx])
+        if fit is None or fit["chi2_dof"] < 1 or fit["chi2"] <= stats.chi2.ppf(SCATTER_LEVEL, fit["chi2_dof"]):
+            continue
+        chi2, dof = fit["chi2"], fit["chi2_dof"]
+        r = float(np.sqrt(chi2 / dof))
+        for k in idx:
+            v = windows[k]
+            out[k] = replace(v, current_in_sem=v.current_in_sem * r, current_out_sem=v.current_out_sem * r,
+                             current_in_dof=float(min(v.current_in_dof, dof)),
+                             current_out_dof=float(min(v.current_out_dof, dof)))
+    return out
+
+
+# A zero-load level further than this many standard errors off the braking levels' line
+# is not on the one-way branch of eq. 18 (two-sided, ~0.3 % false alarms on a straight line)
+OFF_LINE_SIGMAS = 3.0
+
+
+def staircase_fit(windows: list[SteadyWindow]) -> dict | None:
+    """One speed's staircase as a straight line with the zero-load level allowed off it:
+    weighted least squares of the window means
+
+        i_in = a + b·i_out + d·(t − t̄) + δ·[zero load]
+
+    (``d`` only with two or more zero-load levels: the drift they measure; ``δ`` only
+    with a zero-load level and two or more braking levels). Errors in i_out enter as
+    ``slope_fit`` does (effective variance σ² = σ_in² + b² σ_out², two passes).
+
+    Eq. 18 differentiates T_in = T_out/(n η) + drag, which holds while power flows from
+    input to output. At zero load the mesh carries only the output motor's friction; where
+    that is smaller than the torque ripple passing the mesh (cogging of either motor, the
+    speed loop's correction), the mesh's power flow reverses within each ripple period and
+    the backward part passes with 1/η instead of η: the zero-load currents leave the line
+    the braking levels lie on, and a secant from them is off by δ/Δi_in (seed 1 case 45
+    of the robustness benchmark: output Tc 0, cogging 2 mN m, δ 27 standard errors,
+    +1.8 pp at 50 % load; this slope b: −0.01 pp). A braking level is far onto the
+    one-way branch, so b (δ free) is eq. 18 there.
+
+    Parameters
+    ----------
+    windows : one speed's steady windows (zero-load and braking).
+
+    Returns
+    -------
+    dict or None
+        ``slope`` b and ``slope_sem``, ``offset`` δ and ``off_line_sigmas`` |δ|/σ_δ (0
+        without δ), both errors times the Birge ratio √(χ²/ν) where it exceeds 1 (the
+        levels scatter beyond their window errors: seed 9 case 50, δ 4.0 σ from a wobbling
+        level, not from the zero-load level), ``chi2`` of the residuals and its
+        ``chi2_dof`` ν (windows − parameters),
+        ``dof`` the smallest window dof (each mean's error is known from its own blocks);
+        None when fewer than two braking levels.
+
+    References
+    ----------
+    T. Yukawa et al., "Estimation of gear efficiency in reduction gears", eq. 18;
+    J. R. Taylor, *An Introduction to Error Analysis*, 2nd ed., sec. 8.4 (errors in both
+    variables, effective variance).
+
+    Examples
+    --------
+    >>> staircase_fit(ws)["slope"]   # doctest: +SKIP
+    """
+    refs = [w for w in windows if w.is_reference]
+    loaded = [w for w in windows if not w.is_reference]
+    if len(loaded) < 2:
+        return None
+    ws = loaded + refs
+    x = np.array([w.current_out_a for w in ws])
+    y = np.array([w.current_in_a for w in ws])
+    sy = np.array([w.current_in_sem for w in ws])
+    sx = np.array([w.current_out_sem for w in ws])
+    t = np.array([w.t_mid_s for w in ws])
+    cols = [np.ones_like(x), x]
+    if len(refs) >= 2 and np.ptp([r.t_mid_s for r in refs]) > 0:
+        cols.append(t - t.mean())
+    if refs:
+        cols.append(np.array([0.0] * len(loaded) + [1.0] * len(refs)))
+    X = np.column_stack(cols)
+    b = 0.0
+    for _ in range(2):
+        var = np.maximum(sy ** 2 + (b * sx) ** 2, 1e-24)     # 1 pA floor: noise-free traces
+        xtw = X.T / var
+        try:
+            cov = np.linalg.inv(xtw @ X)
+        except np.linalg.LinAlgError:
+            return None
+        beta = cov @ (xtw @ y)
+        b = float(beta[1])
+    chi2 = float(np.sum((y - X @ beta) ** 2 / var))
+    nu = len(ws) - X.shape[1]
+    # levels scattering more than their errors say (a disturbance slower than the windows'
+    # blocks) scatter δ and b as much: their errors take the Birge ratio when it exceeds 1
+    birge = max(1.0, float(np.sqrt(chi2 / nu))) if nu >= 1 else 1.0
+    sd = birge * np.sqrt(np.maximum(np.diag(cov), 0.0))
+    off = abs(beta[-1]) / sd[-1] if refs and sd[-1] > 0 else 0.0
+    dof = min(min(w.current_in_dof for w in ws), min(w.current_out_dof for w in ws))
+    return {"slope": b, "slope_sem": float(sd[1]),
+            "offset": float(beta[-1]) if refs else 0.0, "off_line_sigmas": float(off),
+            "chi2": chi2, "chi2_dof": nu, "dof": float(dof)}
 
 
 def incremental_slope(windows: list[SteadyWindow]) -> tuple[float, float, float]:
@@ -628,12 +797,18 @@ def _with_slope(p: EfficiencyPoint, same_speed: list[SteadyWindow], m_in, m_out,
                 n_rel_std, source) -> EfficiencyPoint:
     """``p`` with its incremental efficiency from the speed's slope, η = −K_out/(n_s K_in b):
     variance = the slope's + the Kt ratio's (shared-disk covariance included) + the ratio's."""
-    from dataclasses import replace
-
     if len(same_speed) < 2:
         raise TraceError(f"{source}: one level at in_command = {p.window.in_command:g}; a slope "
                          f"needs the zero-load level and at least one braking level")
     b, sb, dof_b = incremental_slope(same_speed)
+    return _slope_point(p, b, sb, dof_b, m_in, m_out, n_signed, n_rel_std, source)
+
+
+def _slope_point(p: EfficiencyPoint, b, sb, dof_b, m_in, m_out, n_signed, n_rel_std,
+                 source) -> EfficiencyPoint:
+    """``p`` with eq. 18 from a slope b = dI_in/dI_out of its speed's staircase."""
+    from dataclasses import replace
+
     if not (np.isfinite(b) and b * np.sign(p.window.speed_in_rad_s or 1.0) < 0):
         raise ExcitationError(f"{source}: input current does not rise with braking at in_command = "
                               f"{p.window.in_command:g} (slope {b:.4g}); check the current signs")

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..analysis.calibration import calibrate_motor
-from ..analysis.efficiency import efficiency
+from ..analysis.efficiency import OFF_LINE_SIGMAS, efficiency, measure_windows, with_level_scatter
 
 METHODS = ("paper-15ms", "paper", "default")
 TARGETS = {"kt_pct": 0.2, "inc_pp": 0.2, "abs_pp": 0.3}
@@ -92,6 +92,10 @@ class Outcome:
     error: str = ""
     abs_extrapolated: list = field(default_factory=list)   # per abs point: loss extrapolated
     motors: list = field(default_factory=list)   # per motor: what its calibration saw (``_motor_notes``)
+    # eq. 18 from the braking levels' slope (zero-load level off their line), and the
+    # windows' errors widened because the levels scatter beyond them (``efficiency``)
+    off_line_reference: bool = False
+    level_scatter: bool = False
 
     def _quantities(self):
         return (("kt_pct", self.kt_err_pct, self.kt_std_pct),
@@ -272,6 +276,9 @@ def run_case(case: Case, methods=METHODS, data: dict | None = None) -> dict[str,
                 oc.kt_cover.append(cal.Kt_ci95[0] <= motor.Kt <= cal.Kt_ci95[1])
                 oc.motors.append(_motor_notes(cal, motor))
             res = efficiency(data["bench"], cals["in"], cals["out"])
+            oc.off_line_reference = any(p.incremental_method == "slope" for p in res.points)
+            wins = measure_windows(data["bench"])
+            oc.level_scatter = with_level_scatter(wins) != wins
             for p in res.points:
                 if abs(p.window.out_command) < 0.5 * plant.motor_out.rated_current_a - 1e-12:
                     continue
@@ -312,7 +319,12 @@ def causes(o: Outcome) -> str:
       noise-free current (seed 8 case 11 input: +0.87 %, +0.04 % from the period mean).
       The calibration traces carry the drive's description (``drive_description``), so
       the fit uses the physical model (``identify._setpoint_steps``: one c for both
-      runs, no current delay); what remains is the kick's closed-loop feedback.
+      runs, no current delay); what remains is the kick's closed-loop feedback;
+    * ``zero-load off line``: the zero-load level lay more than ``OFF_LINE_SIGMAS`` off
+      the braking levels' line (the mesh's power flow reversing at no load), so eq. 18
+      came from their slope (``efficiency.staircase_fit``);
+    * ``level scatter``: the levels scattered about their line beyond their window
+      errors and those were widened (``efficiency.with_level_scatter``).
     """
     if o.error:
         return "exception"
@@ -325,7 +337,11 @@ def causes(o: Outcome) -> str:
         if m["stepping_sampled"]:
             t.append("stepping" + ("+term" if m["step_kept"] else ""))
         tags.append(f"{side}: {', '.join(t)}")
-    tagged = any("stuck" in t or "stepping" in t for t in tags)
+    if o.off_line_reference:
+        tags.append("zero-load off line")
+    if o.level_scatter:
+        tags.append("level scatter")
+    tagged = any(k in t for t in tags for k in ("stuck", "stepping", "off line", "scatter"))
     return (f"missed {','.join(missed) or '-'}; " + "; ".join(tags)
             + ("" if tagged else "; no tagged condition"))
 
@@ -341,7 +357,8 @@ def print_causes(cases, outcomes, method: str = "default") -> None:
             continue
         text = causes(o)
         print(f"  case {c.index:3d} {'rev' if c.reversing else 'fwd'} {v:>6}: {text}")
-        for tag in ("stuck", "stepping", "no tagged condition", "exception"):
+        for tag in ("stuck", "stepping", "zero-load off line", "level scatter",
+                    "no tagged condition", "exception"):
             if tag in text:
                 tally[(v, tag)] = tally.get((v, tag), 0) + 1
     for (v, tag), n in sorted(tally.items()):
@@ -485,6 +502,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"default: {s['n_abs_extrapolated']} of {len(s['abs'])} absolute-efficiency points use a "
           f"motor loss extrapolated beyond its calibrated speed range; their coverage "
           f"{100 * s['cover_abs_extrapolated']:.0f} %")
+    d = [o["default"] for o in outcomes]
+    print(f"default: eq. 18 from the braking levels' slope (zero-load level > "
+          f"{OFF_LINE_SIGMAS:g} sigma off their line) on {sum(o.off_line_reference for o in d)} "
+          f"plants; window errors widened for level scatter on {sum(o.level_scatter for o in d)}")
     if args.worst:
         print_worst(cases, outcomes, args.worst)
     if args.causes:
