@@ -245,15 +245,16 @@ def _left(run, kind):
 
 @pytest.mark.slow
 def test_every_calibration_of_a_fresh_sim_run_diagnoses_to_the_floor(fresh_run_diagnosis):
-    """Each motor's calibration trace ends within 1.5x its noise floor, the emulator's
-    effects named (Coulomb friction, cogging or its one-way look-alike)."""
+    """Each motor's calibration trace ends within 1.5x its noise floor, only the
+    emulator's effects named (Coulomb friction, cogging or its one-way look-alike, the
+    encoder's counts)."""
     profile, run = fresh_run_diagnosis
     left = _left(run, "motor")
     assert len(left) == 4
-    if profile.endswith("cyclo.yaml") and max(left.values()) > 1.5:
-        pytest.xfail(f"cyclo's small-disk calibration: cogging closes ~40 % of what Coulomb "
-                     f"friction leaves but is not significant (dBIC -3); left {left}")
     assert max(left.values()) <= 1.5, left
+    named = {c["effect"] for e in run["steps"] if e["kind"] == "motor" for c in e["chain"]}
+    assert named <= {"coulomb_friction", "cogging", "position_friction",
+                     "encoder_quantization"}, named
 
 
 @pytest.mark.slow
