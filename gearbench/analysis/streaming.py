@@ -170,15 +170,15 @@ class LevelMean:
         return (float(np.sqrt(sum(self.d2_in[j:]) / (6.0 * cnt))),
                 float(np.sqrt(sum(self.d2_out[j:]) / (6.0 * cnt))))
 
-    def _speed_ok(self, j: int, dt_s: float) -> bool:
+    def _speed_ok(self, j: int) -> bool:
         """The mean input speed from chunk j on within ``SPEED_TOLERANCE`` of the command."""
         if not self.speed:
             return True
-        w = sum(self.travel[j:]) / (sum(self.n[j:]) * dt_s)
+        w = sum(self.travel[j:]) / (sum(self.n[j:]) * self.dt_s)
         return abs(w - self.speed) <= SPEED_TOLERANCE * abs(self.speed)
 
     def _steady(self, j: int) -> bool:
-        if self.speed and not self._speed_ok(j, self.dt_s):
+        if not self._speed_ok(j):
             return False
         xi = np.concatenate(self.raw_in[j:])
         h = len(xi) // 2
@@ -213,13 +213,21 @@ def tapered_mean_sem(x: np.ndarray, blocks: int = 10) -> tuple[float, float, flo
     w = taper(len(x))
     m = float(w @ x / w.sum())
     inflate = np.sqrt(len(x) * float(w @ w)) / float(w.sum())
-    nb = min(blocks, len(x) // 10)
-    if nb < 3:
+    bm = _block_means(x, blocks)
+    if bm is None:
         return (m, inflate * float(np.std(x) / np.sqrt(max(len(x) - 1, 1))),
                 float(max(len(x) - 1, 1)))
+    return m, inflate * float(np.std(bm, ddof=1) / np.sqrt(len(bm))), float(len(bm) - 1)
+
+
+def _block_means(x: np.ndarray, blocks: int) -> np.ndarray | None:
+    """Means of ``blocks`` equal consecutive blocks of ``x`` (at least 10 samples each;
+    the tail that does not fill a block is left out), or None when fewer than 3 fit."""
+    nb = min(blocks, len(x) // 10)
+    if nb < 3:
+        return None
     size = len(x) // nb
-    bm = x[: nb * size].reshape(nb, size).mean(axis=1)
-    return m, inflate * float(np.std(bm, ddof=1) / np.sqrt(nb)), float(nb - 1)
+    return x[: nb * size].reshape(nb, size).mean(axis=1)
 
 
 def window_stats(current_in_a: np.ndarray, current_out_a: np.ndarray) -> dict:
@@ -237,11 +245,10 @@ def _long_run_sigma(x: np.ndarray, blocks: int = 10) -> float:
     made robust), so coloured noise counts as it acts on a mean while a slow trend or a
     transient's first block barely does; the white-noise level from second differences
     when the window is too short for blocks."""
-    nb = min(blocks, len(x) // 10)
-    if nb < 3:
+    bm = _block_means(x, blocks)
+    if bm is None:
         return float(np.sqrt(np.mean(np.diff(x, 2) ** 2) / 6.0)) if len(x) > 2 else 0.0
-    size = len(x) // nb
-    bm = x[: nb * size].reshape(nb, size).mean(axis=1)
+    size = len(x) // len(bm)
     # median absolute successive difference (normal: 0.6745·√2·σ): the one step a
     # transient's first block makes does not pass for noise
     return float(np.median(np.abs(np.diff(bm))) / (0.6745 * np.sqrt(2.0)) * np.sqrt(size))
