@@ -232,3 +232,28 @@ def test_efficiency_reads_a_run_trace_as_it_is(capsys, tmp_path):
     ref_code, ref, _ = run(capsys, "efficiency", BENCH, "--kt-in", "0.05", "--kt-out", "0.05", "--json")
     assert code == ref_code == 0
     assert json.loads(out)["points"][0]["eta_incremental"] == json.loads(ref)["points"][0]["eta_incremental"]
+
+
+def test_calibrate_takes_the_drives_sampling_as_a_profile_does(capsys, tmp_path):
+    """``--drive-setpoint step --drive-current instant`` declares what a profile's
+    ``motors.<m>.sampling`` declares: a stepping, sampling drive's current kick is modelled
+    (seed 8 case 11's input motor, as in test_robustness: Kt within 0.2 % only with it)."""
+    from gearbench.benchmarks import robustness as R
+
+    case = R.draw_case(11, 8)
+    files = []
+    for name, t in zip(("u", "l"), R.simulate_case(case)["runs"]["in"]):
+        del t.meta["drive"]                       # as a file from elsewhere: nothing said
+        files.append(t.write_csv(tmp_path / f"{name}.csv"))
+    base = ("calibrate", "--unloaded", files[0], "--loaded", files[1],
+            "--inertia", case.disks_kgm2["in"], "--json")
+    code, out, _ = run(capsys, *base, "--drive-setpoint", "step", "--drive-current", "instant")
+    said = json.loads(out)
+    assert code == 0 and said["fit"]["setpoint_step"]["declared"] is True
+    code, out, _ = run(capsys, *base)
+    plain = json.loads(out)
+    assert code == 0 and plain["fit"]["setpoint_step"]["declared"] is None
+    kt = case.plant.motor_in.Kt
+    assert abs(said["Kt"] / kt - 1) <= 0.002
+    assert abs(plain["Kt"] / kt - 1) > 2 * abs(said["Kt"] / kt - 1)   # undeclared: biased
+    bad(capsys, *base, "--drive-setpoint", "step", must=("--drive-current",))

@@ -33,6 +33,14 @@ def add_arguments(p) -> None:
                    help="identification method: default (bias-reduced), the torque-side form; accel, torque, iv: "
                         "the default's formulations alone; paper (as published, at the data rate); "
                         "paper-15ms (as published, resampled to the paper's 15 ms)")
+    p.add_argument("--drive-setpoint", choices=["step", "interpolated"],
+                   help="how the drive applied its speed setpoint: step (a new value each SYNC) or "
+                        "interpolated (ramped between SYNCs); as the profile's motors.<m>.sampling.setpoint")
+    p.add_argument("--drive-current", choices=["instant", "mean"],
+                   help="how the drive sampled its current: instant (one sample) or mean (averaged over the "
+                        "period); as the profile's motors.<m>.sampling.current. With --drive-setpoint step, "
+                        "instant declares the current kick a stepped setpoint gives and the fit models it; "
+                        "left out, the fit tests for it")
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
 
@@ -46,6 +54,12 @@ def run(args) -> int:
                              f"(got {tol}); e.g. --inertia-tolerance 0.005 for ±0.5 %")
     unloaded = read_trace(args.unloaded, SINGLE_MOTOR_COLUMNS, motor=args.motor)
     loaded = read_trace(args.loaded, SINGLE_MOTOR_COLUMNS, motor=args.motor)
+    if (args.drive_setpoint is None) != (args.drive_current is None):
+        raise GearbenchError("--drive-setpoint and --drive-current go together (both say how the drive "
+                             "samples, as a profile's motors.<m>.sampling); pass both or neither")
+    if args.drive_setpoint is not None:
+        for tr in (unloaded, loaded):
+            tr.meta["drive"] = {"setpoint": args.drive_setpoint, "current": args.drive_current}
     disk_std = tolerance_std(tol * args.inertia, args.inertia_source)
     cal = calibrate_motor(unloaded, loaded, args.inertia, method=args.method, disk_std_kgm2=disk_std)
     if args.json:
