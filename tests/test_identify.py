@@ -459,3 +459,22 @@ def test_drive_sampling_reads_the_description_and_names_a_bad_field():
     assert drive_sampling(Trace(np.arange(3.0), {"position_rad": np.zeros(3)}, {}, "x")) is None
     with pytest.raises(TraceError, match=r"run.csv: meta drive.current is 'sampled'"):
         drive_sampling(trace({"setpoint": "step", "current": "sampled"}))
+
+
+def test_encoder_step_is_read_through_a_files_printed_decimals():
+    """A CSV that prints k·q to fixed decimals rounds each increment by up to two digits;
+    the encoder's step (which sets the standstill band) is still q, not the print's digit."""
+    from gearbench.analysis.identify import encoder_resolution
+
+    rng = np.random.default_rng(3)
+    for counts, decimals in ((2**17, 8), (2**12, 6), (2**20, 9)):
+        q = 2 * np.pi / counts
+        k = np.cumsum(rng.integers(-40, 41, 3000))
+        printed = np.round(k * q, decimals)
+        assert encoder_resolution(printed) == pytest.approx(q, rel=1e-4), (counts, decimals)
+        assert encoder_resolution(k * q) == pytest.approx(q, rel=1e-6)     # full precision, as before
+    # a print coarser than the encoder: the print's digit is the step the data holds
+    fine = np.round(np.cumsum(rng.integers(-40, 41, 3000)) * 2 * np.pi / 2**24, 5)
+    assert encoder_resolution(fine) == pytest.approx(1e-5, rel=1e-3)
+    # not quantised at all: no coarse grid is invented
+    assert encoder_resolution(np.cumsum(rng.normal(0, 1e-3, 3000))) < 1e-6

@@ -1545,6 +1545,10 @@ def encoder_resolution(position_rad: np.ndarray) -> float:
     >>> import numpy as np
     >>> round(encoder_resolution(np.arange(100) * 0.01), 6)
     0.0
+    >>> q = 2 * np.pi / 2**17                 # a 17-bit encoder, printed to 1e-8 rad
+    >>> th = np.round(np.round(np.cumsum(np.random.default_rng(0).integers(-3, 4, 500)) * q, 8), 8)
+    >>> round(encoder_resolution(th) / q, 3)
+    1.0
 
     """
     steps = np.diff(np.asarray(position_rad[:200_000], float))
@@ -1555,7 +1559,24 @@ def encoder_resolution(position_rad: np.ndarray) -> float:
     d = np.unique(np.round(steps / scale, 9)) * scale
     gaps = np.diff(d)
     gaps = gaps[gaps > 1e-8 * scale]
-    return float(gaps.min()) if len(gaps) else 0.0
+    if not len(gaps):
+        return 0.0
+    digit = float(gaps.min())
+    # A file that prints the angle with fixed decimals (k·q rounded to 1e-8 rad) rounds each
+    # step by up to two of its digits: the increments then sit in narrow clusters one
+    # encoder step apart, and the smallest gap is the print's digit, not the encoder's
+    # step (a 2^17-count joint encoder read as 1e-8 rad: its standstill band 300x too narrow)
+    edges = np.flatnonzero(np.diff(d) > 3 * digit)
+    centres = np.array([c.mean() for c in np.split(d, edges + 1)])
+    if len(centres) < 2:
+        return digit
+    q = float(np.diff(centres).min())
+    if q < 20 * digit:
+        return digit
+    k = np.round(centres / q)           # refined over every cluster: one step's centre is off by a digit
+    q = float(np.sum(k * centres) / np.sum(k * k))
+    off = np.abs(steps / q - np.round(steps / q)) * q
+    return q if np.mean(off <= 2.5 * digit) >= 0.99 else digit
 
 
 def covariance_block(residual: np.ndarray, filter_taps: int) -> int:
