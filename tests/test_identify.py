@@ -478,3 +478,26 @@ def test_encoder_step_is_read_through_a_files_printed_decimals():
     assert encoder_resolution(fine) == pytest.approx(1e-5, rel=1e-3)
     # not quantised at all: no coarse grid is invented
     assert encoder_resolution(np.cumsum(rng.normal(0, 1e-3, 3000))) < 1e-6
+
+
+def test_a_joint_that_sticks_between_point_to_point_moves_keeps_its_inertia():
+    """A second, independent joint simulator (``_joint_stick_sim``: Karnopp stiction, a PID
+    position loop, trapezoidal moves with dwells the joint sits stuck through, 100 Hz,
+    gravity): the default's J, Fv and Fc hold the truth within their 95 % intervals. The
+    textbook filtered least squares comes as close here (J +1.3 % vs our −1.5 %) but its
+    white-noise interval (±0.5 %) misses it: residuals coloured by the filter and the
+    unmodelled disturbance are not white (over the benchmark's 12 such traces its J
+    interval holds the truth once, ours 11 times)."""
+    from gearbench.benchmarks._joint_stick_sim import STICK_JOINTS, simulate_stick_joint
+    from gearbench.benchmarks._real import textbook_idim
+
+    joint = next(j for j in STICK_JOINTS if j.name == "shoulder")
+    d = simulate_stick_joint(joint, motion="p2p", seed=1)
+    fit = identify_default(d["time_s"], d["position_rad"], d["current_a"], check=False,
+                           load_rad_per_unit=1.0, rad_per_unit=None)
+    ph = physical(fit, joint.gain_nm_a)
+    for key, truth in d["truth"].items():
+        v, half = ph[key]
+        assert abs(v - truth) <= half, (key, v, half, truth)
+    tb = textbook_idim(d["time_s"], d["position_rad"], d["current_a"], joint.gain_nm_a, gravity=True)
+    assert abs(tb["J"][0] - joint.J) > tb["J"][1]

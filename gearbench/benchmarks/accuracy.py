@@ -233,11 +233,13 @@ def main(argv: list[str] | None = None) -> int:
 def _real_section() -> int:
     """EMPS against its published values and simulated robot joints against truth, per
     identification form (``gearbench.benchmarks._real``)."""
-    rows = _real.emps_rows() + _real.joint_rows()
+    rows = _real.emps_rows() + _real.joint_rows() + _real.stick_joint_rows()
     score = _real.print_real(rows)
-    for form, s in score.items():
-        emps = ("n/a (EMPS recorded no command)" if s["emps_max_pct"] is None else
-                f"{s['emps_max_pct']:.2f} % (target {_real.EMPS_TARGET_PCT:g} %)")
-        print(f"  {form:<7} robot joints: truth inside the 95 % interval {s['covered']}/{s['total']}; "
-              f"EMPS worst |error| {emps}")
+    for key, s in score.items():
+        emps = ("" if s["emps_max_pct"] is None else
+                f"; EMPS worst |error| {s['emps_max_pct']:.2f} % (target {_real.EMPS_TARGET_PCT:g} %)")
+        n = len(s["inertia_errors_pct"])
+        print(f"  {key:<26} truth inside the 95 % interval {s['covered']}/{s['total']} "
+              f"(inertia {s['inertia_covered']}/{n}, median |error| "
+              f"{np.median(s['inertia_errors_pct']) if n else float('nan'):.1f} %){emps}")
     return 0
