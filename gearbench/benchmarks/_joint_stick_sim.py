@@ -80,7 +80,8 @@ def _point_to_point(t: np.ndarray, rng) -> tuple[np.ndarray, np.ndarray]:
 
 def simulate_stick_joint(joint: StickJoint, *, motion: str = "sine", duration_s: float = 60.0,
                          rate_hz: float = 100.0, seed: int = 0) -> dict:
-    """One run → {time_s, position_rad (joint), current_a, truth}; ``motion`` is ``sine``
+    """One run → {time_s, position_rad (joint), current_a, command (the speed reference,
+    rad/s), truth}; ``motion`` is ``sine``
     (two sines, ~1 rad/s) or ``p2p`` (point-to-point moves with dwells)."""
     rng = np.random.default_rng([seed, 2317])
     dt = 5e-4
@@ -115,5 +116,5 @@ def simulate_stick_joint(joint: StickJoint, *, motion: str = "sine", duration_s:
     counts = 2 * np.pi / 2 ** 17
     current = I[::step] + rng.normal(0.0, 0.01 * float(np.std(I)), len(I[::step]))
     return {"time_s": t[::step], "position_rad": np.round(Q[::step] / counts) * counts,
-            "current_a": current,
+            "current_a": current, "command": w_ref[::step],
             "truth": {"J": joint.J, "Fv": joint.Fv, "Fc": joint.Fc}}

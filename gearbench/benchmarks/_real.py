@@ -117,24 +117,29 @@ def textbook_idim(t: np.ndarray, q: np.ndarray, i: np.ndarray, gain: float, *,
     return {k: (float(gain * v), float(gain * h)) for k, v, h in zip(("J", "Fv", "Fc"), beta[:3], half)}
 
 
-def stick_joint_rows(seeds=(0, 1)) -> list[dict]:
-    """The second simulator's joints, two motions, the default beside the textbook."""
+def stick_joint_rows(seeds=(0, 1), rates=(100, 1000)) -> list[dict]:
+    """The second simulator's joints, two motions, at 100 Hz and 1 kHz, the default beside
+    the textbook."""
     rows = []
-    for joint in STICK_JOINTS:
-        for motion in ("sine", "p2p"):
-            for seed in seeds:
-                d = simulate_stick_joint(joint, motion=motion, seed=seed)
-                gravity = bool(joint.gravity_nm)
-                fit = identify_default(d["time_s"], d["position_rad"], d["current_a"], check=False,
-                                       load_rad_per_unit=1.0 if gravity else None, rad_per_unit=None)
-                label = f"{joint.name} {motion} s{seed}"
-                rows.append({"data": label, "form": "default", "family": "joints (2nd sim)",
-                             "vals": physical(fit, joint.gain_nm_a), "truth": d["truth"],
-                             "cross": fit.extras["cross_check"]})
-                rows.append({"data": label, "form": "textbook", "family": "joints (2nd sim)",
-                             "vals": textbook_idim(d["time_s"], d["position_rad"], d["current_a"],
-                                                   joint.gain_nm_a, gravity=gravity),
-                             "truth": d["truth"], "cross": None})
+    for rate in rates:
+        for joint in STICK_JOINTS:
+            for motion in ("sine", "p2p"):
+                for seed in seeds:
+                    d = simulate_stick_joint(joint, motion=motion, seed=seed, rate_hz=rate)
+                    gravity = bool(joint.gravity_nm)
+                    fit = identify_default(d["time_s"], d["position_rad"], d["current_a"],
+                                           check=False, load_rad_per_unit=1.0 if gravity else None,
+                                           rad_per_unit=None)
+                    label = f"{joint.name} {motion} s{seed} {rate:g}Hz"
+                    family = f"joints (2nd sim) {rate:g} Hz"
+                    rows.append({"data": label, "form": "default", "family": family,
+                                 "vals": physical(fit, joint.gain_nm_a), "truth": d["truth"],
+                                 "cross": fit.extras["cross_check"]})
+                    rows.append({"data": label, "form": "textbook", "family": family,
+                                 "vals": textbook_idim(d["time_s"], d["position_rad"],
+                                                       d["current_a"], joint.gain_nm_a,
+                                                       gravity=gravity),
+                                 "truth": d["truth"], "cross": None})
     return rows
 
 
@@ -142,7 +147,7 @@ def print_real(rows: list[dict]) -> dict:
     """Table of errors (%) with 95 % half-widths; '*' = truth outside the interval;
     returns per family and form: [covered, total] over joints (inertia alone too) and the
     worst EMPS error."""
-    print(f"\n{'real / joint data':<26}{'form':<9}{'inertia err %':>18}{'Fv err %':>18}"
+    print(f"\n{'real / joint data':<32}{'form':<9}{'inertia err %':>18}{'Fv err %':>18}"
           f"{'Fc err %':>18}   cross-check")
     score: dict = {}
     for r in rows:
@@ -164,5 +169,5 @@ def print_real(rows: list[dict]) -> dict:
             cells.append(f"{err:+8.2f} ±{hw:6.2f}{' ' if inside else '*'}")
         cc = r["cross"]
         verdict = "" if cc is None else "agree" if cc["agree"] else "DIFFER " + ",".join(cc["differ"])
-        print(f"{r['data']:<26}{r['form']:<9}{''.join(f'{c:>18}' for c in cells)}   {verdict}")
+        print(f"{r['data']:<32}{r['form']:<9}{''.join(f'{c:>18}' for c in cells)}   {verdict}")
     return score
