@@ -407,34 +407,32 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
             # the sample is taken at the encoder's instant: the exact relation has no
             # current delay to fit (``identify._setpoint_steps``)
             options.setdefault("lag", False)
-    try:
-        fu = identify_trace(unloaded, method=method, **options)
-        fl = identify_trace(loaded, method=method, **options)
-        shareable = all(_carries_setpoint_step(f) for f in (fu, fl))
-    except ExcitationError:
-        if not options.get("setpoint_step"):
-            raise
-        shareable = False           # refused with the term: judged again without it
-    if options.get("setpoint_step") and not shareable:
-        # a run fell back to the plain cross-check fit: the term cannot be shared
-        options["setpoint_step"] = False
-        fu = identify_trace(unloaded, method=method, **options)
-        fl = identify_trace(loaded, method=method, **options)
-    try:
-        cal = calibrate_from_fits(fu, fl, disk_kgm2, disk_std_kgm2=disk_std_kgm2,
-                                  disk_name=disk_name, unloaded_name=unloaded.source,
-                                  loaded_name=loaded.source, kick_declared=kick)
-    except ExcitationError:
-        if not options.get("setpoint_step"):
-            raise
-        # the term, its current lag and θ'' can be nearly collinear in both runs (a drive
-        # that interpolates its setpoint): judged again without the term
-        options["setpoint_step"] = False
-        fu = identify_trace(unloaded, method=method, **options)
-        fl = identify_trace(loaded, method=method, **options)
-        cal = calibrate_from_fits(fu, fl, disk_kgm2, disk_std_kgm2=disk_std_kgm2,
-                                  disk_name=disk_name, unloaded_name=unloaded.source,
-                                  loaded_name=loaded.source, kick_declared=kick)
+
+    def fits(opts):
+        return tuple(identify_trace(t, method=method, **opts) for t in (unloaded, loaded))
+
+    def combine(fu, fl):
+        return calibrate_from_fits(fu, fl, disk_kgm2, disk_std_kgm2=disk_std_kgm2,
+                                   disk_name=disk_name, unloaded_name=unloaded.source,
+                                   loaded_name=loaded.source, kick_declared=kick)
+
+    cal = None
+    if options.get("setpoint_step"):
+        # judged again without the term where a run is refused with it, where a run fell
+        # back to the plain cross-check fit (the term cannot be shared), or where the term,
+        # its current lag and θ'' are nearly collinear in both runs (a drive that
+        # interpolates its setpoint)
+        try:
+            fu, fl = fits(options)
+            if all(_carries_setpoint_step(f) for f in (fu, fl)):
+                cal = combine(fu, fl)
+        except ExcitationError:
+            pass
+        if cal is None:
+            options["setpoint_step"] = False
+    if cal is None:
+        fu, fl = fits(options)
+        cal = combine(fu, fl)
     # a run short of Kt/J's 5 % is not refused (its Kt interval says how little it knows;
     # torque_constant refuses a disk that does not show): its advice is kept
     su, sl, _ = share_setpoint_step(fu, fl, declared=kick)   # the advice as the combined fits see it
