@@ -192,6 +192,27 @@ def test_cycle_time_says_how_far_a_miss_at_max_s_stayed_from_its_target():
     assert score(slow)["causes"] == ["incr: at max_s"] and score(slow)["shortfall"] == pytest.approx(2.0)
 
 
+def test_designed_calibration_falls_back_where_no_sweep_covers_the_map(monkeypatch):
+    """Random plant 4/9: a 0.039 N m/A input motor with a disk of three rotors cannot sweep
+    its map speeds (135-226 rad/s) within its rated current in 2 s; as the profile's own
+    design does, the benchmark then takes the plain design (was an ERROR row)."""
+    import gearbench.profile.excitation_design as ed
+    from gearbench.benchmarks.cycle_time import PROFILES, random_plant
+
+    base = load_profile(PROFILES["adaptive"])
+    covers = []
+    real = ed.design_multisine
+
+    def spy(cases, **kw):
+        covers.append(kw.get("cover_rad_s"))
+        return real(cases, **kw)
+    monkeypatch.setattr(ed, "design_multisine", spy)
+    _, prof = random_plant(9, 4, base, excitation="designed")
+    assert prof.waveforms["excite_in"].kind == "multisine" and prof.waveforms["excite_in"].design is not None
+    # the input motor's design was asked to cover its map speeds, could not, and was made plain
+    assert covers[0] is not None and covers[1] is None
+
+
 def test_output_friction_above_a_braking_torque_is_not_compensated():
     """Issue 23 (random plant 2/10): an output motor whose own friction brakes more than the
     lightest level asks would have every level compensated to zero current (no slope; it

@@ -38,7 +38,9 @@ Writes a PNG of error versus bench time.
 
 ``--per-plant`` also prints each missed target's cause (``classify_misses``: from Kt,
 stopped early, at max_s, unsettled, extrapolated loss, noise; "biased" beyond 2 sd)
-and a tally; a plant the excitation design finds no waveform for is an ERROR row.
+and a tally; where no sweep within the current limit covers a motor's map speeds, the
+plain design (as the profile's own design falls back), and a plant the excitation design
+finds no waveform for at all is an ERROR row.
 
 The adaptive procedure's incremental error on the cvt plant is mostly where each level
 happened to stop: the output motor's calibrated friction sets the braking levels and
@@ -384,8 +386,17 @@ def designed_waveform(profile, step):
                      friction_nm=DEFAULT_FRICTION_SHARE * m.kt_datasheet * m.rated_current_a,
                      counts_per_rev=m.counts_per_rev, name=step.motor)
     dur = step.min_s if step.adaptive else step.duration_s
-    d = design_multisine([case], duration_s=dur, period_s=profile.bench.period_s, cover_rad_s=cover,
-                         min_tones=DESIGN_MIN_TONES, max_tone_hz=DESIGN_MAX_TONE_HZ)
+    kw = dict(duration_s=dur, period_s=profile.bench.period_s, min_tones=DESIGN_MIN_TONES,
+              max_tone_hz=DESIGN_MAX_TONE_HZ)
+    try:
+        d = design_multisine([case], cover_rad_s=cover, **kw)
+    except ValueError:
+        # as the profile's own design does (``design.design_waveform``): where the current
+        # limit lets no sweep cover the map's speeds (a large disk on a small motor), the
+        # plain design; the result then names each motor loss it extrapolates
+        if not cover:
+            raise
+        d = design_multisine([case], **kw)
     return WaveformSpec(step.waveform, "multisine", {**d.params, "design": "optimal"}, design=d)
 
 
