@@ -165,6 +165,54 @@ def test_cycle_time_says_why_a_target_was_missed():
     assert s["meets"] and s["meets_all"] and s["why_missed"] == []
 
 
+def test_cycle_time_says_how_far_a_miss_at_max_s_stayed_from_its_target():
+    """Issue 23's triage: a miss at max_s is told apart by how far its interval stayed
+    above the target (near 1: the budget's share can close it; far above: only more
+    information per second), from the measurements that carry the missed target only."""
+    from gearbench.benchmarks.cycle_time import score
+
+    point = {"eta_incremental": 0.8, "eta_incremental_std": 0.002, "eta_absolute": 0.7,
+             "eta_absolute_std": 0.001, "speed_setpoint_rad_s": 100.0, "torque_setpoint_nm": 0.1}
+    res = {"status": "passed", "bench_time_s": 18.0,
+           "simulation_truth": {"motors": {"in": {"Kt": 1.0}, "out": {"Kt": 1.0}},
+                                "efficiency": [{"eta_incremental": 0.8, "eta_absolute": 0.7}] * 12},
+           "motors": {"in": {"Kt": 1.003, "Kt_std": 0.002}, "out": {"Kt": 1.0, "Kt_std": 0.001}},
+           "efficiency": [point] * 12,
+           "measurements": [
+               {"kind": "calibrate", "motor": "in", "stopped_by": "max", "interval_reached": 2.1e-3, "target": 7e-4},
+               {"kind": "calibrate", "motor": "out", "stopped_by": "max", "interval_reached": 7e-3, "target": 7e-4},
+               {"kind": "efficiency", "speed_in_rad_s": 100.0, "stopped_by": "max", "interval_reached": 0.3,
+                "target": 0.15}]}
+    s = score(res)
+    # Kt in misses (0.3 %) with its run 3x short; Kt out meets, so its 10x run is not counted
+    assert s["causes"][0] == "Kt: at max_s" and s["shortfall"] == pytest.approx(3.0)
+    ok = {**res, "motors": {m: {"Kt": 1.0, "Kt_std": 0.001} for m in ("in", "out")}}
+    assert score(ok)["shortfall"] is None                  # every target met: nothing short
+    slow = {**ok, "efficiency": [point] * 11 + [{**point, "eta_incremental": 0.803}]}
+    assert score(slow)["causes"] == ["incr: at max_s"] and score(slow)["shortfall"] == pytest.approx(2.0)
+
+
+def test_designed_calibration_falls_back_where_no_sweep_covers_the_map(monkeypatch):
+    """Random plant 4/9: a 0.039 N m/A input motor with a disk of three rotors cannot sweep
+    its map speeds (135-226 rad/s) within its rated current in 2 s; as the profile's own
+    design does, the benchmark then takes the plain design (was an ERROR row)."""
+    import gearbench.profile.excitation_design as ed
+    from gearbench.benchmarks.cycle_time import PROFILES, random_plant
+
+    base = load_profile(PROFILES["adaptive"])
+    covers = []
+    real = ed.design_multisine
+
+    def spy(cases, **kw):
+        covers.append(kw.get("cover_rad_s"))
+        return real(cases, **kw)
+    monkeypatch.setattr(ed, "design_multisine", spy)
+    _, prof = random_plant(9, 4, base, excitation="designed")
+    assert prof.waveforms["excite_in"].kind == "multisine" and prof.waveforms["excite_in"].design is not None
+    # the input motor's design was asked to cover its map speeds, could not, and was made plain
+    assert covers[0] is not None and covers[1] is None
+
+
 def test_output_friction_above_a_braking_torque_is_not_compensated():
     """Issue 23 (random plant 2/10): an output motor whose own friction brakes more than the
     lightest level asks would have every level compensated to zero current (no slope; it

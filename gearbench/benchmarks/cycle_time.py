@@ -38,7 +38,9 @@ Writes a PNG of error versus bench time.
 
 ``--per-plant`` also prints each missed target's cause (``classify_misses``: from Kt,
 stopped early, at max_s, unsettled, extrapolated loss, noise; "biased" beyond 2 sd)
-and a tally; a plant the excitation design finds no waveform for is an ERROR row.
+and a tally; where no sweep within the current limit covers a motor's map speeds, the
+plain design (as the profile's own design falls back), and a plant the excitation design
+finds no waveform for at all is an ERROR row.
 
 The adaptive procedure's incremental error on the cvt plant is mostly where each level
 happened to stop: the output motor's calibrated friction sets the braking levels and
@@ -182,6 +184,7 @@ def score(res: dict) -> dict:
     return {"kt": kt, "inc": inc, "abs": ab, "bench_time_s": res["bench_time_s"], "meets": meets,
             "meets_all": meets and max(ab, default=math.inf) <= ABS_PP,
             "why_missed": why_missed(res, kt, inc, ab), "causes": classify_misses(res, kt, inc, ab),
+            "shortfall": shortfall(res, kt, inc, ab),
             "stopped_by_max": sum(m.get("stopped_by") == "max" for m in res.get("measurements", []))}
 
 
@@ -193,8 +196,7 @@ def why_missed(res: dict, kt: list, inc: list, ab: list) -> list[str]:
     efficiency used a motor loss outside its calibrated speeds)."""
     out = []
     truth = res["simulation_truth"]
-    at_max = lambda kind: sum(m.get("stopped_by") == "max" and (m.get("interval_reached") or 0) > m["target"]
-                              for m in res.get("measurements", []) if m["kind"] == kind)
+    at_max = lambda kind: sum(_short(m) for m in res.get("measurements", []) if m["kind"] == kind)
     for (m, e) in zip(res["motors"], kt):
         if e <= GOAL["kt_pct"]:
             continue
@@ -228,19 +230,37 @@ def classify_misses(res: dict, kt: list, inc: list, ab: list) -> list[str]:
     calibrated speeds), *noise* (none of these: within its reported uncertainty);
     ``(biased)`` is appended when the error is beyond ``BIASED_SIGMAS`` of the run's own
     standard uncertainty."""
+    return [cause for cause, _ in _misses(res, kt, inc, ab)]
+
+
+def shortfall(res: dict, kt: list, inc: list, ab: list) -> float | None:
+    """How far the misses *at max_s* stayed from what the bound allows: the largest
+    interval reached / target of the max_s-ended measurements that carry them (None when
+    no miss is at max_s). Acquisition time shrinks an interval as 1/√t, so a plant short
+    by F needed about F² times its measurements' max_s: near 1 a better share of the
+    bench-time budget can close it, far above 1 only more information per second can."""
+    ratios = [m["interval_reached"] / m["target"] for cause, carriers in _misses(res, kt, inc, ab)
+              if "at max_s" in cause for m in carriers if _short(m)]
+    return max(ratios, default=None)
+
+
+def _short(m: dict) -> bool:
+    """A measurement that ended at max_s with its interval still above its target."""
+    return m.get("stopped_by") == "max" and (m.get("interval_reached") or 0) > m["target"]
+
+
+def _misses(res: dict, kt: list, inc: list, ab: list) -> list[tuple[str, list[dict]]]:
+    """``classify_misses``'s causes, each with the measurements that carry its target."""
     out = []
     truth = res["simulation_truth"]
     meas = res.get("measurements", [])
-
-    def short(m):
-        return m.get("stopped_by") == "max" and (m.get("interval_reached") or 0) > m["target"]
     for (m, e) in zip(res["motors"], kt):
         if e <= GOAL["kt_pct"]:
             continue
         runs = [r for r in meas if r["kind"] == "calibrate" and r.get("motor") == m]
-        why = "at max_s" if any(short(r) for r in runs) else "stopped early"
+        why = "at max_s" if any(_short(r) for r in runs) else "stopped early"
         sd = 100 * res["motors"][m]["Kt_std"] / truth["motors"][m]["Kt"]
-        out.append(f"Kt: {why}" + (" (biased)" if e > BIASED_SIGMAS * sd else ""))
+        out.append((f"Kt: {why}" + (" (biased)" if e > BIASED_SIGMAS * sd else ""), runs))
     pts = res["efficiency"]
     for q, errs, limit in (("incr", inc, GOAL["inc_pp"]), ("abs", ab, ABS_PP)):
         bad = [k for k, e in enumerate(errs) if e > limit]
@@ -265,13 +285,13 @@ def classify_misses(res: dict, kt: list, inc: list, ab: list) -> list[str]:
             why = "from Kt"
         elif any(not r.get("settled_in_time", True) for r in levels):
             why = "unsettled"
-        elif any(short(r) for r in levels):
+        elif any(_short(r) for r in levels):
             why = "at max_s"
         elif levels and q == "incr":
             why = "stopped early"
         else:
             why = "noise"
-        out.append(f"{q}: {why}" + (" (biased)" if errs[k] > BIASED_SIGMAS * std else ""))
+        out.append((f"{q}: {why}" + (" (biased)" if errs[k] > BIASED_SIGMAS * std else ""), levels))
     return out
 
 
@@ -366,8 +386,17 @@ def designed_waveform(profile, step):
                      friction_nm=DEFAULT_FRICTION_SHARE * m.kt_datasheet * m.rated_current_a,
                      counts_per_rev=m.counts_per_rev, name=step.motor)
     dur = step.min_s if step.adaptive else step.duration_s
-    d = design_multisine([case], duration_s=dur, period_s=profile.bench.period_s, cover_rad_s=cover,
-                         min_tones=DESIGN_MIN_TONES, max_tone_hz=DESIGN_MAX_TONE_HZ)
+    kw = dict(duration_s=dur, period_s=profile.bench.period_s, min_tones=DESIGN_MIN_TONES,
+              max_tone_hz=DESIGN_MAX_TONE_HZ)
+    try:
+        d = design_multisine([case], cover_rad_s=cover, **kw)
+    except ValueError:
+        # as the profile's own design does (``design.design_waveform``): where the current
+        # limit lets no sweep cover the map's speeds (a large disk on a small motor), the
+        # plain design; the result then names each motor loss it extrapolates
+        if not cover:
+            raise
+        d = design_multisine([case], **kw)
     return WaveformSpec(step.waveform, "multisine", {**d.params, "design": "optimal"}, design=d)
 
 
@@ -589,7 +618,8 @@ def print_plants(rows: list[dict], procedure: str = "adaptive") -> None:
         print(f"{r['plant']:>7} {kind:<5}{r.get('ratio', math.nan):6.1f}{max(r['kt']):7.3f}{max(r['inc']):8.3f}"
               f"{max(r['abs']):7.3f}{r['bench_time_s']:7.1f}/{r['bound_s']:<6.1f}{r['stopped_by_max']:7d}  {verdict}")
         if not r["in_time"]:
-            print(f"{'':>14}causes: {', '.join(r['causes'] or ['over the bound'])}")
+            short = f" (at max_s short {r['shortfall']:.1f}x)" if r.get("shortfall") else ""
+            print(f"{'':>14}causes: {', '.join(r['causes'] or ['over the bound'])}{short}")
     tally: dict[str, int] = {}
     for r in rows:
         if r["group"] == "random plants" and r["procedure"] == procedure and not r["in_time"]:
@@ -598,6 +628,14 @@ def print_plants(rows: list[dict], procedure: str = "adaptive") -> None:
     if tally:
         print("misses by cause (a plant may miss several targets): " +
               "; ".join(f"{c} {n}" for c, n in sorted(tally.items(), key=lambda kv: -kv[1])))
+    shorts = [r["shortfall"] for r in rows if r["group"] == "random plants" and r["procedure"] == procedure
+              and not r["in_time"] and r.get("shortfall")]
+    if shorts:
+        edges = (1.5, 3.0)
+        counts = np.histogram(shorts, bins=(0.0, *edges, math.inf))[0]
+        print(f"plants missing at max_s, by how far the interval stayed above its target (time needed "
+              f"~ factor squared): <= {edges[0]:g}x {counts[0]}, {edges[0]:g}-{edges[1]:g}x {counts[1]}, "
+              f"> {edges[1]:g}x {counts[2]} (median {float(np.median(shorts)):.1f}x)")
 
 
 def plot(rows: list[dict], path: Path) -> Path | None:
