@@ -539,7 +539,7 @@ def test_a_joint_that_sticks_between_point_to_point_moves_keeps_its_inertia():
     textbook filtered least squares comes as close here (J +1.3 % vs our −1.5 %) but its
     white-noise interval (±0.5 %) misses it: residuals coloured by the filter and the
     unmodelled disturbance are not white (over the benchmark's 12 such traces its J
-    interval holds the truth once, ours 11 times)."""
+    interval holds the truth once, ours 12 times)."""
     from gearbench.benchmarks._joint_stick_sim import STICK_JOINTS, simulate_stick_joint
     from gearbench.benchmarks._real import textbook_idim
 
