@@ -405,8 +405,10 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
                                     and all(_holds_speed_command(t) for t in (unloaded, loaded)))
         if kick and options["setpoint_step"]:
             # the sample is taken at the encoder's instant: the exact relation has no
-            # current delay to fit (``identify._setpoint_steps``)
+            # current delay to fit (``identify._setpoint_steps``); no kick where the
+            # drive sits at its declared current limit (``identify._below_current_limit``)
             options.setdefault("lag", False)
+            options.setdefault("current_limit_a", _declared_current_limit(unloaded, loaded))
 
     def fits(opts):
         return tuple(identify_trace(t, method=method, **opts) for t in (unloaded, loaded))
@@ -469,6 +471,14 @@ def _declared_kick(unloaded: Trace, loaded: Trace) -> bool | None:
     if len(said) != 1 or None in said:
         return None
     return said.pop() == "kick"
+
+
+def _declared_current_limit(unloaded: Trace, loaded: Trace) -> float | None:
+    """The drive's current limit both runs' descriptions give (``meta["drive"]``
+    ``current_limit_a``), or None when they do not say or disagree."""
+    said = {(t.meta.get("drive") or {}).get("current_limit_a") for t in (unloaded, loaded)}
+    limit = said.pop() if len(said) == 1 else None
+    return float(limit) if limit else None
 
 
 def _carries_setpoint_step(fit: IdentificationResult) -> bool:

@@ -230,9 +230,11 @@ def drive_description(motor) -> dict:
     """What a station knows of the drawn drive from its description, as the analysis
     reads it (``identify.drive_sampling``): whether it ramps between SYNC setpoints
     (CiA 402 cyclic synchronous velocity with 0x60C2 set) or steps, and whether its
-    current object is a period mean or one sample. Nothing of the motor."""
+    current object is a period mean or one sample, and its current limit (CiA 402 max
+    current 0x6073, a drive setting). Nothing of the motor."""
     return {"setpoint": "interpolated" if motor.setpoint_interpolation else "step",
-            "current": "mean" if motor.current_avg_s > 0 else "instant"}
+            "current": "mean" if motor.current_avg_s > 0 else "instant",
+            "current_limit_a": float(motor.current_limit_a)}
 
 
 def simulate_case(case: Case) -> dict:
