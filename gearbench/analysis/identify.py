@@ -1314,7 +1314,8 @@ def drive_sampling(trace) -> str | None:
     ``setpoint`` ``step``/``interpolated``, ``current`` ``instant``/``mean``): ``"kick"``
     when it steps its speed setpoint each SYNC *and* samples its current at one instant
     (``_setpoint_steps``: a setpoint-step term belongs in the model), ``"plain"`` when it
-    says otherwise, None when it does not say.
+    says otherwise, None when it does not say. An optional ``current_limit_a`` (the
+    current the drive clamps at) is read by ``calibration.calibrate_motor``.
 
     Raises TraceError naming the field for a value it does not know."""
     drive = trace.meta.get("drive")

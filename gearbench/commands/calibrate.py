@@ -41,6 +41,10 @@ def add_arguments(p) -> None:
                         "period); as the profile's motors.<m>.sampling.current. With --drive-setpoint step, "
                         "instant declares the current kick a stepped setpoint gives and the fit models it; "
                         "left out, the fit tests for it")
+    p.add_argument("--drive-current-limit", type=float, default=None, metavar="A",
+                   help="the current the drive clamps at (CiA 402 0x6073; the profile's "
+                        "motors.<m>.current_limit_a): with --drive-setpoint step and --drive-current "
+                        "instant, samples at the limit carry no setpoint kick")
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
 
@@ -60,6 +64,8 @@ def run(args) -> int:
     if args.drive_setpoint is not None:
         for tr in (unloaded, loaded):
             tr.meta["drive"] = {"setpoint": args.drive_setpoint, "current": args.drive_current}
+            if args.drive_current_limit:
+                tr.meta["drive"]["current_limit_a"] = args.drive_current_limit
     disk_std = tolerance_std(tol * args.inertia, args.inertia_source)
     cal = calibrate_motor(unloaded, loaded, args.inertia, method=args.method, disk_std_kgm2=disk_std)
     if args.json:

@@ -429,7 +429,7 @@ class Sequencer:
             unloaded, loaded = (self._motor_run(self.traces[name], m) for name in (action.unloaded, action.loaded))
             cal = analyse.calibrate(unloaded, loaded, motor=m, disk_kgm2=action.disk_kgm2, method=self.method,
                                     disk_std_kgm2=action.disk_std_kgm2, disk_name=action.disk_name,
-                                    sampling=self.profile.motors[m].sampling)
+                                    sampling=_drive_description(self.profile.motors[m]))
             self.calibrations[m] = cal
             self.emit(Calibration(m, cal))
             return
@@ -523,3 +523,12 @@ class Sequencer:
         # no rounding noise beside real values (-2.8e-14 beside 241): the same numbers in the
         # returned result as in result.json and the databases
         return round_floats(result)
+
+
+def _drive_description(spec) -> dict | None:
+    """How the motor's drive samples (the profile's ``sampling``) and the current limit it
+    clamps at (``current_limit_a``, 0x6073): where it sits at the limit a stepped
+    setpoint gives no current kick (``identify._below_current_limit``)."""
+    if not spec.sampling:
+        return None
+    return {**spec.sampling, "current_limit_a": float(spec.current_limit_a)}
