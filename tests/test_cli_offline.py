@@ -257,3 +257,11 @@ def test_calibrate_takes_the_drives_sampling_as_a_profile_does(capsys, tmp_path)
     assert abs(said["Kt"] / kt - 1) <= 0.002
     assert abs(plain["Kt"] / kt - 1) > 2 * abs(said["Kt"] / kt - 1)   # undeclared: biased
     bad(capsys, *base, "--drive-setpoint", "step", must=("--drive-current",))
+    bad(capsys, *base, "--drive-current-limit", "3", must=("--drive-setpoint",))
+    bad(capsys, *base, "--drive-setpoint", "step", "--drive-current", "instant",
+        "--drive-current-limit", "-1", must=("--drive-current-limit must be",))
+    # the limit declared as the drive has it: the same motor, samples at 3 A carry no kick
+    code, out, _ = run(capsys, *base, "--drive-setpoint", "step", "--drive-current", "instant",
+                       "--drive-current-limit", case.plant.motor_in.current_limit_a)
+    limited = json.loads(out)
+    assert code == 0 and abs(limited["Kt"] / kt - 1) <= 0.0025

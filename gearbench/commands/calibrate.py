@@ -61,11 +61,18 @@ def run(args) -> int:
     if (args.drive_setpoint is None) != (args.drive_current is None):
         raise GearbenchError("--drive-setpoint and --drive-current go together (both say how the drive "
                              "samples, as a profile's motors.<m>.sampling); pass both or neither")
+    limit = args.drive_current_limit
+    if limit is not None and not (math.isfinite(limit) and limit > 0):
+        raise GearbenchError(f"--drive-current-limit must be the drive's current limit in A, > 0 "
+                             f"(got {limit}); e.g. --drive-current-limit 3")
+    if limit is not None and args.drive_setpoint is None:
+        raise GearbenchError("--drive-current-limit goes with --drive-setpoint and --drive-current "
+                             "(it says where a stepping drive's setpoint kick is clipped); pass them too")
     if args.drive_setpoint is not None:
         for tr in (unloaded, loaded):
             tr.meta["drive"] = {"setpoint": args.drive_setpoint, "current": args.drive_current}
-            if args.drive_current_limit:
-                tr.meta["drive"]["current_limit_a"] = args.drive_current_limit
+            if limit is not None:
+                tr.meta["drive"]["current_limit_a"] = limit
     disk_std = tolerance_std(tol * args.inertia, args.inertia_source)
     cal = calibrate_motor(unloaded, loaded, args.inertia, method=args.method, disk_std_kgm2=disk_std)
     if args.json:
