@@ -78,6 +78,10 @@ STOP_FRACTION = 0.1
 # the first version (1e-6) took 2-3 more fresh Jacobians (20 replays each) on a hidden cyclo
 # run for S/n 1.2816 -> 1.2815
 STOP_GAIN = 3e-5
+# an iteration that gained less than this fraction of S is followed by one on Broyden's
+# update of its Jacobian, not a fresh one (21-23 replays): near the minimum the Jacobian
+# hardly changes; a fresh one is taken when the carried one fails, and before the fit stops
+REFRESH_GAIN = 0.01
 FD_WEAK = {"D": 40.0, "current_lag_s": 10.0, "eta_mesh": 10.0, "eta_max": 10.0, "ripple_amp": 10.0}
 MIN_DROP = 25.0        # held-out S must fall by this many floors² ...
 MIN_SHRINK = 0.05      # ... and by this fraction of itself (a stalled fit leaves a few % to any candidate)
@@ -510,6 +514,7 @@ def fit(prob: Problem, params: list[Param], *, iterations: int = 8, mask: np.nda
     lam = 1e-3
     fd = FD_REL
     jac, at_u, done, n_fresh, need_fresh = None, False, 0, 0, True
+    carry = False     # the next iteration on the Broyden-updated Jacobian (REFRESH_GAIN)
 
     def step_from(jac, lam):
         # in units of each parameter's scale: H spans 1e-10..1e20 in SI and loses the step
@@ -522,7 +527,8 @@ def fit(prob: Problem, params: list[Param], *, iterations: int = 8, mask: np.nda
     for it in range(iterations):
         if it == 0 and jac0 is not None and jac0.shape == (len(r), len(params)):
             jac, at_u = jac0, False
-        elif jac is None or max_fresh is None or (need_fresh and n_fresh < max_fresh):
+        elif jac is None or (need_fresh and (max_fresh is None or n_fresh < max_fresh)) \
+                or (max_fresh is None and not carry):
             jac, at_u = _jacobian(prob, params, u, r, fd=fd), True
             n_fresh += 1
         fresh_now = at_u
@@ -577,8 +583,14 @@ def fit(prob: Problem, params: list[Param], *, iterations: int = 8, mask: np.nda
         # the gain stops it (a Kt saturation's refit on a hidden cyclo run stopped at S/n 603,
         # its misfit's intervals wider than the steps still to take)
         near = S / max(int(sel.sum()), 1) <= MODEL_LIMITED_S_N
-        if (near and np.all(np.abs(u - u_start) <= STOP_FRACTION * half)) or (S_start - S) / S_start < STOP_GAIN:
+        stop = (near and np.all(np.abs(u - u_start) <= STOP_FRACTION * half)) or (S_start - S) / S_start < STOP_GAIN
+        if stop and not fresh_now and max_fresh is None:
+            # a carried Jacobian's small step is no proof of the minimum: one fresh Jacobian first
+            carry = False
+            continue
+        if stop:
             break
+        carry = (S_start - S) / S_start < REFRESH_GAIN
     for p, v in zip(params, u):
         p.value = float(v)
     out = {"S": S, "S0": S0, "n": int(sel.sum()), "jac": jac, "r": r, "u": u, "iterations": done}
