@@ -326,11 +326,17 @@ def test_the_profile_interval_of_a_backlash_holds_its_truth():
     params = [p for p in F.base_params(BLOCK) if p.path in ("motors.in.Kt", "ratio", "eta_mesh")]
     params.append(F.Param("backlash_rad", 0.014, 0.005, 1e-5, fd_factor=40.0, profile=True))
     res = F.fit(prob, params, iterations=2)
+    before = {p.path: p.interval for p in params}
     prof = F.apply_profiles(prob, params, res["jac"], res["r"])
     assert prof and prof[0]["path"] == "backlash_rad"
     bl = params[-1]
     assert bl.interval == pytest.approx(prof[0]["interval"])
     assert abs(bl.value - 0.02) <= bl.interval < 0.02, (bl.value, bl.interval)
+    # the ratio follows the gap along its profile: its interval carries the gap's uncertainty
+    # (it held the gap fixed before); none is narrowed
+    after = {p.path: p.interval for p in params}
+    assert after["ratio"] > 1.5 * before["ratio"], (before, after)
+    assert all(after[k] >= before[k] for k in before if k != "backlash_rad"), (before, after)
 
 
 def test_ripple_and_cogging_of_one_order_are_said_ambiguous_when_collinear():
