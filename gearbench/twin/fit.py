@@ -150,6 +150,9 @@ class Param:
     sigma: float = float("nan")       # standard error (the largest of the three covariances)
     model_bias: float = float("nan")  # b, the model-error share (module docstring)
     resolution: float = 0.0           # the data's resolution, added linearly (the ratio's)
+    # the whole Jacobian's interval before a profiled parameter's uncertainty was carried in
+    # (``apply_profiles``; nan when none was)
+    jacobian_interval: float = float("nan")
 
     def written(self, v: float | None = None, kt: dict | None = None) -> float:
         v = self.value if v is None else v
@@ -1172,6 +1175,7 @@ def apply_profiles(prob: Problem, params: list[Param], jac: np.ndarray, r: np.nd
         for i, pr in done:
             carry_profile(params, i, pr, rest)
         for k, (iv, sg, mb) in full.items():
+            params[k].jacobian_interval = iv
             if not params[k].interval >= iv:
                 params[k].interval, params[k].sigma, params[k].model_bias = iv, sg, mb
     return out
