@@ -105,10 +105,6 @@ MODEL_LIMITED_S_N = 1.5
 ORDERS_TRIED = 3      # ripple orders replayed per axis, best linearised held-out gain first (``residual_orders``)
 # the Kt saturation's scan: s = the axis's peak |current| × these (s ≫ peak is "off")
 SAT_SCAN = (0.5, 0.7, 1.0, 1.4, 2.0, 3.0, 5.0)
-# a scan after the first round tries the last round's best grid value and this many
-# neighbours on each side (3 replays, not 7 or 12 a round): a model that moved by one effect
-# moves a nonlinear effect's basin by less than a grid step (the grids are ×1.4-1.7 apart)
-SCAN_NEIGHBOURS = 1
 # a scan whose best S (others linearised) is under this fraction of the fit's S is screened
 # by a short refit, not one Gauss-Newton step (``add_effects``)
 SCAN_REFIT = 0.5
@@ -747,7 +743,6 @@ def add_effects(prob: Problem, params: list[Param], *, max_effects: int = 4, ver
     chain = []
     fit_fold, held = folds(prob)
     tried_out: set = set()
-    scan_best: dict = {}   # candidate -> index of its scan's best value on its grid, last round
     refitted = False
     for _ in range(max_effects):
         u = np.array([p.value for p in params])
@@ -786,15 +781,7 @@ def add_effects(prob: Problem, params: list[Param], *, max_effects: int = 4, ver
             if len(extra) == 1 and extra[0].scan:
                 # a nonlinear effect: start from the best of its scan (the others linearised)
                 anchors = [u] + ([start_values(prob, params)] if Sh_base / nh > MODEL_LIMITED_S_N else [])
-                grid = extra[0].scan
-                if key in scan_best:
-                    # a later round: the previous round's best and its neighbours on the grid
-                    j = scan_best[key]
-                    extra[0].scan = grid[max(j - SCAN_NEIGHBOURS, 0):j + SCAN_NEIGHBOURS + 1]
                 extra[0].value, table, k = scan_start(sub, params, anchors, jac, fit_fold, extra[0])
-                if table:
-                    scan_best[key] = int(np.argmin([abs(g - extra[0].value) for g in grid]))
-                extra[0].scan = grid
                 prob.evaluations += sub.evaluations
                 sub.evaluations = 0
                 best = min(S for _, S in table) if table else float("inf")
