@@ -15,7 +15,8 @@ Sections (``--sections``, all by default):
 * emps: the real EMPS axis, its force replayed in torque mode.
 
 Runs and twin fits are cached (``--cache``, default /tmp/gearbench-twin-bench): a run
-takes ~20-30 s, a twin fit 600-650 replays (about 3.5 min at 0.32 s per replay on an idle core; 4-18 min measured at load 7-8).
+takes ~20-30 s, a twin fit 440-610 replays (measured at load 2-5: cvt 40-65 s, cyclo 330-450 s;
+the cyclo's backlash needs 87 substeps a sample instead of 20).
 
     python -m gearbench.benchmarks twin [--cases cvt,cyclo] [--sections ...] [--cache DIR]
                                         [--hidden-set main|alt|alt2] [--seed N]
