@@ -15,7 +15,8 @@ Sections (``--sections``, all by default):
 * emps: the real EMPS axis, its force replayed in torque mode.
 
 Runs and twin fits are cached (``--cache``, default /tmp/gearbench-twin-bench): a run
-takes ~20-30 s, a twin fit 600-650 replays (about 3.5 min at 0.32 s per replay on an idle core; 4-18 min measured at load 7-8).
+takes ~20-30 s, a twin fit 440-610 replays (measured at load 2-5: cvt 40-65 s, cyclo 330-450 s;
+the cyclo's backlash needs 87 substeps a sample instead of 20).
 
     python -m gearbench.benchmarks twin [--cases cvt,cyclo] [--sections ...] [--cache DIR]
                                         [--hidden-set main|alt|alt2] [--seed N]
@@ -158,7 +159,7 @@ def _param_table(rep: dict, tv, truth: dict) -> bool:
     """parameter, truth, fitted, error, the 95 % interval (and its width in % of the
     truth beside the error in %), within; returns whether every moved one is within."""
     print(f"{'parameter':<28} {'truth':>11} {'fitted':>11} {'error %':>8} {'±95 %':>10} {'±95 % %':>8} "
-          f"{'within':>6} {'moved':>5}")
+          f"{'within':>6} {'moved':>5} {'Jacobian ±95 % %':>16}")
     n_in = n_moved_in = n_moved = 0
     for p in rep["parameters"]:
         t = tv(p["path"])
@@ -171,9 +172,19 @@ def _param_table(rep: dict, tv, truth: dict) -> bool:
         n_moved_in += moved and within
         rel = (lambda x: f"{100 * x / abs(t):8.2f}") if t else (lambda x: f"{'-':>8}")
         print(f"{p['path']:<28} {t:11.5g} {p['fitted']:11.5g} {rel(p['fitted'] - t)} {p['interval95']:10.3g} "
-              f"{rel(p['interval95'])} {'yes' if within else 'NO':>6} {'*' if moved else '':>5}")
+              f"{rel(p['interval95'])} {'yes' if within else 'NO':>6} {'*' if moved else '':>5} "
+              f"{_jacobian_pct(p, t):>16}")
     print(f"within their interval: {n_in}/{len(rep['parameters'])} (moved parameters: {n_moved_in}/{n_moved})")
     return n_moved_in == n_moved
+
+
+def _jacobian_pct(p: dict, truth: float) -> str:
+    """The whole Jacobian's half-width in % of the truth, before the profiles' uncertainty
+    was carried in (``fit.carry_profile``), where it differs; else blank."""
+    j = p.get("interval95_jacobian")
+    if j is None or j != j or not truth or abs(j - p["interval95"]) <= 1e-12 * abs(truth):
+        return ""
+    return f"{100 * j / abs(truth):.2f}"
 
 
 def unit2(case: str, hidden: Path, twin_yaml: Path, run1: Path, cache: Path, nominal: Path) -> bool:

@@ -140,7 +140,7 @@ def run(args) -> int:
     report["parameters"] = [{"path": p.path, "start": start_values.get(p.path, 0.0), "fitted": fitted_values[p.path],
                              "before_effects": base_values.get(p.path),
                              "interval95": p.interval, "sigma": p.sigma, "model_bias": p.model_bias,
-                             "resolution": p.resolution,
+                             "resolution": p.resolution, "interval95_jacobian": p.jacobian_interval,
                              "effect": p.effect} for p in params]
     _print_params(report["parameters"])
     s_n = chain[-1]["remaining"] if chain else res["S"] / res["n"]
