@@ -952,9 +952,9 @@ def equation_weight(velocity: np.ndarray, standstill_speed_: float, dt_s: float,
     breakaway transition, which sign(ω) does not describe), then rising to 1 over as
     many samples again (raised cosine). A dwell where the drive pushes (``_pushed``:
     the current's running mean beyond noise) on fewer than ``STICK_MARGIN_S`` worth of
-    samples (at least ``PUSHED_MIN_SAMPLES``, at most half the dwell) is a rotor at rest that nothing pushes (before a speed
-    step from rest): J θ'' = Kt i = 0 holds there, it stays in
-    (weight 1; the caller sets its friction to zero). The weight multiplies
+    samples (at least ``PUSHED_MIN_SAMPLES``, at most half the dwell) is a rotor at
+    rest that nothing pushes (before a speed step from rest): J θ'' = Kt i = 0 holds
+    there, it stays in (weight 1; the caller sets its friction to zero). The weight multiplies
     the raw equation before the filter (``derivatives.weighted_derivatives``), so
     the fit stays exact on what remains; the intervals then count only what remains.
 
