@@ -72,7 +72,8 @@ class SimNetwork(ModbusNetwork):
         return words
 
     def _send_reads(self, spans=None) -> None:
-        self._t_sent, now = self.clock.t, self._now_counter()
+        self._t_sent = self._t_out = self.clock.t
+        now = self._now_counter()
         self._words = {}
         for d in self.drives.values():
             if spans is None:

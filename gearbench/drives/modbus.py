@@ -333,7 +333,8 @@ class ModbusNetwork(DriveNetwork):
         self._held: list = []          # samples taken (by _drain or a late read) but not yet returned
         self._sent: list = []
         self._words: dict = {}
-        self._t_sent = 0.0
+        self._t_sent = 0.0             # when the reads started going out
+        self._t_out = 0.0              # when the last of them had been handed to the kernel
         self.polls_late = 0            # reads that fell in a later cell than scheduled (a loss each)
         self.poll_late_max_s = 0.0     # the latest a read was sent after its due time
         self.repolls = 0               # reads that came too early (a probe before the cell) and were repeated
@@ -492,7 +493,7 @@ class ModbusNetwork(DriveNetwork):
                     return self._held.pop(0)
                 continue
             self._send_reads()
-            self._pending = (self._cell, due, self._t_sent)
+            self._pending = (self._cell, due, self._t_sent, self._t_out)
             self._cell += 1
             if result is not None:
                 return result
@@ -596,8 +597,7 @@ class ModbusNetwork(DriveNetwork):
         deadline = time.monotonic() + max(0.1, 50 * self.period_s)
         while True:
             self._send_reads()
-            t_sent = self._t_sent
-            out = self._account(expected, due, t_sent, self._receive_reads())
+            out = self._account(expected, due, self._t_sent, self._t_out, self._receive_reads())
             if out is not None or self._cell != expected:
                 return out
             if time.monotonic() > deadline:
@@ -616,13 +616,15 @@ class ModbusNetwork(DriveNetwork):
             self._pending = None
             self._take_history(a, n, t_sent, due_counter, self._receive_reads())
             return None
-        expected, due, t_sent = self._pending
+        expected, due, t_sent, t_out = self._pending
         self._pending = None
-        return self._account(expected, due, t_sent, self._receive_reads())
+        return self._account(expected, due, t_sent, t_out, self._receive_reads())
 
-    def _account(self, expected: int, due: float, t_sent: float, words: dict) -> dict[str, Sample] | None:
-        """The samples of a read meant for cell ``expected``, sent at ``t_sent`` (due ``due``); None
-        when it fell before that cell (it is read again). Lateness and losses are counted."""
+    def _account(self, expected: int, due: float, t_sent: float, t_out: float,
+                 words: dict) -> dict[str, Sample] | None:
+        """The samples of a read meant for cell ``expected``, sent from ``t_sent`` to ``t_out`` (due
+        ``due``); None when it fell before that cell (it is read again). Lateness and losses are
+        counted."""
         first, sched = next(iter(self.drives.values())), self.schedule
         self.poll_late_max_s = max(self.poll_late_max_s, t_sent - due)
         c = self._counter(first, words[first.name])
@@ -640,8 +642,9 @@ class ModbusNetwork(DriveNetwork):
         else:
             self.polls_late += 1
             # sent after its cell had ended: the master was not run in time (a host stall, as the
-            # host timer floor shows); else the drive's clock was ahead of the schedule
-            if t_sent >= sched.cell_end_s(expected):
+            # host timer floor shows; one between the stamp and the send counts: t_out); else the
+            # drive's clock was ahead of the schedule
+            if t_out >= sched.cell_end_s(expected):
                 self.lost_sent_late += cell - expected
             else:
                 self.lost_misplaced += cell - expected
@@ -678,9 +681,10 @@ class ModbusNetwork(DriveNetwork):
         return self._receive_reads()
 
     def _send_reads(self, spans: dict | None = None) -> None:
-        """Every drive's sample read; ``_t_sent`` = when. One request outstanding per connection (a
-        Modbus TCP server may take one at a time: pymodbus's answers only the first of two sent
-        together), so the reads of drives on different connections (real drives: one IP each) go
+        """Every drive's sample read; ``_t_sent`` = when it started, ``_t_out`` = when the last
+        request had been handed to the kernel (a host stall in between makes a read late, not
+        misplaced). One request outstanding per connection (a Modbus TCP server may take one at a
+        time: pymodbus's answers only the first of two sent together), so the reads of drives on different connections (real drives: one IP each) go
         out together, those sharing one are read in turn, and only each connection's last read is
         left outstanding (``_receive_reads`` takes its answer)."""
         self._t_sent = time.monotonic()
@@ -696,6 +700,7 @@ class ModbusNetwork(DriveNetwork):
                 self._words[d.name] = self._receive(sock, d, self._request(sock, d, spans))
             sent.append((sock, drives[-1], self._request(sock, drives[-1], spans)))
         self._sent = sent
+        self._t_out = time.monotonic()
 
     def _request(self, sock: socket.socket, d: ModbusDrive, spans: dict | None = None) -> int:
         """Send a read of ``d``'s sample block (or of ``spans[d.name]`` = (address, words))."""
