@@ -167,12 +167,11 @@ def _pooled(outs):
     return hits, n, deff, low, high
 
 
-@pytest.mark.xfail(strict=True, reason="issue 23 item 2 open: since stuck stretches are left out "
-                   "(reversing plants honest), seed 1's pooled intervals hold the truth 317/320, "
-                   "above the two-sided bound 313: too wide (forward plants over-cover)")
 def test_pooled_intervals_are_not_too_wide_on_a_held_out_seed(seed1_runs):
     """The upper side of the pooled two-sided check: all intervals holding is a failure
-    too (intervals wider than the data needs)."""
+    too (intervals wider than the data needs). Seed 1 held 317/320 with the fixed Kt
+    model term (above the bound); 314/320 since Kt's model error is measured per
+    calibration (``calibration.MODEL_VARIANTS``)."""
     outs, _ = _summary(seed1_runs)
     hits, n, deff, low, high = _pooled(outs)
     assert hits / deff <= high, (f"pooled: {hits}/{n} intervals hold the truth (design effect {deff:.2f}), "
@@ -180,7 +179,8 @@ def test_pooled_intervals_are_not_too_wide_on_a_held_out_seed(seed1_runs):
 
 
 def test_without_the_model_error_terms_the_same_intervals_under_cover(seed1_runs, monkeypatch):
-    """The check above can fail: without the unshared b2 model error (MODEL_B2_REL) the
+    """The check above can fail: without the unshared b2 model error (MODEL_B2_REL, for
+    the default measured per calibration: calibration.MODEL_VARIANT_SPREAD) the
     Kt intervals hold the truth clearly less often (seed 1: 72/80 against 77/80; the
     overlapping covariance alone covers the efficiency points since it replaced the
     disjoint blocks, so LOSS_RUN_SPREAD no longer decides those)."""
@@ -188,6 +188,7 @@ def test_without_the_model_error_terms_the_same_intervals_under_cover(seed1_runs
     import gearbench.analysis.torque_constant as tq
     with_terms = _cover_counts(_summary(seed1_runs)[0])["kt"]
     monkeypatch.setattr(tq, "MODEL_B2_REL", 0.0)
+    monkeypatch.setattr(cal, "MODEL_VARIANT_SPREAD", 0.0)
     monkeypatch.setattr(cal, "LOSS_RUN_SPREAD", 0.0)
     hits, n = _cover_counts(_summary(seed1_runs)[0])["kt"]
     assert hits <= with_terms[0] - 3 and hits / n < 0.93, ("kt", hits, n, with_terms)

@@ -177,3 +177,52 @@ def test_correlated_runs_give_kt_from_their_difference():
     plus = torque_constant(fu, fl, DISK, model_b2_rel=0.0, b2_covariance=c)
     minus = torque_constant(fu, fl, DISK, model_b2_rel=0.0, b2_covariance=-c)
     assert plus.statistical_std < 0.7 * base.statistical_std < base.statistical_std < minus.statistical_std
+
+
+def test_kt_model_error_is_measured_from_the_runs_under_other_models():
+    """The default's Kt model error is the runs' own spread under the other defensible
+    models (current delay, no cogging, accel form), (Δ/2)² each, and the two halves'
+    spread beyond noise, instead of the fixed
+    MODEL_B2_REL: where they disagree the interval widens, and it holds the truth
+    (robustness seed 0, case 0, input motor)."""
+    from gearbench.analysis.calibration import MODEL_VARIANT_SPREAD, MODEL_VARIANTS, calibrate_motor
+    from gearbench.benchmarks import robustness as R
+    case = R.draw_case(0, 0)
+    m = case.plant.motor_in
+    u, lo = R.simulate_case(case)["runs"]["in"]
+    fixed = calibrate_motor(u, lo, case.disks_kgm2["in"], model_variants=False)
+    cal = calibrate_motor(u, lo, case.disks_kgm2["in"])
+    diffs = cal.fit["model_variant_difference"]
+    assert set(diffs) == set(MODEL_VARIANTS) | {"split run"}
+    variants = MODEL_VARIANT_SPREAD * sum(diffs[n] ** 2 for n in MODEL_VARIANTS)
+    excess = max(MODEL_VARIANT_SPREAD * diffs["split run"] ** 2
+                 - cal.fit["Kt_std_statistical"] ** 2, 0.0)
+    assert cal.fit["Kt_std_model"] == pytest.approx(np.sqrt(variants + excess))
+    # this plant's runs disagree under the other models: wider than the fixed term
+    assert cal.Kt == fixed.Kt and cal.Kt_std > 1.5 * fixed.Kt_std
+    assert cal.Kt_ci95[0] <= m.Kt <= cal.Kt_ci95[1]
+
+
+def test_a_refused_model_variant_measures_nothing():
+    """``_with_model_variant_spread``: a variant the data refuses adds nothing; where none
+    can be calibrated the fixed term is kept."""
+    from types import SimpleNamespace
+
+    from gearbench.analysis.calibration import MotorCalibration, _with_model_variant_spread
+    from gearbench.errors import ExcitationError
+    cal = MotorCalibration(Kt=0.1, Kt_ci95=(0.099, 0.101), J=1e-5, D=0.0, Tc=0.0, method="default",
+                           fit={"Kt_std_model": 3e-4}, Kt_std=5e-4, Kt_dof=100)
+
+    def refuse(name):
+        raise ExcitationError(name)
+
+    assert _with_model_variant_spread(cal, refuse) is cal
+    assert _with_model_variant_spread(cal, refuse, half=refuse) is cal
+
+    def one(name):
+        if name != "accel form":
+            raise ExcitationError(name)
+        return SimpleNamespace(Kt=0.1 + 2e-4)
+    out = _with_model_variant_spread(cal, one)
+    assert out.fit["model_variant_difference"] == {"accel form": pytest.approx(2e-4)}
+    assert out.Kt_std == pytest.approx(np.sqrt(5e-4 ** 2 - 3e-4 ** 2 + 1e-4 ** 2))

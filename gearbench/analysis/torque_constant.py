@@ -35,6 +35,8 @@ from .uncertainty import DOF_MAX, interval
 
 # Relative b2 error not shared by the two runs (1 sigma). Chosen on robustness seed 0
 # (Kt coverage 84 % -> 94 %), checked on seeds 1-3 (see the robustness benchmark).
+# ``calibration.calibrate_motor`` replaces it for the default method by the runs' own Kt
+# spread under other models (``calibration.MODEL_VARIANTS``).
 MODEL_B2_REL = 5e-4
 
 
