@@ -392,3 +392,35 @@ def test_a_replay_of_the_same_plant_is_not_repeated():
     on["motors"]["out"]["ripple_amp"] = 0.01
     assert not np.array_equal(prob.residual_vector(on), r1) and prob.evaluations == 2
     assert prob.residual_vector(BLOCK, smooth=False) is not r1 and prob.evaluations == 3
+
+
+def test_a_refit_on_a_retargeted_run_recovers_the_replay_that_made_its_data():
+    """``Problem.retargeted``: the data replaced by a noise-free replay; the smoothed fit
+    on it from a moved start comes back to that replay's parameters up to the smoothing's
+    own bias (what ``smoothing_shift`` measures), far inside the move."""
+    rec = _record(BLOCK, _segments(n_cal=600, n_eff=800))
+    prob = F.Problem(rec, copy.deepcopy(BLOCK), Q)
+    params = [p for p in F.base_params(BLOCK) if p.path in ("motors.in.Kt", "motors.out.Tc", "eta_mesh")]
+    target = F.with_params(BLOCK, params)
+    r_exact = prob.residual_vector(target, smooth=False)
+    sub = prob.retargeted(r_exact)
+    assert np.max(np.abs(sub.residual_vector(target, smooth=False))) == 0.0
+    assert prob.residual_vector(target, smooth=False) is r_exact     # the cache is untouched
+    u0 = np.array([p.value for p in params])
+    for p, f in zip(params, (1.03, 0.9, 1.02)):
+        p.value *= f
+    F.fit(sub, params, iterations=6, intervals=False)
+    u = np.array([p.value for p in params])
+    assert np.all(np.abs(u / u0 - 1) < np.array([0.03, 0.1, 0.02]) / 4), u / u0 - 1
+
+
+def test_the_smoothing_shift_is_taken_off_the_value_and_kept_as_the_model_bias(monkeypatch):
+    params = [F.Param("a", 2.0, 1.0), F.Param("b", 5.0, 1.0)]
+    for p in params:
+        p.sigma, p.model_bias = 0.1, -0.1
+    monkeypatch.setattr(F, "smoothing_shift", lambda prob, ps, jac: np.array([0.2, -0.05]))
+    F.correct_smoothing_shift(None, params, None)
+    assert [p.value for p in params] == pytest.approx([1.8, 5.05])
+    # the larger of the measured shift and the earlier estimate
+    assert [p.model_bias for p in params] == pytest.approx([0.2, -0.1])
+    assert [p.interval for p in params] == pytest.approx([1.96 * 0.1 + 0.2, 1.96 * 0.1 + 0.1])
