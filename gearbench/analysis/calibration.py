@@ -499,7 +499,7 @@ def _with_model_variant_spread(cal: MotorCalibration, variant,
     for name in names:
         try:
             diffs[name] = float(variant(name).Kt - cal.Kt)
-        except ExcitationError:
+        except GearbenchError:      # refused under that model (or its disk does not show)
             continue
     if not diffs:
         return cal
