@@ -100,12 +100,18 @@ def _summary(runs):
     return outs, R.summarise(outs, ("default",))["default"]
 
 
-def test_default_meets_its_claims_on_every_plant_of_a_held_out_seed_and_paper_does_not(seed1_runs):
+@pytest.fixture(scope="module")
+def seed1_default(seed1_runs):
+    """The default method on seed 1's 40 plants, computed once for the checks that read it."""
+    return _summary(seed1_runs)
+
+
+def test_default_meets_its_claims_on_every_plant_of_a_held_out_seed_and_paper_does_not(seed1_runs, seed1_default):
     """All 40 plants of seed 1, none left out: the fraction meeting every target is
     checked against the claim (``R.CLAIMS``) with a one-sided binomial bound, the
     median errors against theirs; the paper's method, on the first 12, meets none."""
     cases, sims = seed1_runs
-    outs, s = _summary(seed1_runs)
+    outs, s = seed1_default
     assert s["fail"] == 0
     n = len(outs)
     meet = sum(o["default"].meets_targets() for o in outs)
@@ -124,7 +130,7 @@ def _cover_counts(outs):
             for q in ("kt", "inc", "abs")}
 
 
-def test_intervals_cover_95_percent_on_a_held_out_seed_and_stay_useful(seed1_runs):
+def test_intervals_cover_95_percent_on_a_held_out_seed_and_stay_useful(seed1_runs, seed1_default):
     """Coverage against the nominal 95 %: each quantity above its binomial lower bound
     (too narrow), all intervals pooled inside the two-sided bound (too wide fails too).
     The per-quantity checks treat the intervals as independent, which makes them stricter
@@ -132,7 +138,7 @@ def test_intervals_cover_95_percent_on_a_held_out_seed_and_stay_useful(seed1_run
     The pooled check, two-sided, counts plants as clusters: its trials are divided by the
     measured design effect (Kish), so a plant whose eight intervals miss together counts
     as the fewer independent trials it is; all intervals holding still fails (deff 1)."""
-    outs, s = _summary(seed1_runs)
+    outs, s = seed1_default
     counts = _cover_counts(outs)
     for q, (hits, n) in counts.items():
         low, _ = coverage_acceptance(n, alpha=ALPHA)
@@ -167,18 +173,18 @@ def _pooled(outs):
     return hits, n, deff, low, high
 
 
-def test_pooled_intervals_are_not_too_wide_on_a_held_out_seed(seed1_runs):
+def test_pooled_intervals_are_not_too_wide_on_a_held_out_seed(seed1_default):
     """The upper side of the pooled two-sided check: all intervals holding is a failure
     too (intervals wider than the data needs). Seed 1 held 317/320 with the fixed Kt
     model term (above the bound); 314/320 since Kt's model error is measured per
     calibration (``calibration.MODEL_VARIANTS``)."""
-    outs, _ = _summary(seed1_runs)
+    outs, _ = seed1_default
     hits, n, deff, low, high = _pooled(outs)
     assert hits / deff <= high, (f"pooled: {hits}/{n} intervals hold the truth (design effect {deff:.2f}), "
                                  f"accepted {low}..{high}")
 
 
-def test_without_the_model_error_terms_the_same_intervals_under_cover(seed1_runs, monkeypatch):
+def test_without_the_model_error_terms_the_same_intervals_under_cover(seed1_runs, seed1_default, monkeypatch):
     """The check above can fail: without the unshared b2 model error (MODEL_B2_REL, for
     the default measured per calibration: calibration.MODEL_VARIANT_SPREAD) the
     Kt intervals hold the truth clearly less often (seed 1: 72/80 against 77/80; the
@@ -186,7 +192,7 @@ def test_without_the_model_error_terms_the_same_intervals_under_cover(seed1_runs
     disjoint blocks, so LOSS_RUN_SPREAD no longer decides those)."""
     import gearbench.analysis.calibration as cal
     import gearbench.analysis.torque_constant as tq
-    with_terms = _cover_counts(_summary(seed1_runs)[0])["kt"]
+    with_terms = _cover_counts(seed1_default[0])["kt"]
     monkeypatch.setattr(tq, "MODEL_B2_REL", 0.0)
     monkeypatch.setattr(cal, "MODEL_VARIANT_SPREAD", 0.0)
     monkeypatch.setattr(cal, "LOSS_RUN_SPREAD", 0.0)
