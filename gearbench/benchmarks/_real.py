@@ -163,7 +163,7 @@ def print_real(rows: list[dict]) -> dict:
             else:
                 s["covered"] += inside
                 s["total"] += 1
-                if len(cells) == 0:     # the inertia column
+                if key == "J":
                     s["inertia_covered"] += inside
                     s["inertia_errors_pct"].append(abs(err))
             cells.append(f"{err:+8.2f} ±{hw:6.2f}{' ' if inside else '*'}")
