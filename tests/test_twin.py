@@ -418,8 +418,8 @@ def test_the_smoothing_shift_is_taken_off_the_value_and_kept_as_the_model_bias(m
     params = [F.Param("a", 2.0, 1.0), F.Param("b", 5.0, 1.0)]
     for p in params:
         p.sigma, p.model_bias = 0.1, -0.1
-    monkeypatch.setattr(F, "smoothing_shift", lambda prob, ps, jac: np.array([0.2, -0.05]))
-    F.correct_smoothing_shift(None, params, None)
+    monkeypatch.setattr(F, "smoothing_shift", lambda prob, ps: np.array([0.2, -0.05]))
+    F.correct_smoothing_shift(None, params)
     assert [p.value for p in params] == pytest.approx([1.8, 5.05])
     # the larger of the measured shift and the earlier estimate
     assert [p.model_bias for p in params] == pytest.approx([0.2, -0.1])

@@ -927,16 +927,15 @@ def add_effects(prob: Problem, params: list[Param], *, max_effects: int = 4, ver
         # the parameters whose local Jacobian is not to be trusted: their profile
         prob.profiles = apply_profiles(prob, params, jac, r, verbose=verbose)
     if jac is not None:
-        correct_smoothing_shift(prob, params, jac, verbose=verbose)
+        correct_smoothing_shift(prob, params, verbose=verbose)
     return chain
 
 
-def smoothing_shift(prob: Problem, params: list[Param], jac: np.ndarray) -> np.ndarray | None:
+def smoothing_shift(prob: Problem, params: list[Param]) -> np.ndarray | None:
     """The smoothed fit's bias, measured: the shift of a refit of the smoothed model on the
     exact (quantised, noise-free) replay of the fitted twin, in the fitted values (a
     parametric-bootstrap bias estimate; Efron & Tibshirani 1993, ch. 10, without the noise,
-    which the fit's σ covers). ``jac``: a Jacobian at the params' values (the refit's first
-    step). None when the exact replay is not a valid plant."""
+    which the fit's σ covers). None when the exact replay is not a valid plant."""
     u0 = np.array([p.value for p in params])
     r_exact = prob.residual_vector(with_params(prob.block, params, u0), smooth=False)
     if r_exact is None:
@@ -951,7 +950,7 @@ def smoothing_shift(prob: Problem, params: list[Param], jac: np.ndarray) -> np.n
     return np.array([p.value for p in trial]) - u0
 
 
-def correct_smoothing_shift(prob: Problem, params: list[Param], jac: np.ndarray, verbose=None) -> None:
+def correct_smoothing_shift(prob: Problem, params: list[Param], verbose=None) -> None:
     """Each parameter moves by −shift (``smoothing_shift``: fitting the smoothed
     model to data made by θ gives θ + shift, so data from the truth gave it + shift), and
     its model bias b becomes the larger of the shift and the earlier b: the interval stays
@@ -961,7 +960,7 @@ def correct_smoothing_shift(prob: Problem, params: list[Param], jac: np.ndarray,
     (a hidden cyclo run: drag −0.013 % where a refit on the truth's exact replay moves it
     +0.11 %). A profiled parameter's profile bias (exact vs smoothed profile minimum) is
     the earlier b there: its half-width stays the profile's."""
-    shift = smoothing_shift(prob, params, jac)
+    shift = smoothing_shift(prob, params)
     if shift is None:
         return
     u0 = np.array([p.value for p in params])
