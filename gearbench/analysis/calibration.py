@@ -370,7 +370,7 @@ def _condition_on(x: np.ndarray, S: np.ndarray, H: np.ndarray):
 def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
                     method: str = "default", *, disk_std_kgm2: float = 0.0,
                     disk_name: str = "", model_variants: bool = True,
-                    **options) -> MotorCalibration:
+                    model_errors: bool = True, **options) -> MotorCalibration:
     """Identify both runs with ``method`` (``default``, ``paper``, ``paper-15ms``) and
     combine them (corrected eq. 17); ``disk_std_kgm2`` is the disk inertia's standard
     uncertainty. Raises GearbenchError subclasses on bad input.
@@ -384,6 +384,9 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
     model_variants : for the default method, Kt's model error from the runs refitted under
         ``MODEL_VARIANTS`` (``_with_model_variant_spread``) instead of the fixed
         ``torque_constant.MODEL_B2_REL`` (False: the fixed term).
+    model_errors : False: the estimate alone — the same Kt, J, D, Tc — without the refits
+        that measure its model error (the declared kick's delay model and the variants);
+        for the refits of those measurements, which read only the estimate.
     **options : ``identify_default`` options.
 
     The traces' drive description (``meta["drive"]``, ``identify.drive_sampling``)
@@ -456,16 +459,20 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
                 for w in fit.extras.get("warnings", [])]
     if warnings:
         cal.fit["warnings"] = warnings
+    if not model_errors:
+        return cal
     if kick and options.get("setpoint_step") and "lag" not in given:
         try:
             alt = calibrate_motor(unloaded, loaded, disk_kgm2, method, disk_std_kgm2=disk_std_kgm2,
-                                  disk_name=disk_name, **{**given, "lag": True})
+                                  disk_name=disk_name, model_errors=False, **{**given, "lag": True})
         except ExcitationError:     # the other model is refused: no spread to measure
             return cal
         cal = _with_delay_model_spread(cal, alt)
     if model_variants and method == "default":
         def variant(name):
-            kw = {"disk_std_kgm2": disk_std_kgm2, "disk_name": disk_name, "model_variants": False}
+            kw = {"disk_std_kgm2": disk_std_kgm2, "disk_name": disk_name, "model_errors": False}
+            if name == "no cogging" and not (fu.extras.get("cogging") or fl.extras.get("cogging")):
+                return cal          # no cogging order kept in either run: the same fit
             if name == "accel form":
                 return calibrate_motor(unloaded, loaded, disk_kgm2, "accel", **kw, **given)
             opt = ({"lag": not options.get("lag", True)} if name == "current delay"
@@ -480,7 +487,7 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
             parts = ((unloaded.slice(0, mu), loaded.slice(0, ml)) if k == 0 else
                      (unloaded.slice(mu, None), loaded.slice(ml, None)))
             return calibrate_motor(*parts, disk_kgm2, method, disk_std_kgm2=disk_std_kgm2,
-                                   disk_name=disk_name, model_variants=False, **given)
+                                   disk_name=disk_name, model_errors=False, **given)
         cal = _with_model_variant_spread(cal, variant, names, half)
     return cal
 
