@@ -226,3 +226,32 @@ def test_a_refused_model_variant_measures_nothing():
     out = _with_model_variant_spread(cal, one)
     assert out.fit["model_variant_difference"] == {"accel form": pytest.approx(2e-4)}
     assert out.Kt_std == pytest.approx(np.sqrt(5e-4 ** 2 - 3e-4 ** 2 + 1e-4 ** 2))
+
+
+def test_model_error_refits_fit_the_estimate_only():
+    """The model-error refits read only the estimate (Kt, D, Tc): they are fitted without
+    measuring their own model errors (``model_errors=False``), so a drive that declares
+    its kick is fitted 10 times, not 58 (robustness seed 4, case 0, output motor), and
+    each refit's Kt is the one a full calibration under that model gives."""
+    from gearbench.analysis import calibration as C
+    from gearbench.benchmarks import robustness as R
+    case = R.draw_case(0, 4)
+    u, lo = R.simulate_case(case)["runs"]["out"]
+    disk = case.disks_kgm2["out"]
+    calls = []
+    real = C.identify_trace
+
+    def counted(*args, **kw):
+        calls.append(kw)
+        return real(*args, **kw)
+
+    C.identify_trace = counted
+    try:
+        cal = C.calibrate_motor(u, lo, disk)
+    finally:
+        C.identify_trace = real
+    assert C.drive_sampling(u) == "kick" and "delay_model_difference" in cal.fit
+    assert len(calls) == 10
+    accel = C.calibrate_motor(u, lo, disk, "accel")
+    assert cal.fit["model_variant_difference"]["accel form"] == pytest.approx(accel.Kt - cal.Kt)
+    assert cal.fit["model_variant_difference"]["no cogging"] == 0.0   # no order kept: not refitted
