@@ -436,7 +436,8 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
                                    loaded_name=loaded.source, kick_declared=kick)
 
     cal = None
-    if options.get("setpoint_step"):
+    tried_step = bool(options.get("setpoint_step"))
+    if tried_step:
         # judged again without the term where a run is refused with it, where a run fell
         # back to the plain cross-check fit (the term cannot be shared), or where the term,
         # its current lag and θ'' are nearly collinear in both runs (a drive that
@@ -449,6 +450,7 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
             pass
         if cal is None:
             options["setpoint_step"] = False
+    judged_again = tried_step and cal is None      # refitted without the setpoint-step term
     if cal is None:
         fu, fl = fits(options)
         cal = combine(fu, fl)
@@ -471,8 +473,8 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
     if model_variants and method == "default":
         def variant(name):
             kw = {"disk_std_kgm2": disk_std_kgm2, "disk_name": disk_name, "model_errors": False}
-            if name == "no cogging" and not (fu.extras.get("cogging") or fl.extras.get("cogging")):
-                return cal          # no cogging order kept in either run: the same fit
+            if name == "no cogging" and not judged_again and not _kept_cogging(fu, fl):
+                return cal          # the same fits: no order kept, nothing fell back
             if name == "accel form":
                 return calibrate_motor(unloaded, loaded, disk_kgm2, "accel", **kw, **given)
             opt = ({"lag": not options.get("lag", True)} if name == "current delay"
@@ -490,6 +492,13 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
                                    disk_name=disk_name, model_errors=False, **given)
         cal = _with_model_variant_spread(cal, variant, names, half)
     return cal
+
+
+def _kept_cogging(*fits: IdentificationResult) -> bool:
+    """A fit kept a cogging order, or fell back to the cross-check (which has none, so
+    the fit it replaced may have): only then does the model without cogging differ."""
+    return any(f.extras.get("cogging") or "returned" in f.extras.get("cross_check", {})
+               for f in fits)
 
 
 def _with_model_variant_spread(cal: MotorCalibration, variant,
