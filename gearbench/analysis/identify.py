@@ -359,15 +359,15 @@ def _setpoint_steps(command: np.ndarray, dt: float) -> np.ndarray:
 
         ī_k = i_k + c·Δcmd_k,   c = Kp·(h̄(τ/T, M) − h_T(τ/T, M)),
 
-    with the same c for every run on that drive (two drives' noise-free runs fitted
-    apart: each run's own c within 0.2 % of the other's). What remains is the loop's
-    action within the period, which the sample also misses: Kt comes out high by about
-    x/100 of itself, x = Kp·Kt·T/J of the unloaded run (robustness seed 4, noise-free
-    runs of 13 such drives, x 0.02–0.18: +0.02…+0.17 %, one reversing run +0.36 %); a
-    current delay per run takes it out there, but with the drawn noise the errors are no
-    smaller (30 drives: rms 0.23 against 0.21 %), and one delay shared by both runs is
-    worse (0.27 %). Within one run Δcmd/T follows θ'' (the loop follows its command), so
-    ``calibration.share_setpoint_step``
+    with the same c for every run on that drive. This first-order relation leaves a
+    residual, measured on noise-free runs (robustness seed 4): fitted apart, two drives'
+    runs give c within 0.2 % of each other but b2 low by 0.04–0.32 %, more in the lighter
+    run; combined, Kt comes out high by about x/100 of itself, x = Kp·Kt·T/J of the
+    unloaded run (13 such drives, x 0.02–0.18: +0.02…+0.17 %, one reversing run
+    +0.36 %). A current delay per run takes it out there, but with the drawn noise the
+    errors are no smaller (30 drives: rms 0.23 against 0.21 %), and one delay shared by
+    both runs is worse (0.27 %). Within one run Δcmd/T follows θ'' (the loop follows its
+    command), so ``calibration.share_setpoint_step``
     fits one c for both runs of a motor and Kt from their difference. An interpolating
     drive (c = 0) or a period-averaged current (the sample is ī_k) has no such term
     (robustness benchmark, seed 8 case 11 input: b2 of the unloaded run +0.87 % from
