@@ -17,6 +17,7 @@ see ``[tool.importlinter]`` in pyproject.toml and the README):
 import importlib
 import importlib.abc
 import importlib.util
+import os
 import sys
 
 from .errors import GearbenchError, TraceError, ProfileError, DriveError, BenchFault, ExcitationError
@@ -24,7 +25,7 @@ from .trace import Trace
 
 __version__ = "0.1.0"
 __all__ = ["Trace", "GearbenchError", "TraceError", "ProfileError", "DriveError",
-           "BenchFault", "ExcitationError", "__version__"]
+           "BenchFault", "ExcitationError", "__version__", "one_blas_thread"]
 
 # Public modules that moved in 0.1 → 0.2's regroup; the old import keeps working
 # for one release (documented in README "How the code is laid out").
@@ -46,3 +47,16 @@ class _MovedModules(importlib.abc.MetaPathFinder, importlib.abc.Loader):
 
 if not any(isinstance(f, _MovedModules) for f in sys.meta_path):
     sys.meta_path.append(_MovedModules())
+
+
+def one_blas_thread() -> None:
+    """One BLAS thread in this process and the processes it starts. Our matrices are tall
+    and narrow (a few columns), where OpenBLAS's worker threads gain nothing; on a busy
+    2-core tester they spin against each other and against the paced acquisition:
+    np.linalg.lstsq of 12,000 x 30 took 123 ms instead of 5.7 ms, the bench diagnosis of
+    one 12 s trace 58 s instead of 4.9 s (load 3). A user's own setting is kept."""
+    from threadpoolctl import threadpool_limits
+
+    if not any(v in os.environ for v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")):
+        os.environ["OPENBLAS_NUM_THREADS"] = "1"      # children (the emulator) start with it
+        threadpool_limits(1, user_api="blas")

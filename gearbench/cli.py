@@ -13,7 +13,7 @@ import logging
 import pkgutil
 import sys
 
-from . import __version__
+from . import __version__, one_blas_thread
 from .errors import GearbenchError
 
 
@@ -62,6 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    one_blas_thread()
     # Library chatter (SDO retries, reconnects) is not for the operator's screen;
     # faults reach them as one clear line through GearbenchError.
     for name in ("canopen", "can", "pymodbus"):

@@ -7,6 +7,10 @@ import shutil
 
 import pytest
 
+from gearbench import one_blas_thread
+
+one_blas_thread()     # as every gearbench process does (gearbench.one_blas_thread says why)
+
 
 def in_ci() -> bool:
     """True where ``.ci/run`` runs the suite (it installs the Debian tools the tests use)."""
