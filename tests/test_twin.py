@@ -268,6 +268,22 @@ def test_cli_twin_on_a_sim_run_gives_the_proof(tmp_path):
     assert "interval = 1.96·sigma" in r.stdout
     load_twin_block(str(tmp_path / "twin.yaml"))
 
+    # What the twin is for: validate predicts a profile's run on it, and run --sim --twin
+    # runs on it — a twin whose input motor has 5 % more Kt gives that Kt back.
+    v = subprocess.run([sys.executable, "-m", "gearbench", "validate", "profiles/cvt.yaml", "--twin",
+                        str(tmp_path / "twin.yaml")], capture_output=True, text=True)
+    assert v.returncode == 0, v.stderr[-2000:]
+    assert "predicted verdict PASSED" in v.stdout and "twin       Kt in " in v.stdout
+    block = yaml.safe_load((tmp_path / "twin.yaml").read_text())
+    kt_in = block["simulation"]["motors"]["in"]["Kt"] * 1.05
+    block["simulation"]["motors"]["in"]["Kt"] = kt_in
+    (tmp_path / "moved.yaml").write_text(yaml.safe_dump(block))
+    moved = tmp_path / "moved"
+    subprocess.run([sys.executable, "-m", "gearbench", "run", "profiles/cvt.yaml", "--sim", "--twin",
+                    str(tmp_path / "moved.yaml"), "--yes", "--quiet", "--out", str(moved)], check=True)
+    kt = json.loads((moved / "result.json").read_text())["motors"]["in"]["Kt"]
+    assert kt == pytest.approx(kt_in, rel=2e-3)
+
 
 def test_broyden_update_meets_the_secant_and_keeps_other_directions():
     """Broyden's update (Broyden 1965) makes the carried Jacobian reproduce the step just
