@@ -424,3 +424,35 @@ def test_the_smoothing_shift_is_taken_off_the_value_and_kept_as_the_model_bias(m
     # the larger of the measured shift and the earlier estimate
     assert [p.model_bias for p in params] == pytest.approx([0.2, -0.1])
     assert [p.interval for p in params] == pytest.approx([1.96 * 0.1 + 0.2, 1.96 * 0.1 + 0.1])
+
+
+def test_proof_pools_the_twins_noise_draws():
+    """The twin's results are the mean of its noise draws, judged within the run's interval
+    and the mean's own (√(h² + (1.96·s/√k)²)); a limit's verdict counts when a draw gives it."""
+    from gearbench.twin.proof import half_width, pool_draws, understated, verdict_among_draws, within
+
+    def draw(kt, eta, passed):
+        return {"status": "passed" if passed else "failed", "ratio": 8.0,
+                "motors": {"in": {"Kt": kt, "Kt_ci95": [0.049, 0.051]}},
+                "efficiency": [{"speed_in_rad_s": 100, "torque_out_nm": 0.04, "eta_incremental": eta,
+                                "eta_incremental_ci95": [eta - 0.05, eta + 0.05], "eta_absolute": None}],
+                "limits": [{"name": "eta", "passed": passed}]}
+    pooled = pool_draws([draw(0.050, 0.60, True), draw(0.051, 0.70, False), draw(0.049, 0.65, False),
+                         draw(0.050, 0.65, False)])
+    assert pooled["draws"] == 4 and pooled["status"] == "failed"
+    assert pooled["motors"]["in"]["Kt"] == pytest.approx(0.050)
+    assert pooled["efficiency"][0]["eta_incremental"] == pytest.approx(0.65)
+    sd = pooled["efficiency"][0]["eta_incremental_sd"]
+    assert sd == pytest.approx(np.std([0.60, 0.70, 0.65, 0.65], ddof=1))
+    assert pooled["efficiency"][0]["eta_absolute"] is None and pooled["efficiency"][0]["eta_absolute_sd"] is None
+    assert pooled["limits"][0] == {"name": "eta", "value": None, "passed": False, "passed_draws": 1}
+    hw = half_width([0.55, 0.65], sd, 4)
+    assert hw == pytest.approx(math.hypot(0.05, 1.96 * sd / 2))
+    # one draw 0.70 is outside the run's ±0.05 around 0.60, the draws' mean 0.65 is not
+    assert within(0.60, 0.70, [0.55, 0.65]) == "NO"
+    assert within(0.60, 0.65, [0.55, 0.65], sd, 4) == "yes"
+    assert within(0.60, 0.80, [0.55, 0.65], sd, 4) == "NO" and within(None, 0.6, [0.5, 0.7]) == ""
+    assert understated([0.55, 0.65], 0.04) and not understated([0.55, 0.65], 0.02)
+    assert verdict_among_draws(True, pooled["limits"][0], 4) and verdict_among_draws(False, pooled["limits"][0], 4)
+    assert not verdict_among_draws(True, {"passed": False, "passed_draws": 0}, 4)
+    assert not verdict_among_draws(False, {"passed": True}, 1) and not verdict_among_draws(True, {}, 1)
