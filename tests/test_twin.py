@@ -456,3 +456,39 @@ def test_proof_pools_the_twins_noise_draws():
     assert verdict_among_draws(True, pooled["limits"][0], 4) and verdict_among_draws(False, pooled["limits"][0], 4)
     assert not verdict_among_draws(True, {"passed": False, "passed_draws": 0}, 4)
     assert not verdict_among_draws(False, {"passed": True}, 1) and not verdict_among_draws(True, {}, 1)
+
+
+def test_a_profile_vertex_is_taken_only_inside_its_points():
+    """``_vertex``: the parabola's minimum where it lies among the profile's points; none
+    for a profile that falls all the way (cyclo seed 41's exact backlash profile) or
+    has too few points."""
+    xs = [0.019, 0.020, 0.021, 0.022, 0.023]
+    v, c2 = F._vertex([(x, (x - 0.0205) ** 2 * 1e6 + 3.0) for x in xs], 0.021)
+    assert v == pytest.approx(0.0205) and c2 == pytest.approx(1e6)
+    assert F._vertex([(x, -x) for x in xs], 0.021) is None                       # no curvature
+    assert F._vertex([(x, (x - 0.03) ** 2) for x in xs], 0.021) is None          # minimum beyond the grid
+    assert F._vertex([(x, x ** 2) for x in xs[:3]], 0.02) is None                # too few points
+
+
+def test_a_profile_whose_exact_curve_falls_all_the_way_keeps_the_smoothed_minimum():
+    """Cyclo seed 41's backlash: the smoothed profile has its minimum inside the grid, the
+    exact one falls to the grid's edge. Where no grid gives both a minimum (the second pass
+    of ``profile_interval``) the smoothed one is kept with the first-order smoothing bias; it
+    had been dropped, and the stalled fit's value and Jacobian interval stayed."""
+    n = 40
+    other = np.where(np.arange(n) % 2, 1.0, -1.0)[:, None]       # orthogonal to the residuals below
+
+    class Prob:
+        block = {"backlash_rad": 0.0}
+
+        def residual_vector(self, block, smooth=None):
+            v = block["backlash_rad"]
+            s = (v - 0.0200) ** 2 * 1e7 + 100.0 if smooth else 300.0 - 1e4 * v
+            return np.full(n, math.sqrt(s / n))
+    p = F.Param("backlash_rad", 0.0226, 0.01)
+    p.model_bias = 2e-4
+    assert F._profile_on(Prob(), [p], 0, np.array([0.0226]), other * 0.0, 0.0015, 1.0, 1.0, None) is None
+    out = F._profile_on(Prob(), [p], 0, np.array([0.0226]), other * 0.0, 0.0015, 1.0, 1.0, None, False)
+    assert out is not None and out["value"] == pytest.approx(0.0200, abs=1e-6)
+    assert out["bias"] == pytest.approx(2e-4)
+    assert out["interval"] == pytest.approx(math.sqrt(F.CHI2_1_95 / 1e7) + 2e-4, rel=1e-3)
