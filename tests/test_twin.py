@@ -440,3 +440,71 @@ def test_the_smoothing_shift_is_taken_off_the_value_and_kept_as_the_model_bias(m
     # the larger of the measured shift and the earlier estimate
     assert [p.model_bias for p in params] == pytest.approx([0.2, -0.1])
     assert [p.interval for p in params] == pytest.approx([1.96 * 0.1 + 0.2, 1.96 * 0.1 + 0.1])
+
+
+def test_proof_pools_the_twins_noise_draws():
+    """The twin's results are the mean of its noise draws, judged within the run's interval
+    and the mean's own (√(h² + (1.96·s/√k)²)); a limit's verdict counts when a draw gives it."""
+    from gearbench.twin.proof import half_width, pool_draws, understated, verdict_among_draws, within
+
+    def draw(kt, eta, passed):
+        return {"status": "passed" if passed else "failed", "ratio": 8.0,
+                "motors": {"in": {"Kt": kt, "Kt_ci95": [0.049, 0.051]}},
+                "efficiency": [{"speed_in_rad_s": 100, "torque_out_nm": 0.04, "eta_incremental": eta,
+                                "eta_incremental_ci95": [eta - 0.05, eta + 0.05], "eta_absolute": None}],
+                "limits": [{"name": "eta", "passed": passed}]}
+    pooled = pool_draws([draw(0.050, 0.60, True), draw(0.051, 0.70, False), draw(0.049, 0.65, False),
+                         draw(0.050, 0.65, False)])
+    assert pooled["draws"] == 4 and pooled["status"] == "failed"
+    assert pooled["motors"]["in"]["Kt"] == pytest.approx(0.050)
+    assert pooled["efficiency"][0]["eta_incremental"] == pytest.approx(0.65)
+    sd = pooled["efficiency"][0]["eta_incremental_sd"]
+    assert sd == pytest.approx(np.std([0.60, 0.70, 0.65, 0.65], ddof=1))
+    assert pooled["efficiency"][0]["eta_absolute"] is None and pooled["efficiency"][0]["eta_absolute_sd"] is None
+    assert pooled["limits"][0] == {"name": "eta", "value": None, "passed": False, "passed_draws": 1}
+    hw = half_width([0.55, 0.65], sd, 4)
+    assert hw == pytest.approx(math.hypot(0.05, 1.96 * sd / 2))
+    # one draw 0.70 is outside the run's ±0.05 around 0.60, the draws' mean 0.65 is not
+    assert within(0.60, 0.70, [0.55, 0.65]) == "NO"
+    assert within(0.60, 0.65, [0.55, 0.65], sd, 4) == "yes"
+    assert within(0.60, 0.80, [0.55, 0.65], sd, 4) == "NO" and within(None, 0.6, [0.5, 0.7]) == ""
+    assert understated([0.55, 0.65], 0.04) and not understated([0.55, 0.65], 0.02)
+    assert verdict_among_draws(True, pooled["limits"][0], 4) and verdict_among_draws(False, pooled["limits"][0], 4)
+    assert not verdict_among_draws(True, {"passed": False, "passed_draws": 0}, 4)
+    assert not verdict_among_draws(False, {"passed": True}, 1) and not verdict_among_draws(True, {}, 1)
+
+
+def test_a_profile_vertex_is_taken_only_inside_its_points():
+    """``_vertex``: the parabola's minimum where it lies among the profile's points; none
+    for a profile that falls all the way (cyclo seed 41's exact backlash profile) or
+    has too few points."""
+    xs = [0.019, 0.020, 0.021, 0.022, 0.023]
+    v, c2 = F._vertex([(x, (x - 0.0205) ** 2 * 1e6 + 3.0) for x in xs], 0.021)
+    assert v == pytest.approx(0.0205) and c2 == pytest.approx(1e6)
+    assert F._vertex([(x, -x) for x in xs], 0.021) is None                       # no curvature
+    assert F._vertex([(x, (x - 0.03) ** 2) for x in xs], 0.021) is None          # minimum beyond the grid
+    assert F._vertex([(x, x ** 2) for x in xs[:3]], 0.02) is None                # too few points
+
+
+def test_a_profile_whose_exact_curve_falls_all_the_way_keeps_the_smoothed_minimum():
+    """Cyclo seed 41's backlash: the smoothed profile has its minimum inside the grid, the
+    exact one falls to the grid's edge. Where no grid gives both a minimum (the second pass
+    of ``profile_interval``) the smoothed one is kept with the first-order smoothing bias; it
+    had been dropped, and the stalled fit's value and Jacobian interval stayed."""
+    n = 40
+    other = np.where(np.arange(n) % 2, 1.0, -1.0)[:, None]       # orthogonal to the residuals below
+
+    class Prob:
+        block = {"backlash_rad": 0.0}
+
+        def residual_vector(self, block, smooth=None):
+            v = block["backlash_rad"]
+            s = (v - 0.0200) ** 2 * 1e7 + 100.0 if smooth else 300.0 - 1e4 * v
+            return np.full(n, math.sqrt(s / n))
+    p = F.Param("backlash_rad", 0.0226, 0.01)
+    p.model_bias = 2e-4
+    assert F._profile_on(Prob(), [p], 0, np.array([0.0226]), other * 0.0, 0.0015, 1.0, 1.0, None) is None
+    out = F._profile_on(Prob(), [p], 0, np.array([0.0226]), other * 0.0, 0.0015, 1.0, 1.0, None, False)
+    assert out is not None and out["value"] == pytest.approx(0.0200, abs=1e-6)
+    assert out["bias"] == pytest.approx(2e-4)
+    assert out["interval"] == pytest.approx(math.sqrt(F.CHI2_1_95 / 1e7) + 2e-4, rel=1e-3)

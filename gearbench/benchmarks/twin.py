@@ -221,35 +221,46 @@ def _res(run: Path) -> dict:
 
 
 def _results(title: str, real: dict, twin: dict, third: dict | None = None) -> bool:
-    """Results side by side; within = |twin − real| inside the real run's 95 % interval.
-    Returns whether every Kt and η is within and every verdict the same."""
-    print(f"\n{title}")
-    print(f"  {'quantity':<34} {'real':>9} {'twin':>9} {'diff %':>7} {'±95 % %':>8}  within"
+    """Results side by side; within = |twin − real| inside the run's 95 % interval and the
+    twin's mean's own (``twin.proof.half_width``: the twin pooled over its noise draws; a
+    single run, as unit 2's prediction, has no spread). Returns whether every Kt and η is
+    within and every verdict is one of the twin's draws'."""
+    from ..twin.proof import half_width, verdict_among_draws, within
+
+    k = twin.get("draws", 1)
+    print(f"\n{title}" + (f" (twin: mean, sd over {k} noise draws)" if k > 1 else ""))
+    print(f"  {'quantity':<34} {'real':>9} {'twin':>9} {'diff %':>7} {'±95 % %':>8} {'twin sd %':>9}  within"
           + (f" {'unit 1':>9}" if third else ""))
     ok = True
 
-    def line(label, a, b, ci, c=None):
+    def line(label, a, b, ci, sd=None, c=None):
         nonlocal ok
-        w = "" if not ci or a is None or b is None else ("yes" if abs(a - b) <= (ci[1] - ci[0]) / 2 else "NO")
+        w = within(a, b, ci, sd, k)
         ok &= w != "NO"
+        hw = half_width(ci, sd, k)
         d = "" if a is None or b is None or not a else f"{100 * (b - a) / abs(a):7.2f}"
-        h = "" if not ci or not a else f"{50 * (ci[1] - ci[0]) / abs(a):8.2f}"
-        print(f"  {label:<34} {_f(a):>9} {_f(b):>9} {d:>7} {h:>8}  {w:<6}" + (f" {_f(c):>9}" if third else ""))
+        h = "" if hw is None or not a else f"{100 * hw / abs(a):8.2f}"
+        s = "" if sd is None or not a else f"{100 * sd / abs(a):9.2f}"
+        print(f"  {label:<34} {_f(a):>9} {_f(b):>9} {d:>7} {h:>8} {s:>9}  {w:<6}" + (f" {_f(c):>9}" if third else ""))
     for m, v in real["motors"].items():
-        line(f"Kt {m}", v["Kt"], (twin["motors"].get(m) or {}).get("Kt"), v.get("Kt_ci95"),
+        tm = twin["motors"].get(m) or {}
+        line(f"Kt {m}", v["Kt"], tm.get("Kt"), v.get("Kt_ci95"), tm.get("Kt_sd"),
              ((third or {}).get("motors", {}).get(m) or {}).get("Kt"))
-    line("ratio", real["ratio"], twin["ratio"], None, (third or {}).get("ratio"))
+    line("ratio", real["ratio"], twin["ratio"], None, None, (third or {}).get("ratio"))
     te = (third or {}).get("efficiency") or [{}] * len(real["efficiency"])
     for e, f, g in zip(real["efficiency"], twin["efficiency"], te):
         line(f"eta_inc {e['speed_in_rad_s']:.0f} rad/s {e['torque_out_nm']:.3f} N m", e["eta_incremental"],
-             f["eta_incremental"], e.get("eta_incremental_ci95"), g.get("eta_incremental"))
+             f["eta_incremental"], e.get("eta_incremental_ci95"), f.get("eta_incremental_sd"),
+             g.get("eta_incremental"))
     if len(twin["limits"]) == len(real["limits"]):   # efficiency limits carry the measured torque in their names
-        same = sum(a["passed"] == b["passed"] for a, b in zip(real["limits"], twin["limits"]))
+        pairs = list(zip(real["limits"], twin["limits"]))
     else:
-        verdicts = {x["name"]: x["passed"] for x in twin["limits"]}
-        same = sum(verdicts.get(x["name"]) == x["passed"] for x in real["limits"])
+        verdicts = {x["name"]: x for x in twin["limits"]}
+        pairs = [(x, verdicts.get(x["name"], {})) for x in real["limits"]]
+    same = sum(verdict_among_draws(a["passed"], b, k) for a, b in pairs)
     ok &= same == len(real["limits"])
-    print(f"  limits with the same verdict: {same}/{len(real['limits'])}; run {real['status']} vs twin {twin['status']}")
+    print(f"  limits with the run's verdict among the twin's draws: {same}/{len(real['limits'])}; "
+          f"run {real['status']} vs twin {twin['status']}")
     return ok
 
 

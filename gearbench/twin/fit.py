@@ -1097,8 +1097,10 @@ def profile_interval(prob: Problem, params: list[Param], i: int, jac: np.ndarray
     the smoothed profile rises by χ²₁(95 %)·s²·κ above its minimum (s² = S/(n − p), κ the
     sandwich-to-white variance ratio of the parameter: coloured residuals; Venzon &
     Moolgavkar 1988, profile-likelihood intervals), plus |v*_exact − v*_smooth| (the
-    smoothing's bias, as in ``_intervals``). Returns None when the profile has no minimum
-    (it falls toward a grid edge): the Jacobian interval stays."""
+    smoothing's bias, as in ``_intervals``); where no grid gives the exact profile a
+    minimum, that bias is the first-order one (``_profile_on``). Returns None when the
+    smoothed profile has no minimum (it falls toward a grid edge): the Jacobian interval
+    stays."""
     p = params[i]
     u = np.array([q.value for q in params])
     others = [k for k in range(len(params)) if k != i]
@@ -1111,18 +1113,22 @@ def profile_interval(prob: Problem, params: list[Param], i: int, jac: np.ndarray
     kappa = max(1.0, max(c[i, i] for c in covs) / max(covs[0][i, i], 1e-300))
     half = p.interval / abs(_dwritten(p, params)) if p.interval == p.interval and _dwritten(p, params) else 0.0
     half = max(half, 0.05 * abs(p.value), 0.5 * p.scale * FD_REL * p.fd_factor)
-    for widen in PROFILE_WIDEN:
-        # a Jacobian half-width that understates (the column is noise) puts the profile's
-        # minimum outside ±2 of it: the grid is widened (the cyclo run's backlash: no
-        # minimum inside ±2 of a ±0.0002 rad Jacobian interval)
-        out = _profile_on(prob, params, i, u, J, half * widen, s2, kappa, verbose)
-        if out is not None:
-            return out
+    # a Jacobian half-width that understates (the column is noise) puts the profile's
+    # minimum outside ±2 of it: the grid is widened (the cyclo run's backlash: no minimum
+    # inside ±2 of a ±0.0002 rad Jacobian interval). Only when no grid gives both curves a
+    # minimum is the smoothed one taken alone (``exact_needed``)
+    for exact_needed in (True, False):
+        for widen in PROFILE_WIDEN:
+            out = _profile_on(prob, params, i, u, J, half * widen, s2, kappa, verbose, exact_needed)
+            if out is not None:
+                return out
     return None
 
 
-def _profile_on(prob, params, i, u, J, half, s2, kappa, verbose) -> dict | None:
-    """``profile_interval`` on the grid value + PROFILE_STEPS × ``half``."""
+def _profile_on(prob, params, i, u, J, half, s2, kappa, verbose, exact_needed: bool = True) -> dict | None:
+    """``profile_interval`` on the grid value + PROFILE_STEPS × ``half``; without
+    ``exact_needed`` an exact profile with no minimum on the grid leaves the smoothing's
+    bias at its first-order estimate instead of dropping the profile."""
     p = params[i]
     vs = sorted({max(p.value + f * half, p.lo) for f in PROFILE_STEPS} | {p.value})
     curves, steps = {}, []
@@ -1138,23 +1144,20 @@ def _profile_on(prob, params, i, u, J, half, s2, kappa, verbose) -> dict | None:
                 if smooth:
                     steps.append(d_v)
         curves[smooth] = pts
-    fits = {}
-    for smooth, pts in curves.items():
-        if len(pts) < 4:
-            return None
-        x = np.array([a for a, _ in pts])
-        y = np.array([b for _, b in pts])
-        c2, c1, c0 = np.polyfit(x - p.value, y, 2)
-        if c2 <= 0:
-            return None
-        vstar = p.value - c1 / (2 * c2)
-        if not (x.min() <= vstar <= x.max()):
-            return None
-        fits[smooth] = (vstar, c2)
+    fits = {smooth: _vertex(pts, p.value) for smooth, pts in curves.items()}
+    if fits[True] is None or (exact_needed and fits[False] is None):
+        return None
     vstar, c2 = fits[True]
     thr = CHI2_1_95 * s2 * kappa
     half_p = math.sqrt(thr / c2)
-    bias = fits[False][0] - vstar
+    if fits[False] is not None:
+        bias = fits[False][0] - vstar
+    else:
+        # the exact profile has no minimum on the grid (cyclo seed 41's backlash: it fell all
+        # the way to the widest gap while the smoothed one had its minimum near the truth): the
+        # smoothing's bias falls back to its first-order estimate, as for the other parameters
+        d = _dwritten(p, params)
+        bias = p.model_bias / d if d and p.model_bias == p.model_bias else 0.0
     g = _dwritten(p, params, vstar)
     # the others' re-optimised values along the profile (their linearised steps, in their
     # scales): how far each follows this parameter, d(other)/dv, least squares over the grid
@@ -1168,6 +1171,20 @@ def _profile_on(prob, params, i, u, J, half, s2, kappa, verbose) -> dict | None:
                 f"95 % ±{out['interval']:.3g} (rise {thr:.3g} floors², κ {kappa:.1f}; smoothing bias "
                 f"{abs(g) * bias:+.3g}); Jacobian interval was ±{p.interval:.3g}")
     return out
+
+
+def _vertex(pts: list[tuple], centre: float) -> tuple[float, float] | None:
+    """(v*, curvature) of the parabola through a profile's (v, S) points, None when it has
+    fewer than 4 points, no minimum, or its minimum lies outside them."""
+    if len(pts) < 4:
+        return None
+    x = np.array([a for a, _ in pts])
+    y = np.array([b for _, b in pts])
+    c2, c1, _ = np.polyfit(x - centre, y, 2)
+    if c2 <= 0:
+        return None
+    vstar = centre - c1 / (2 * c2)
+    return (vstar, c2) if x.min() <= vstar <= x.max() else None
 
 
 def _kts(params: list[Param]) -> dict:
