@@ -359,15 +359,26 @@ def _setpoint_steps(command: np.ndarray, dt: float) -> np.ndarray:
 
         ī_k = i_k + c·Δcmd_k,   c = Kp·(h̄(τ/T, M) − h_T(τ/T, M)),
 
-    with the same c for every run on that drive. This first-order relation leaves a
-    residual, measured on noise-free runs (robustness seed 4): fitted apart, two drives'
-    runs give c within 0.2 % of each other but b2 low by 0.04–0.32 %, more in the lighter
-    run; combined, Kt comes out high by about x/100 of itself, x = Kp·Kt·T/J of the
-    unloaded run (13 such drives, x 0.02–0.18: +0.02…+0.17 %, one reversing run
-    +0.36 %). A current delay per run takes it out there, but with the drawn noise the
-    errors are no smaller (30 drives: rms 0.23 against 0.21 %), and one delay shared by
-    both runs is worse (0.27 %). Within one run Δcmd/T follows θ'' (the loop follows its
-    command), so ``calibration.share_setpoint_step``
+    with the same c for every run on that drive: the speed's own response to the kick
+    within the period changes c by O(x), x = Kp·Kt·T/J (ideal current loop:
+    c/Kp = 1/x − 1/(e^x − 1) = 1/2 − x/12 + …), but behind a current loop of τ ≥ 0.3 T
+    c/Kp stays within 0.6 % over x = 0.01–0.2 (simulated steady speed ramp). Combined,
+    Kt still comes out high by about x/100 of itself, x of the unloaded run (noise-free,
+    robustness seeds 4+5, 15 forward drives: +0.03/+0.08/+0.22 % mean for x below 0.05,
+    0.05–0.1, above 0.1), and the cause is the fitted c, not the relation: with the
+    exact triangle-weighted current (no kick left) each run's fit still finds
+    c ≈ 0.03 Kp and b2 low by up to 0.55 % (0.02 % without the term), and a drive
+    that interpolates gets 0.07–0.10 Kp: nearly collinear with θ'', the term takes up
+    misfit that differs between the runs. A c computed from the drive's loop (Kp, τ,
+    M as set: h̄ − h_T in closed form) instead of fitted takes those 15 drives to
+    −0.03/−0.02/+0.03 % and, with the drawn noise, 69 forward kick motors of seeds 7+8
+    from +0.09 ± 0.14 % (mean, rms) to −0.00 ± 0.09 %; but the same fits move D/Tc
+    (D +74…+326 % against +33…+111 % with the fitted c, 4 seed-7 motors noise-free:
+    the losses of a forward run are weakly identified, +33…+212 % even from the exact
+    current) and the bench's absolute efficiency loses coverage (seed 8: 98.7 → 94.7 %),
+    so it is not used. A current delay per run does not help either (30 drives with
+    noise: rms 0.23 against 0.21 %). Within one run Δcmd/T follows θ'' (the loop follows
+    its command), so ``calibration.share_setpoint_step``
     fits one c for both runs of a motor and Kt from their difference. An interpolating
     drive (c = 0) or a period-averaged current (the sample is ī_k) has no such term
     (robustness benchmark, seed 8 case 11 input: b2 of the unloaded run +0.87 % from
