@@ -522,9 +522,32 @@ def test_drive_sampling_is_read_and_checked():
         assert fragment in msg and int(LOCATED.match(msg)["line"]) == line_of(text, "sampling:"), msg
 
 
+def test_drive_sampling_may_give_the_drives_loop():
+    """The drive's loop as set (all three or none) is read into the description, so its
+    kick is computed (identify.declared_kick); a missing or bad one is named."""
+    from gearbench.analysis.identify import declared_kick
+    from gearbench.trace import Trace
+
+    loop = ("{setpoint: step, current: instant, speed_kp_a_s_per_rad: 0.2, "
+            "current_loop_time_constant_s: 6.0e-4, speed_loop_period_s: 2.5e-4}")
+    text = replace_once(CVT_TEXT, "    rotor_inertia_kgm2: 1.5e-5\n",
+                        f"    rotor_inertia_kgm2: 1.5e-5\n    sampling: {loop}\n")
+    said = parse(text).motors["in"].sampling
+    assert said["speed_kp_a_s_per_rad"] == 0.2 and said["speed_loop_period_s"] == 2.5e-4
+    t = Trace(np.arange(5) * 1e-3, {"position_rad": np.zeros(5)}, {"drive": said}, "x")
+    assert declared_kick(t) == pytest.approx(0.2 * 0.1242, rel=1e-3)
+    for bad, fragment in (("{setpoint: step, current: instant, speed_kp_a_s_per_rad: 0.2}",
+                           "motors.in.sampling: missing key 'current_loop_time_constant_s'"),
+                          (loop.replace("0.2,", "-0.2,"), "speed_kp_a_s_per_rad: must be > 0")):
+        msg = error_of(replace_once(CVT_TEXT, "    rotor_inertia_kgm2: 1.5e-5\n",
+                                    f"    rotor_inertia_kgm2: 1.5e-5\n    sampling: {bad}\n"))
+        assert fragment in msg, msg
+
+
 def test_station_calibration_passes_the_drive_sampling_on():
     """The station's calibration (analyse.calibrate) gives the profile's ``sampling`` to
-    the identification: a drive that steps and samples gets its kick fitted, as declared."""
+    the identification: a drive that steps and samples gets its kick fitted, as declared,
+    or computed where the description also gives its loop."""
     from gearbench.benchmarks import robustness as R
     from gearbench.station import analyse
     from gearbench.trace import Trace
@@ -538,5 +561,9 @@ def test_station_calibration_passes_the_drive_sampling_on():
     kt = case.plant.motor_in.Kt
     told = analyse.calibrate(*steps, motor="in", disk_kgm2=case.disks_kgm2["in"], sampling=said)
     untold = analyse.calibrate(*steps, motor="in", disk_kgm2=case.disks_kgm2["in"])
-    assert told.fit["setpoint_step"]["declared"] and not untold.fit["setpoint_step"].get("declared")
-    assert abs(told.Kt / kt - 1) < abs(untold.Kt / kt - 1)
+    # with the drive's loop in the description its kick is computed, without it fitted
+    assert told.fit["kick_a_per_rad_s"] > 0 and "setpoint_step" not in told.fit
+    plain = {k: v for k, v in said.items() if k in ("setpoint", "current", "current_limit_a")}
+    fitted = analyse.calibrate(*steps, motor="in", disk_kgm2=case.disks_kgm2["in"], sampling=plain)
+    assert fitted.fit["setpoint_step"]["declared"] and not untold.fit["setpoint_step"].get("declared")
+    assert abs(told.Kt / kt - 1) < abs(fitted.Kt / kt - 1) < abs(untold.Kt / kt - 1)

@@ -13,7 +13,8 @@ import numpy as np
 from ..errors import ExcitationError, GearbenchError
 from ..trace import Trace
 from .identify import (C_J, D_J, KT_J, MAX_B2_REL_STD, SP_STEP, TC_J, IdentificationResult,
-                       drive_sampling, identify_trace, is_speed_command, own_to_accel_names)
+                       declared_kick, drive_sampling, identify_trace, is_speed_command,
+                       own_to_accel_names, run_reverses)
 from .torque_constant import torque_constant
 from .uncertainty import DOF_MAX, interval
 
@@ -59,6 +60,11 @@ DELAY_MODEL_SPREAD = 0.25
 # common to both runs cancels in eq. 17 under every variant; one they do not share moves
 # Kt. Robustness seeds 0 and 3 (per motor): Kt coverage 99.0/97.5 % -> 98.0/94.0 %.
 MODEL_VARIANT_SPREAD = 0.25
+# Relative standard uncertainty of a kick computed from the drive's declared loop
+# (``identify.kick_coefficient``): its gain and current-loop time constant as set, not as
+# the drive's scaling realises them; Kt's variance gains (ΔKt)² of a refit at c·(1 + this).
+# An assumption (not fitted): noise-free, Kp 10 % off moves Kt by 0.02-0.04 %.
+KICK_REL_STD = 0.10
 MODEL_VARIANTS = ("current delay", "no cogging", "accel form")
 
 
@@ -393,7 +399,10 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
     sets the setpoint-step term: a drive that steps its setpoint and samples its current
     at one instant gets the physical kick relation (``identify._setpoint_steps``: the
     term always kept, no current delay, the spread to the delay fit added as model error,
-    ``DELAY_MODEL_SPREAD``); one that says it interpolates or averages gets none; a
+    ``DELAY_MODEL_SPREAD``); where it also declares its loop (``identify.declared_kick``)
+    and neither run reverses, the kick is computed from it and added to the current, the
+    current delay fitted, the spread to the fit without the delay and to a kick
+    ``KICK_REL_STD`` larger added; one that says it interpolates or averages gets none; a
     trace that does not say gets the term where it is significant.
 
     Returns
@@ -426,6 +435,17 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
             # drive sits at its declared current limit (``identify._below_current_limit``)
             options.setdefault("lag", False)
             options.setdefault("current_limit_a", _declared_current_limit(unloaded, loaded))
+            known = options.get("kick_a_per_rad_s", _known_kick(unloaded, loaded))
+            if known is not None:
+                # the drive's declared loop gives its kick (``identify.kick_coefficient``):
+                # added to the current, not fitted (a fitted c, nearly collinear with θ'',
+                # takes up misfit that differs between the runs)
+                options.update(setpoint_step=False, kick_a_per_rad_s=known)
+                # and the current delay fitted: D and Tc need it even from the exact
+                # triangle-weighted current (4 seed-7 motors noise-free: D +30…+216 %
+                # without, within 5 % with); Kt does not move with it
+                if "lag" not in given:
+                    options["lag"] = True
 
     def fits(opts):
         return tuple(identify_trace(t, method=method, **opts) for t in (unloaded, loaded))
@@ -461,12 +481,26 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
                 for w in fit.extras.get("warnings", [])]
     if warnings:
         cal.fit["warnings"] = warnings
+    if options.get("kick_a_per_rad_s"):
+        cal.fit["kick_a_per_rad_s"] = float(options["kick_a_per_rad_s"])
     if not model_errors:
         return cal
-    if kick and options.get("setpoint_step") and "lag" not in given:
+    c = options.get("kick_a_per_rad_s")
+    if c and "kick_a_per_rad_s" not in given:
         try:
             alt = calibrate_motor(unloaded, loaded, disk_kgm2, method, disk_std_kgm2=disk_std_kgm2,
-                                  disk_name=disk_name, model_errors=False, **{**given, "lag": True})
+                                  disk_name=disk_name, model_errors=False,
+                                  **{**given, "kick_a_per_rad_s": c * (1.0 + KICK_REL_STD)})
+        except ExcitationError:     # refused at the other kick: nothing to measure
+            alt = None
+        if alt is not None:
+            cal = _with_kick_spread(cal, alt)
+    if (kick and (options.get("setpoint_step") or options.get("kick_a_per_rad_s"))
+            and "lag" not in given):
+        try:
+            alt = calibrate_motor(unloaded, loaded, disk_kgm2, method, disk_std_kgm2=disk_std_kgm2,
+                                  disk_name=disk_name, model_errors=False,
+                                  **{**given, "lag": not options.get("lag", False)})
         except ExcitationError:     # the other model is refused: no spread to measure
             return cal
         cal = _with_delay_model_spread(cal, alt)
@@ -545,6 +579,28 @@ def _with_delay_model_spread(cal: MotorCalibration, alt: MotorCalibration) -> Mo
                                                  "Tc": float(d[1])}, "Kt_std": std}
     return replace(cal, Kt_std=std, Kt_ci95=interval(cal.Kt, std, cal.Kt_dof), fit=fit,
                    loss_covariance=tuple(tuple(float(x) for x in r) for r in cov))
+
+
+def _with_kick_spread(cal: MotorCalibration, alt: MotorCalibration) -> MotorCalibration:
+    """``cal`` with (ΔKt)² of its difference to ``alt`` (the same runs with the declared
+    kick one KICK_REL_STD larger) added to Kt's variance: c's uncertainty propagated
+    (GUM 5.1.3, sensitivity by finite difference)."""
+    std = float(np.hypot(cal.Kt_std, alt.Kt - cal.Kt))
+    fit = {**cal.fit, "kick_model_difference": float(alt.Kt - cal.Kt), "Kt_std": std}
+    return replace(cal, Kt_std=std, Kt_ci95=interval(cal.Kt, std, cal.Kt_dof), fit=fit)
+
+
+def _known_kick(unloaded: Trace, loaded: Trace) -> float | None:
+    """The kick both runs' drive declares (``identify.declared_kick``) where they agree and
+    neither run reverses, else None: at a reversal the fitted term takes up the zero
+    crossing's misfit too (noise-free, seed 4 case 11: +1.7 % with the declared kick, 0.0 %
+    fitted), so reversing runs keep the fitted, shared term."""
+    c = [declared_kick(t) for t in (unloaded, loaded)]
+    if None in c or not np.isclose(c[0], c[1], rtol=1e-9):
+        return None
+    if any(run_reverses(t.time_s, t["position_rad"]) for t in (unloaded, loaded)):
+        return None
+    return c[0]
 
 
 def _declared_kick(unloaded: Trace, loaded: Trace) -> bool | None:

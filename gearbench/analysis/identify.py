@@ -286,7 +286,7 @@ class _Signals:
 
 
 def _prepare(t, th, i, *, cutoff_hz, friction_width_rad_s, command, source,
-             current_limit_a=None) -> _Signals:
+             current_limit_a=None, kick_a_per_rad_s=None) -> _Signals:
     """Filter every signal with one zero-phase FIR (``derivatives.consistent_derivatives``).
 
     The Coulomb step is integrated at its sub-sample reversal instant as the angle's second
@@ -309,8 +309,13 @@ def _prepare(t, th, i, *, cutoff_hz, friction_width_rad_s, command, source,
     hw = smoothing_half_width(dt)
     w_smooth = dv.smooth_velocity(th, dt, half_width=hw)
     extra = {} if command is None else {"command": np.asarray(command, float)}
-    w_rev = REVERSAL_TOP_FRACTION * top_speed(w_smooth)
-    reverses = bool(np.mean(w_smooth > w_rev) > 0.05 and np.mean(w_smooth < -w_rev) > 0.05)
+    reverses = _reverses(w_smooth)
+    if kick_a_per_rad_s and command is not None:
+        # the current the sampled equation holds for (``kick_coefficient``; spreading each
+        # kick over the equations it reaches moved Kt < 0.04 %, D < 4 % of itself)
+        i = np.asarray(i, float) + kick_a_per_rad_s * dt * _setpoint_steps(
+            extra["command"], dt) * _below_current_limit(
+            i, current_limit_a, float(np.sqrt(_white_noise_variance(i))))
     if friction_width_rad_s:
         # Legacy: smoothed sign of the raw speed, sampled, then 3-tap matched.
         w_raw = np.empty_like(th)
@@ -344,6 +349,62 @@ def _prepare(t, th, i, *, cutoff_hz, friction_width_rad_s, command, source,
                     _white_noise_variance(i), source)
 
 
+def _reverses(w_smooth: np.ndarray) -> bool:
+    """A run "reverses" where over 5 % of it is beyond ±REVERSAL_TOP_FRACTION of its top
+    speed in each direction."""
+    w_rev = REVERSAL_TOP_FRACTION * top_speed(w_smooth)
+    return bool(np.mean(w_smooth > w_rev) > 0.05 and np.mean(w_smooth < -w_rev) > 0.05)
+
+
+def run_reverses(time_s: np.ndarray, position_rad: np.ndarray) -> bool:
+    """Whether a run reverses, as ``identify_default`` judges it (``_reverses``)."""
+    dt = float(np.median(np.diff(time_s)))
+    th = np.asarray(position_rad, float)
+    return _reverses(dv.smooth_velocity(th - th[0], dt, half_width=smoothing_half_width(dt)))
+
+
+def kick_coefficient(kp_a_s_per_rad: float, current_lag_s: float, period_s: float,
+                     loop_period_s: float) -> float:
+    """The current kick of a drive that steps its speed setpoint each SYNC and samples its
+    current at the SYNC instant, c in A per rad/s of setpoint step (ī = i + c·Δcmd).
+
+    Derivation (the discrete loop within one period T): the sampled equation
+    J Δ²θ_k = Kt ∫ i(t) tri(t − t_k) dt − … holds for the triangle-weighted current
+    ĩ_k (``derivatives.match_samples`` takes it from samples of a piecewise-linear
+    current). Against a drive that ramps to the new setpoint (reaching it at the last
+    of its M = T/T_loop speed-loop ticks), stepping adds the P-command pulse
+    Kp·Δcmd·p_m, p_m = 1 − (m+1)/M at tick m, through the first-order current loop
+    (time constant τ) as g(u). The samples see g(nT), n ≥ 1 (the sample at t_k is taken
+    before the period's first tick), the triangles its area: summed over the periods a
+    kick reaches,
+
+        c/Kp = (1/T)∫g du − Σ_{n≥1} g(nT) = mean_m p_m − g(T)/(1 − e^{−T/τ}),
+        g(T) = Σ_m p_m (e^{−(T − t_{m+1})/τ} − e^{−(T − t_m)/τ}),  t_m = m T/M.
+
+    The speed's own response to the kick within the period changes c by O(x·τ/T),
+    x = Kp·Kt·T/J: with τ = 0 it is c/Kp = 1/x − 1/(e^x − 1) = 1/2 − x/12 + …, with
+    τ ≥ 0.3 T the simulated drive's c/Kp stays within 0.6 % over x = 0.01–0.2, so one
+    c serves both calibration runs. Noise-free (robustness seeds 4, 5: 15 forward
+    drives) this c, instead of one fitted from the runs (``calibration.calibrate_motor``,
+    current delay fitted), takes Kt from +0.10 ± 0.13 % (mean, rms) to +0.01 ± 0.04 %;
+    Kp 10 % off moved Kt by 0.02–0.04 %. τ = 0: g is the pulse itself
+    (c/Kp = (M−1)/(2M)).
+
+    Examples
+    --------
+    >>> round(kick_coefficient(1.0, 0.6e-3, 1e-3, 0.25e-3), 3)
+    0.124
+    """
+    m = max(1, int(round(period_s / loop_period_s)))
+    p = 1.0 - (np.arange(m) + 1.0) / m
+    if current_lag_s <= 0:
+        return float(kp_a_s_per_rad * np.mean(p))
+    t_m = np.arange(m + 1) * period_s / m
+    g_t = float(np.sum(p * (np.exp(-(period_s - t_m[1:]) / current_lag_s)
+                            - np.exp(-(period_s - t_m[:-1]) / current_lag_s))))
+    return float(kp_a_s_per_rad * (np.mean(p) - g_t / -np.expm1(-period_s / current_lag_s)))
+
+
 def _setpoint_steps(command: np.ndarray, dt: float) -> np.ndarray:
     """The speed setpoint's step at each SYNC, Δcmd_k / dt (rad/s², first sample 0).
 
@@ -359,15 +420,25 @@ def _setpoint_steps(command: np.ndarray, dt: float) -> np.ndarray:
 
         ī_k = i_k + c·Δcmd_k,   c = Kp·(h̄(τ/T, M) − h_T(τ/T, M)),
 
-    with the same c for every run on that drive. This first-order relation leaves a
-    residual, measured on noise-free runs (robustness seed 4): fitted apart, two drives'
-    runs give c within 0.2 % of each other but b2 low by 0.04–0.32 %, more in the lighter
-    run; combined, Kt comes out high by about x/100 of itself, x = Kp·Kt·T/J of the
-    unloaded run (13 such drives, x 0.02–0.18: +0.02…+0.17 %, one reversing run
-    +0.36 %). A current delay per run takes it out there, but with the drawn noise the
-    errors are no smaller (30 drives: rms 0.23 against 0.21 %), and one delay shared by
-    both runs is worse (0.27 %). Within one run Δcmd/T follows θ'' (the loop follows its
-    command), so ``calibration.share_setpoint_step``
+    with the same c for every run on that drive: the speed's own response to the kick
+    within the period changes c by O(x), x = Kp·Kt·T/J (ideal current loop:
+    c/Kp = 1/x − 1/(e^x − 1) = 1/2 − x/12 + …), but behind a current loop of τ ≥ 0.3 T
+    c/Kp stays within 0.6 % over x = 0.01–0.2 (simulated steady speed ramp). Combined,
+    Kt still comes out high by about x/100 of itself, x of the unloaded run (noise-free,
+    robustness seeds 4+5, 15 forward drives: +0.03/+0.08/+0.22 % mean for x below 0.05,
+    0.05–0.1, above 0.1), and the cause is the fitted c, not the relation: with the
+    exact triangle-weighted current (no kick left) each run's fit still finds
+    c ≈ 0.03 Kp and b2 low by up to 0.55 % (0.02 % without the term), and a drive
+    that interpolates gets 0.07–0.10 Kp: nearly collinear with θ'', the term takes up
+    misfit that differs between the runs. Where the drive declares its loop (Kp, τ,
+    loop period), ``kick_coefficient`` gives c in closed form and it is added to the
+    current, not fitted; the current delay is then fitted, as D and Tc need it even
+    from the exact current (4 seed-7 motors noise-free: D +33…+212 % without, within
+    5 % with): those 15 drives +0.005/−0.001/+0.045 %, and with the drawn noise 69
+    forward kick motors of seeds 7+8 from +0.09 ± 0.14 % (mean, rms) to +0.02 ± 0.09 %.
+    Without the declared loop (or on a reversing run, where the fitted term also takes
+    up the zero crossing's misfit) Δcmd/T follows θ'' within one run (the loop follows
+    its command), so ``calibration.share_setpoint_step``
     fits one c for both runs of a motor and Kt from their difference. An interpolating
     drive (c = 0) or a period-averaged current (the sample is ī_k) has no such term
     (robustness benchmark, seed 8 case 11 input: b2 of the unloaded run +0.87 % from
@@ -640,7 +711,8 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
                      form: str = "auto", command: np.ndarray | None = None,
                      load_rad_per_unit: float | None = None,
                      form_spread: bool = True, setpoint_step: bool = False,
-                     current_limit_a: float | None = None) -> IdentificationResult:
+                     current_limit_a: float | None = None,
+                     kick_a_per_rad_s: float | None = None) -> IdentificationResult:
     """Bias-reduced fit of ``J θ'' + D θ' + Tc s(θ') [+ C θ] [+ q·(sin, cos) θ_L] = Kt i [+ c]``.
 
     Every run is fitted twice: in ``form`` and, as a cross-check, by the plain filtered
@@ -682,6 +754,9 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
     current_limit_a : the drive's current limit (its description's ``current_limit_a``,
         CiA 402 max current 0x6073), or None: at a sample at the limit the
         ``setpoint_step`` regressor is 0 (``_below_current_limit``).
+    kick_a_per_rad_s : the drive's known setpoint-step kick c (``kick_coefficient``, from
+        its declared loop): c·Δcmd is added to the sampled current (0 at the current
+        limit) instead of fitting a ``setpoint_step`` term.
     form_spread : also fit the other regression direction (accel for the torque side,
         and vice versa) with the same terms and add ``FORM_SPREAD``·ΔΔᵀ of their
         difference Δ in (Kt/J, D/J, Tc/J) to the covariance: with a correct model both
@@ -716,7 +791,7 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
     sig = _prepare(np.asarray(time_s, float), np.asarray(position_rad, float),
                    np.asarray(current_a, float), cutoff_hz=cutoff_hz,
                    friction_width_rad_s=friction_width_rad_s, command=command, source=source,
-                   current_limit_a=current_limit_a)
+                   current_limit_a=current_limit_a, kick_a_per_rad_s=kick_a_per_rad_s)
     use_bias = sig.reverses if bias is None else bias
     if use_bias and not sig.reverses:
         raise ExcitationError(f"{source}: a current offset and Coulomb friction cannot be told "
@@ -1336,6 +1411,37 @@ def drive_sampling(trace) -> str | None:
     if drive.get("setpoint") is None or drive.get("current") is None:
         return None
     return "kick" if (drive["setpoint"], drive["current"]) == ("step", "instant") else "plain"
+
+
+DRIVE_LOOP_KEYS = ("speed_kp_a_s_per_rad", "current_loop_time_constant_s", "speed_loop_period_s")
+
+
+def declared_kick(trace) -> float | None:
+    """The setpoint-step kick c (A per rad/s, ``kick_coefficient``) of a drive whose
+    description (``meta["drive"]``) declares its loop: ``speed_kp_a_s_per_rad`` (speed-loop
+    P gain), ``current_loop_time_constant_s`` and ``speed_loop_period_s``; None where it
+    declares no kick (``drive_sampling``) or not all three.
+
+    Raises TraceError naming a declared value that is not a number ≥ 0 (> 0 for the gain
+    and the loop period)."""
+    drive = trace.meta.get("drive") or {}
+    if drive_sampling(trace) != "kick" or not all(k in drive for k in DRIVE_LOOP_KEYS):
+        return None
+    values = {}
+    for k in DRIVE_LOOP_KEYS:
+        try:
+            values[k] = float(drive[k])
+        except (TypeError, ValueError):
+            values[k] = float("nan")
+        low_ok = values[k] >= 0 if k == "current_loop_time_constant_s" else values[k] > 0
+        if not (np.isfinite(values[k]) and low_ok):
+            raise TraceError(f"{trace.source}: meta drive.{k} is {drive[k]!r}; give a number "
+                             f"{'>= 0' if k == 'current_loop_time_constant_s' else '> 0'} "
+                             f"in SI units (or leave the drive's loop out)")
+    period_s = float(np.median(np.diff(trace.time_s)))
+    return kick_coefficient(values["speed_kp_a_s_per_rad"],
+                            values["current_loop_time_constant_s"], period_s,
+                            values["speed_loop_period_s"])
 
 
 def is_speed_command(trace) -> bool:

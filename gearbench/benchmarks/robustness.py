@@ -231,10 +231,14 @@ def drive_description(motor) -> dict:
     reads it (``identify.drive_sampling``): whether it ramps between SYNC setpoints
     (CiA 402 cyclic synchronous velocity with 0x60C2 set) or steps, and whether its
     current object is a period mean or one sample, and its current limit (CiA 402 max
-    current 0x6073, a drive setting). Nothing of the motor."""
+    current 0x6073, a drive setting), and its loop as set: speed-loop P gain, current-loop
+    time constant and speed-loop period (``identify.declared_kick``). Nothing of the motor."""
     return {"setpoint": "interpolated" if motor.setpoint_interpolation else "step",
             "current": "mean" if motor.current_avg_s > 0 else "instant",
-            "current_limit_a": float(motor.current_limit_a)}
+            "current_limit_a": float(motor.current_limit_a),
+            "speed_kp_a_s_per_rad": float(motor.vel_kp),
+            "current_loop_time_constant_s": float(motor.current_lag_s),
+            "speed_loop_period_s": float(motor.loop_period_s)}
 
 
 def simulate_case(case: Case) -> dict:

@@ -384,9 +384,17 @@ def _sampling(c: _Checker, d: dict, mp) -> dict | None:
         return None
     sp = mp + ("sampling",)
     s = c.mapping(d["sampling"], sp, "sampling: {setpoint: step | interpolated, current: instant | mean}")
-    c.keys(s, sp, ("setpoint", "current"), required=("setpoint", "current"))
-    return {"setpoint": c.string(s, sp, "setpoint", choices=("step", "interpolated")),
-            "current": c.string(s, sp, "current", choices=("instant", "mean"))}
+    loop = ("speed_kp_a_s_per_rad", "current_loop_time_constant_s", "speed_loop_period_s")
+    c.keys(s, sp, ("setpoint", "current", *loop), required=("setpoint", "current"))
+    out = {"setpoint": c.string(s, sp, "setpoint", choices=("step", "interpolated")),
+           "current": c.string(s, sp, "current", choices=("instant", "mean"))}
+    # the drive's loop as set (optional, all three): its kick is then computed
+    # (identify.declared_kick), not fitted
+    if any(k in s for k in loop):
+        out["speed_kp_a_s_per_rad"] = c.number(s, sp, loop[0], gt=0.0)
+        out["current_loop_time_constant_s"] = c.number(s, sp, loop[1], ge=0.0, le=1.0)
+        out["speed_loop_period_s"] = c.number(s, sp, loop[2], gt=0.0, le=1.0)
+    return out
 
 
 def _reducer(c: _Checker, top) -> ReducerSpec | None:
