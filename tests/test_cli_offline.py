@@ -265,3 +265,15 @@ def test_calibrate_takes_the_drives_sampling_as_a_profile_does(capsys, tmp_path)
                        "--drive-current-limit", case.plant.motor_in.current_limit_a)
     limited = json.loads(out)
     assert code == 0 and abs(limited["Kt"] / kt - 1) <= 0.0025
+    # the drive's loop declared as the profile's sampling can: the kick computed, not fitted
+    m = case.plant.motor_in
+    step = ("--drive-setpoint", "step", "--drive-current", "instant",
+            "--drive-current-limit", m.current_limit_a)
+    code, out, _ = run(capsys, *base, *step, "--drive-loop", m.vel_kp, m.current_lag_s, m.loop_period_s)
+    looped = json.loads(out)
+    assert code == 0 and looped["fit"]["kick_a_per_rad_s"] > 0
+    assert abs(looped["Kt"] / kt - 1) <= 0.0015
+    bad(capsys, *base, "--drive-loop", m.vel_kp, m.current_lag_s, m.loop_period_s,
+        must=("--drive-loop goes with",))
+    bad(capsys, *base, *step, "--drive-loop", -1, m.current_lag_s, m.loop_period_s,
+        must=("--drive-loop takes",))

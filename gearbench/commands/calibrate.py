@@ -4,7 +4,7 @@ from __future__ import annotations
 import math
 
 from ..analysis.calibration import calibrate_motor
-from ..analysis.identify import METHODS
+from ..analysis.identify import DRIVE_LOOP_KEYS, METHODS
 from ..analysis.uncertainty import TOLERANCE_SOURCES, tolerance_std
 from ..errors import GearbenchError
 from ..trace import SINGLE_MOTOR_COLUMNS
@@ -45,6 +45,12 @@ def add_arguments(p) -> None:
                    help="the current the drive clamps at (CiA 402 0x6073; the profile's "
                         "motors.<m>.current_limit_a): with --drive-setpoint step and --drive-current "
                         "instant, samples at the limit carry no setpoint kick")
+    p.add_argument("--drive-loop", type=float, nargs=3, default=None,
+                   metavar=("KP_A_S_PER_RAD", "TAU_S", "PERIOD_S"),
+                   help="the drive's loop as set: speed-loop P gain (A per rad/s), current-loop time "
+                        "constant (s), speed-loop period (s), as a profile's motors.<m>.sampling declares "
+                        "them: with --drive-setpoint step and --drive-current instant the kick is computed "
+                        "(identify.kick_coefficient) instead of fitted, on runs that do not reverse")
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
 
@@ -68,11 +74,22 @@ def run(args) -> int:
     if limit is not None and args.drive_setpoint is None:
         raise GearbenchError("--drive-current-limit goes with --drive-setpoint and --drive-current "
                              "(it says where a stepping drive's setpoint kick is clipped); pass them too")
+    loop = args.drive_loop
+    if loop is not None and (args.drive_setpoint, args.drive_current) != ("step", "instant"):
+        raise GearbenchError("--drive-loop goes with --drive-setpoint step --drive-current instant "
+                             "(it computes the current kick such a drive gives); pass them too")
+    if loop is not None and not (all(math.isfinite(v) for v in loop) and loop[0] > 0 and loop[1] >= 0
+                                 and loop[2] > 0):
+        raise GearbenchError(f"--drive-loop takes the speed-loop P gain in A per rad/s (> 0), the "
+                             f"current-loop time constant in s (>= 0) and the speed-loop period in s "
+                             f"(> 0); got {' '.join(f'{v:g}' for v in loop)}, e.g. --drive-loop 0.04 5e-4 2.5e-4")
     if args.drive_setpoint is not None:
         for tr in (unloaded, loaded):
             tr.meta["drive"] = {"setpoint": args.drive_setpoint, "current": args.drive_current}
             if limit is not None:
                 tr.meta["drive"]["current_limit_a"] = limit
+            if loop is not None:
+                tr.meta["drive"].update(zip(DRIVE_LOOP_KEYS, loop))
     disk_std = tolerance_std(tol * args.inertia, args.inertia_source)
     cal = calibrate_motor(unloaded, loaded, args.inertia, method=args.method, disk_std_kgm2=disk_std)
     if args.json:
