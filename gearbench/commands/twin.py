@@ -232,8 +232,8 @@ def _print_proof(pr: dict) -> None:
     print(f"\nthe proof: the run's results (re-analysed) beside the twin's (its traces analysed the same "
           f"way; mean and standard deviation over {k} noise draws)")
     print(f"  {'quantity':<40} {'real':>9} {'twin':>9} {'twin sd':>8} {'±95 %':>8}  within")
-    notes = []
-    for label, a, ci, b, sd in _proof_rows(pr):
+    notes, rows = [], _proof_rows(pr)
+    for label, a, ci, b, sd in rows:
         hw = half_width(ci, sd, k)
         print(f"  {label:<40} {_f(a):>9} {_f(b):>9} {_f(sd):>8} {_f(hw):>8}  {within(a, b, ci, sd, k)}")
         if understated(ci, sd):
@@ -247,7 +247,7 @@ def _print_proof(pr: dict) -> None:
     if notes:
         ratio, label = max(notes)
         print(f"  the run's 95 % interval is narrower than 1.96 sd of the analysis over the twin's draws "
-              f"for {len(notes)} of {len(_proof_rows(pr))} results (most: {label}, {ratio:.2f}x)")
+              f"for {len(notes)} of {len(rows)} results (most: {label}, {ratio:.2f}x)")
 
 
 def _verdict(pr: dict, after: list[dict], worst_floors: float = 3.0) -> list[str]:
