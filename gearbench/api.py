@@ -294,9 +294,10 @@ def open_bench(profile, *, sim: bool = False, out_dir="results/run", serial: str
         operator = AutoOperator() if sim else TerminalOperator()
     sim_plant = dict(profile.simulation) if sim else None
     if sim and twin:   # a fitted digital twin (gearbench twin --write) replaces the profile's plant
-        from .twin.block import load_twin_block
+        from .twin.block import check_twin_bench, load_twin_block
 
         sim_plant = dict(load_twin_block(twin))
+        check_twin_bench(sim_plant, profile, twin)
     if sim_plant is not None and seed is not None:
         sim_plant["seed"] = seed
     with contextlib.ExitStack() as stack:

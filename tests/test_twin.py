@@ -13,6 +13,7 @@ import sys
 import numpy as np
 import pytest
 import yaml
+from pathlib import Path
 
 from gearbench.errors import GearbenchError, ProfileError
 from gearbench.sim import PlantParams
@@ -179,6 +180,20 @@ def test_twin_file_errors_name_the_file(tmp_path):
     good = tmp_path / "ok.yaml"
     good.write_text(yaml.safe_dump({"simulation": BLOCK}))
     assert load_twin_block(str(good))["ratio"] == 10.0
+
+
+def test_another_benchs_twin_is_refused_naming_the_twin(tmp_path):
+    """A twin fitted on another bench (here cyclo's output motor, rated 3 A) used with cvt's
+    profile (rated 1.5 A): the twin file is named, not the profile blamed by the drive's check."""
+    prof = yaml.safe_load(Path("profiles/cyclo.yaml").read_text())
+    twin = tmp_path / "twin-cyclo.yaml"
+    twin.write_text(yaml.safe_dump({"simulation": prof["simulation"]}))
+    cvt_rated = yaml.safe_load(Path("profiles/cvt.yaml").read_text())["motors"]["out"]["rated_current_a"]
+    assert prof["simulation"]["motors"]["out"].get("rated_current_a", prof["motors"]["out"]["rated_current_a"]) != cvt_rated
+    r = subprocess.run([sys.executable, "-m", "gearbench", "validate", "profiles/cvt.yaml", "--twin", str(twin)],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "twin-cyclo.yaml: motors.out.rated_current_a" in r.stderr and "another bench" in r.stderr
 
 
 def test_cli_twin_on_a_folder_without_a_run_exits_2(tmp_path):
