@@ -291,3 +291,27 @@ def test_a_slow_speed_loop_is_measured_at_its_commanded_speed(plant):
     for p in res["efficiency"]:
         assert p["speed_in_rad_s"] == pytest.approx(p["speed_setpoint_rad_s"], rel=0.01)
     assert score(res)["meets_all"]
+
+
+def test_cycle_time_sets_each_calibration_run_against_its_design():
+    """Issue 23 (task 27a): a designed calibration's interval reached, against what its
+    excitation design predicted for a run of that length (eq. D1/D2 shares), per run."""
+    from gearbench.benchmarks.cycle_time import PROFILES, design_ratio, random_plant
+    from gearbench.analysis.streaming import Z95
+
+    _, prof = random_plant(3, 0, load_profile(PROFILES["adaptive"]), excitation="designed")
+    pred = prof.waveforms["excite_in"].design.predictions["in"]
+    J, j = prof.motors["in"].rotor_inertia_kgm2, prof.disks["disk_in"].inertia_kgm2
+    unloaded = Z95 * J / j * pred.b2_rel_std_unloaded
+    loaded = Z95 * (J + j) / j * pred.b2_rel_std_loaded
+    res = {"measurements": [
+        {"kind": "calibrate", "motor": "in", "run": "unloaded", "duration_s": pred.duration_s,
+         "interval_reached": 2 * unloaded},
+        # a run half the design's length: its prediction widens by sqrt(2)
+        {"kind": "calibrate", "motor": "in", "run": "disk_in", "duration_s": pred.duration_s / 2,
+         "interval_reached": 3 * loaded},
+        {"kind": "efficiency", "interval_reached": 0.3}]}
+    r = design_ratio(prof, res)
+    assert set(r) == {"in unloaded", "in loaded"}
+    assert r["in unloaded"] == pytest.approx(2.0)
+    assert r["in loaded"] == pytest.approx(3 / np.sqrt(2))

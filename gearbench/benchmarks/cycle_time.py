@@ -2,6 +2,7 @@
 
     python -m gearbench.benchmarks cycle_time [--plants N] [--seeds 0 1] [--png FILE] [--no-chain]
                                               [--per-plant] [--adaptive-excitation designed|drawn]
+                                              [--drive-current drawn|mean]
 
 Procedures:
   classic   profiles/cvt-classic.yaml — fixed lengths: 4 calibration runs of 3 s one
@@ -181,7 +182,8 @@ def score(res: dict) -> dict:
           for p, t in zip(res["efficiency"], truth["efficiency"])]
     meets = (len(kt) == 2 and len(inc) == 12 and max(kt) <= GOAL["kt_pct"]
              and max(inc) <= GOAL["inc_pp"])
-    return {"kt": kt, "inc": inc, "abs": ab, "bench_time_s": res["bench_time_s"], "meets": meets,
+    return {"kt": kt, "kt_motors": list(res["motors"]), "inc": inc, "abs": ab,
+            "bench_time_s": res["bench_time_s"], "meets": meets,
             "meets_all": meets and max(ab, default=math.inf) <= ABS_PP,
             "why_missed": why_missed(res, kt, inc, ab), "causes": classify_misses(res, kt, inc, ab),
             "shortfall": shortfall(res, kt, inc, ab),
@@ -242,6 +244,39 @@ def shortfall(res: dict, kt: list, inc: list, ab: list) -> float | None:
     ratios = [m["interval_reached"] / m["target"] for cause, carriers in _misses(res, kt, inc, ab)
               if "at max_s" in cause for m in carriers if _short(m)]
     return max(ratios, default=None)
+
+
+def design_ratio(profile, res: dict) -> dict[str, float]:
+    """What each designed calibration run reached against what its excitation design
+    predicted (``excitation_design.Prediction``, eq. D1/D2 with the design's noise model:
+    current-sensor noise and quantum, encoder quantum, the speed tracked as commanded):
+    ``"<motor> <run>"`` -> interval reached / predicted 95 % half-width of that run's
+    Kt share, the prediction scaled to the run's length (1/sqrt(t)). Near 1 the design's
+    noise model holds; far above it the run saw noise or tracking the design does not
+    model. Runs without a designed waveform are left out."""
+    from ..analysis.streaming import Z95
+    from ..profile.model import CalibrateStep
+
+    out = {}
+    for step in profile.steps:
+        spec = profile.waveforms.get(getattr(step, "waveform", None)) if isinstance(step, CalibrateStep) else None
+        design = getattr(spec, "design", None)
+        if design is None or step.motor not in design.predictions:
+            continue
+        pred = design.predictions[step.motor]
+        J = profile.motors[step.motor].rotor_inertia_kgm2
+        j = profile.disks[step.disk].inertia_kgm2
+        for m in res.get("measurements", []):
+            if m["kind"] != "calibrate" or m.get("motor") != step.motor or not m.get("interval_reached"):
+                continue
+            loaded = m.get("run") != "unloaded"
+            # eq. D2: each run's relative b2 error moves Kt by J/j unloaded, (J + j)/j loaded
+            share = (J + j) / j if loaded else J / j
+            rel = pred.b2_rel_std_loaded if loaded else pred.b2_rel_std_unloaded
+            predicted = Z95 * share * rel * math.sqrt(pred.duration_s / max(m["duration_s"], 1e-9))
+            if predicted > 0 and math.isfinite(predicted):
+                out[f"{step.motor} {'loaded' if loaded else 'unloaded'}"] = m["interval_reached"] / predicted
+    return out
 
 
 def _short(m: dict) -> bool:
@@ -460,9 +495,11 @@ def procedures(plant_profile: dict, step_rad_s: float) -> dict:
 
 
 def run_plants(n_plants: int, seeds, *, which=("classic", "adaptive", "paper"), log=print,
-               cvt_seeds=None, adaptive_excitation: str = "designed") -> list[dict]:
+               cvt_seeds=None, adaptive_excitation: str = "designed", drive_current: str = "drawn") -> list[dict]:
     """Every procedure on the profile's own plant (one run per noise seed in ``cvt_seeds``,
     default ``seeds``) and on ``n_plants`` random plants per draw seed in ``seeds``.
+    ``drive_current="mean"`` is a what-if on the random plants: every drive reports its
+    current as a period mean (``period_mean_current``) instead of as drawn.
     Returns rows {group, plant, seed, procedure, **score}."""
     from ..profile import load_profile
     from ..sim import PlantParams
@@ -486,6 +523,9 @@ def run_plants(n_plants: int, seeds, *, which=("classic", "adaptive", "paper"), 
                 except ValueError as exc:      # the excitation design finds no waveform: a result
                     profs[k], failed[k] = base[k], f"excitation design: {exc}"
             step = float(min(0.9 * case.bench_speed_rad_s * 1.2, 330.0))
+            plant = period_mean_current(case.plant) if drive_current == "mean" else case.plant
+            sampled = {f"current_{m}": "mean" if getattr(plant, f"motor_{m}").current_avg_s > 0 else "instant"
+                       for m in ("in", "out")}
             for name, (prof, method) in procedures(profs, step).items():
                 if name not in which:
                     continue
@@ -498,9 +538,18 @@ def run_plants(n_plants: int, seeds, *, which=("classic", "adaptive", "paper"), 
                         log(f"  random plants  {seed}/{index:<4} {name:<9} ERROR {failed[name][:160]}")
                     continue
                 rows.append(_one("random plants", f"{seed}/{index}", case.plant.seed, name, prof,
-                                 case.plant, method, log,
-                                 reversing=case.reversing, ratio=case.plant.ratio))
+                                 plant, method, log,
+                                 reversing=case.reversing, ratio=case.plant.ratio, **sampled))
     return rows
+
+
+def period_mean_current(plant):
+    """``plant`` with both drives reporting their current as the mean over the sample
+    period instead of one current-loop instant (a what-if: an instant sample aliases the
+    speed loop's ripple, from its encoder-quantised speed estimate, into the fit band
+    and the level means)."""
+    return replace(plant, **{f"motor_{m}": replace(getattr(plant, f"motor_{m}"), current_avg_s=plant.period_s)
+                             for m in ("in", "out")})
 
 
 def _one(group, plant_id, seed, name, prof, plant, method, log, **about) -> dict:
@@ -508,6 +557,7 @@ def _one(group, plant_id, seed, name, prof, plant, method, log, **about) -> dict
     try:
         res = run_inprocess(prof, plant, seed=int(seed), method=method)
         s = score(res)
+        s["design_ratio"] = design_ratio(prof, res)
     except Exception as exc:          # a failure is a result here, not a crash
         s = {"error": f"{type(exc).__name__}: {str(exc)[:120]}", "bench_time_s": float("nan")}
     bound = bench_time_bound_s(prof)
@@ -604,22 +654,26 @@ def print_time_table(summ: list[dict]) -> None:
 def print_plants(rows: list[dict], procedure: str = "adaptive") -> None:
     """One line per random plant: its errors, time used against the bound, and why each
     missed target was missed."""
-    print(f"{'plant':>7} {'kind':<5}{'ratio':>6}{'Kt %':>7}{'incr pp':>8}{'abs pp':>7}{'bench/bound s':>14}"
+    print(f"{'plant':>7} {'kind':<7}{'ratio':>6}{'Kt %':>7}{'incr pp':>8}{'abs pp':>7}{'bench/bound s':>14}"
           f"{'at max':>7}  verdict")
     for r in rows:
         if r["group"] != "random plants" or r["procedure"] != procedure:
             continue
-        kind = "rev" if r.get("reversing") else "fwd"
+        kind = ("rev" if r.get("reversing") else "fwd") + "".join(
+            {"instant": "i", "mean": "m"}.get(r.get(f"current_{m}"), "") for m in ("in", "out"))
         if "error" in r:
-            print(f"{r['plant']:>7} {kind:<5}{r.get('ratio', math.nan):6.1f}  ERROR {r['error']}")
+            print(f"{r['plant']:>7} {kind:<7}{r.get('ratio', math.nan):6.1f}  ERROR {r['error']}")
             continue
         verdict = "meets all in bound" if r["in_time"] else "; ".join(
             r["why_missed"] + ([] if r["bench_time_s"] <= r["bound_s"] + 1e-9 else ["over the bound"]))
-        print(f"{r['plant']:>7} {kind:<5}{r.get('ratio', math.nan):6.1f}{max(r['kt']):7.3f}{max(r['inc']):8.3f}"
+        print(f"{r['plant']:>7} {kind:<7}{r.get('ratio', math.nan):6.1f}{max(r['kt']):7.3f}{max(r['inc']):8.3f}"
               f"{max(r['abs']):7.3f}{r['bench_time_s']:7.1f}/{r['bound_s']:<6.1f}{r['stopped_by_max']:7d}  {verdict}")
         if not r["in_time"]:
             short = f" (at max_s short {r['shortfall']:.1f}x)" if r.get("shortfall") else ""
             print(f"{'':>14}causes: {', '.join(r['causes'] or ['over the bound'])}{short}")
+            if r.get("design_ratio"):
+                print(f"{'':>14}calibration reached / design predicted: " +
+                      ", ".join(f"{k} {v:.1f}x" for k, v in r["design_ratio"].items()))
     tally: dict[str, int] = {}
     for r in rows:
         if r["group"] == "random plants" and r["procedure"] == procedure and not r["in_time"]:
@@ -628,6 +682,8 @@ def print_plants(rows: list[dict], procedure: str = "adaptive") -> None:
     if tally:
         print("misses by cause (a plant may miss several targets): " +
               "; ".join(f"{c} {n}" for c, n in sorted(tally.items(), key=lambda kv: -kv[1])))
+    _print_design_ratios(rows, procedure)
+    _print_by_kind(rows, procedure)
     shorts = [r["shortfall"] for r in rows if r["group"] == "random plants" and r["procedure"] == procedure
               and not r["in_time"] and r.get("shortfall")]
     if shorts:
@@ -636,6 +692,35 @@ def print_plants(rows: list[dict], procedure: str = "adaptive") -> None:
         print(f"plants missing at max_s, by how far the interval stayed above its target (time needed "
               f"~ factor squared): <= {edges[0]:g}x {counts[0]}, {edges[0]:g}-{edges[1]:g}x {counts[1]}, "
               f"> {edges[1]:g}x {counts[2]} (median {float(np.median(shorts)):.1f}x)")
+
+
+def _print_by_kind(rows: list[dict], procedure: str) -> None:
+    """Plants within the bound: forward / reversing, and by how the input drive reports
+    its current (one instant, or the period mean)."""
+    rs = [r for r in rows if r["group"] == "random plants" and r["procedure"] == procedure]
+    parts = []
+    for label, pick in (("forward", lambda r: not r.get("reversing")), ("reversing", lambda r: r.get("reversing")),
+                        ("input current instant", lambda r: r.get("current_in") == "instant"),
+                        ("input current period mean", lambda r: r.get("current_in") == "mean")):
+        sel = [r for r in rs if pick(r)]
+        if sel:
+            parts.append(f"{label} {sum(bool(r.get('in_time')) for r in sel)}/{len(sel)}")
+    if parts:
+        print("every target within the bound: " + ", ".join(parts))
+
+
+def _print_design_ratios(rows: list[dict], procedure: str) -> None:
+    """Quartiles of ``design_ratio`` over every designed calibration run, and over the runs
+    of plants whose Kt missed."""
+    rs = [r for r in rows if r["group"] == "random plants" and r["procedure"] == procedure]
+    every = [v for r in rs for v in (r.get("design_ratio") or {}).values()]
+    missed = [v for r in rs for k, v in (r.get("design_ratio") or {}).items()
+              if dict(zip(r.get("kt_motors", ()), r.get("kt", ()))).get(k.split()[0], 0.0) > GOAL["kt_pct"]]
+    for label, vals in (("every designed calibration run", every), ("runs of the motors whose Kt missed", missed)):
+        if vals:
+            q = np.percentile(vals, (25, 50, 75, 90))
+            print(f"{label}: interval reached / design predicted, quartiles {q[0]:.1f} {q[1]:.1f} {q[2]:.1f}x, "
+                  f"90th pct {q[3]:.1f}x ({len(vals)} runs)")
 
 
 def plot(rows: list[dict], path: Path) -> Path | None:
@@ -688,6 +773,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="random plants' adaptive calibration: a multisine designed per motor from the "
                          "profile covering the map's speeds (default), or the drawn case's own commands "
                          "(as the classic and paper procedures; before issue 23)")
+    ap.add_argument("--drive-current", choices=("drawn", "mean"), default="drawn",
+                    help="random plants' drives report their current as drawn (one instant or a "
+                         "period mean, default) or all as a period mean (a what-if)")
     ap.add_argument("--per-plant", action="store_true", help="one line per random plant: errors, time, why missed")
     ap.add_argument("--no-chain", action="store_true", help="skip the runs through the --sim CANopen chain")
     args = ap.parse_args(argv)
@@ -698,7 +786,7 @@ def main(argv: list[str] | None = None) -> int:
           f"efficiency <= {GOAL['inc_pp']} pp at all 12 points", flush=True)
     rows = run_plants(args.plants, args.seeds, which=tuple(args.procedures),
                       log=lambda s: print(s, flush=True), cvt_seeds=range(args.cvt_runs),
-                      adaptive_excitation=args.adaptive_excitation)
+                      adaptive_excitation=args.adaptive_excitation, drive_current=args.drive_current)
     if not args.no_chain:
         rows += run_chain(log=lambda s: print(s, flush=True))
     print()
