@@ -283,6 +283,14 @@ def test_causes_name_the_missed_quantities_each_motors_kt_and_the_measured_condi
                    [True], [True], motors=[plain, plain])
     assert R.causes(o2).endswith("no tagged condition") and "missed inc_pp" in R.causes(o2)
     assert R.causes(R.Outcome(error="TraceError: x")) == "exception"
+    # an absolute point beyond its target on an extrapolated motor loss is named; one
+    # within its target is not
+    o3 = R.Outcome([0.1, 0.1], [0.1], [0.5, 0.1], [0.05, 0.05], [0.05], [0.3, 0.3],
+                   [True, True], [True], [True, True], abs_extrapolated=[True, False],
+                   motors=[plain, plain])
+    assert "missed abs_pp" in R.causes(o3) and R.causes(o3).endswith("; loss extrapolated")
+    o3.abs_extrapolated = [False, True]
+    assert R.causes(o3).endswith("no tagged condition")
 
 
 def test_stepping_drive_with_sampled_current_gives_kt_within_target():
