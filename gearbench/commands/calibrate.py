@@ -50,7 +50,7 @@ def add_arguments(p) -> None:
                    help="the drive's loop as set: speed-loop P gain (A per rad/s), current-loop time "
                         "constant (s), speed-loop period (s), as a profile's motors.<m>.sampling declares "
                         "them: with --drive-setpoint step and --drive-current instant the kick is computed "
-                        "(identify.kick_coefficient) instead of fitted, on runs that do not reverse")
+                        "(identify.kick_coefficient) instead of fitted (forward and reversing runs)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
 
