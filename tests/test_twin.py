@@ -523,3 +523,18 @@ def test_a_profile_whose_exact_curve_falls_all_the_way_keeps_the_smoothed_minimu
     assert out is not None and out["value"] == pytest.approx(0.0200, abs=1e-6)
     assert out["bias"] == pytest.approx(2e-4)
     assert out["interval"] == pytest.approx(math.sqrt(F.CHI2_1_95 / 1e7) + 2e-4, rel=1e-3)
+
+
+def test_signal_mask_leaves_out_the_named_signals_only():
+    """``Problem.signal_mask``: one flag per stacked residual, False exactly on the named
+    signals (the angle-free refit after a Kt saturation, ``fit.angle_free_prefit``)."""
+    rec = _record(BLOCK, _segments(n_cal=300, n_eff=400))
+    prob = F.Problem(rec, copy.deepcopy(BLOCK), Q)
+    r = prob.residual_vector(copy.deepcopy(BLOCK))
+    m = prob.signal_mask(exclude=("position_rad",))
+    assert m.shape == r.shape and 0 < m.sum() < len(m)
+    lens = [s.last_sample - s.first_sample + 1 for s in rec]
+    want = np.concatenate([np.full(lens[[s.name for s in rec].index(k[0])], k[2] != "position_rad")
+                           for k in prob.residual_keys()])
+    assert np.array_equal(m, want)
+    assert prob.signal_mask().all()

@@ -909,3 +909,28 @@ def _point(w, ref, m_in, m_out, n_signed, n_rel_std, source) -> EfficiencyPoint:
         float(eta[1]), interval(eta[1], std[1], dof[1]),
         p_in, p_out, bool(extrapolated), r_in, r_out,
         float(std[0]), float(dof[0]), float(std[1]), float(dof[1]))
+
+
+def above_one(point: dict) -> str | None:
+    """A point (result.json ``efficiency`` entry) whose incremental or absolute efficiency
+    lies above 1 beyond its 95 % interval (the interval's low end above 1): power out of
+    a reducer cannot exceed power in, so one of the numbers it is built of is wrong (most
+    often a motor's Kt, eq. 18 is K_out/K_in times a current ratio). The message says
+    which; None when both are possible.
+
+    Examples
+    --------
+    >>> above_one({"eta_incremental": 0.9, "eta_incremental_ci95": [0.88, 0.92]}) is None
+    True
+    >>> above_one({"eta_incremental": 1.54, "eta_incremental_ci95": [1.06, 2.02]})[:45]
+    'incremental efficiency 1.54 (95 %: 1.06..2.02'
+    """
+    out = []
+    for key, label in (("eta_incremental", "incremental"), ("eta_absolute", "absolute")):
+        ci = point.get(f"{key}_ci95")
+        eta = point.get(key)
+        if eta is None or not ci or ci[0] is None or not ci[0] > 1.0:
+            continue
+        out.append(f"{label} efficiency {eta:.3g} (95 %: {ci[0]:.3g}..{ci[1]:.3g}) is above 1 beyond its "
+                   f"interval: impossible for a reducer, a motor's Kt or loss behind it is wrong")
+    return "; ".join(out) or None

@@ -2,9 +2,11 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 from ..analysis.calibration import calibrate_motor
 from ..analysis.identify import DRIVE_LOOP_KEYS, METHODS
+from ..analysis.model_check import calibration_linearity, with_linearity
 from ..analysis.uncertainty import TOLERANCE_SOURCES, tolerance_std
 from ..errors import GearbenchError
 from ..trace import SINGLE_MOTOR_COLUMNS
@@ -92,6 +94,8 @@ def run(args) -> int:
                 tr.meta["drive"].update(zip(DRIVE_LOOP_KEYS, loop))
     disk_std = tolerance_std(tol * args.inertia, args.inertia_source)
     cal = calibrate_motor(unloaded, loaded, args.inertia, method=args.method, disk_std_kgm2=disk_std)
+    cal = replace(cal, fit=with_linearity(cal.fit, calibration_linearity(
+        unloaded, loaded, kt=cal.Kt, kt_ci95=cal.Kt_ci95, motor=args.motor or "", current_limit_a=limit)))
     if args.json:
         dump(cal.to_dict())
         return 0

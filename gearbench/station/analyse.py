@@ -13,6 +13,7 @@ import numpy as np
 from ..analysis.calibration import MotorCalibration, calibrate_motor
 from ..analysis.efficiency import EfficiencyResult
 from ..analysis.efficiency import efficiency as _efficiency
+from ..analysis.model_check import calibration_linearity, with_linearity
 from .recorder import bench_trace, motor_trace
 from ..errors import TraceError
 from ..trace import Trace
@@ -60,17 +61,23 @@ def fill_lost_samples(step: Trace) -> Trace:
 
 def calibrate(unloaded: Trace, loaded: Trace, *, motor: str, disk_kgm2: float,
               method: str = "default", disk_std_kgm2: float = 0.0, disk_name: str = "",
-              sampling: dict | None = None) -> MotorCalibration:
+              sampling: dict | None = None, rated_current_a: float | None = None,
+              current_limit_a: float | None = None) -> MotorCalibration:
     """Kt, J, D, Tc of ``motor`` from its unloaded and disk runs (corrected eq. 17);
     ``disk_std_kgm2`` (the disk's standard uncertainty) enters Kt's uncertainty and
     ``disk_name`` records which disk (motors sharing one share its error); ``sampling``
-    (the profile's ``motors.<m>.sampling``) says how the drive samples."""
+    (the profile's ``motors.<m>.sampling``) says how the drive samples. Kt's constancy over
+    the runs' currents is checked (``model_check.calibration_linearity``; the rated current
+    and the drive's limit go into its message) and recorded in ``fit``."""
     fu, fl = fill_lost_samples(unloaded), fill_lost_samples(loaded)
     u, l_ = motor_trace(fu, motor), motor_trace(fl, motor)
     u.source, l_.source = f"step {unloaded.source}", f"step {loaded.source}"
     if sampling:
         u.meta["drive"] = l_.meta["drive"] = dict(sampling)
     cal = calibrate_motor(u, l_, disk_kgm2, method=method, disk_std_kgm2=disk_std_kgm2, disk_name=disk_name)
+    lin = calibration_linearity(u, l_, kt=cal.Kt, kt_ci95=cal.Kt_ci95, motor=motor,
+                                rated_current_a=rated_current_a, current_limit_a=current_limit_a)
+    cal = replace(cal, fit=with_linearity(cal.fit, lin))
     # interpolated samples are stated with the result they entered (positions: result.json lost_at_sample)
     filled = fu.meta.get("interpolated_samples", 0) + fl.meta.get("interpolated_samples", 0)
     return replace(cal, motor=motor, interpolated_samples=filled)

@@ -166,6 +166,8 @@ def summary_table(res: dict) -> str:
             lines.append(f"  {'PASS' if lim['passed'] else 'FAIL'}  {lim['name']:<{width}} "
                          f"{_f(lim['value'], '.5g'):>10} {unit:<11} in [{_f(lim['low'], 'g')}, "
                          f"{_f(lim['high'], 'g')}]")
+            if lim.get("reason"):
+                lines.append(f"        {lim['reason']}")
     lines += [f"  {n}" for n in notes]
     lines.append(f"bench time {res.get('bench_time_s', 0):.1f} s, wall {res.get('wall_time_s', 0):.1f} s, "
                  f"{res.get('samples', 0)} samples, {res.get('lost_samples', 0)} lost")

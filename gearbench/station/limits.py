@@ -4,6 +4,8 @@ from __future__ import annotations
 import math
 
 from ..analysis.calibration import motor_value
+from ..analysis.efficiency import above_one
+from ..analysis.model_check import kt_not_constant
 from .records import LimitResult
 
 
@@ -77,15 +79,55 @@ def with_setpoints(profile, efficiency: list[dict]) -> list[dict]:
 
 def check(profile, motors: dict, ratio, efficiency: list[dict]) -> list[LimitResult]:
     """Every limit of the profile (per point for efficiency quantities); a quantity the run
-    did not measure, or that is not finite, fails."""
+    did not measure, or that is not finite, fails. So does one the model checks reject
+    (``model_checks``): a limit on a motor whose Kt is not constant over its calibration's
+    currents, an efficiency limit where either motor's is not or where the point's
+    efficiency is above 1 beyond its interval; each failing check adds its own verdict."""
     out = []
     efficiency = with_setpoints(profile, efficiency)
+    bad_kt = {m: msg for m, r in motors.items() if (msg := kt_not_constant(r))}
     for lim in profile.limits:
         value = quantity(profile, motors, ratio, efficiency, lim.quantity)
         values = value if isinstance(value, list) else [value]
         for j, v in enumerate(values):
             name = point_name(lim.name, efficiency[j]) if isinstance(value, list) else lim.name
             ok = v is not None and math.isfinite(v) and lim.passed(v)
+            reason = _rejected(lim.quantity, bad_kt, efficiency[j] if isinstance(value, list) else None)
             out.append(LimitResult(name, None if v is None else float(v), lim.low, lim.high,
-                                   bool(ok), lim.quantity))
+                                   bool(ok and not reason), lim.quantity, reason))
+    return out + model_checks(motors, efficiency)
+
+
+def _rejected(quantity_name: str, bad_kt: dict, point: dict | None) -> str:
+    """Why a limit's value is no result (a model check), or ""."""
+    parts = quantity_name.split(".")
+    if parts[0] == "motors" and len(parts) == 3:
+        return bad_kt.get(parts[1], "")
+    if parts[0] == "efficiency":
+        # eq. 18 is K_out/K_in times a current ratio: either Kt's message is its own verdict's
+        why = [f"motor {m}'s Kt is not constant over current (kt_constant[{m}])" for m in bad_kt]
+        why += [above_one(point)] if point is not None and above_one(point) else []
+        return "; ".join(why)
+    return ""
+
+
+def model_checks(motors: dict, efficiency: list[dict]) -> list[LimitResult]:
+    """A failing verdict for each model check a result fails, whatever the profile's limits:
+    ``kt_constant[<motor>]`` (Kt not constant over the calibration's currents, value Kt's
+    shift from its small-current value, ``analysis.model_check.kt_linearity``) and
+    ``efficiency_at_most_1[<point>]`` (``analysis.efficiency.above_one``, value the
+    efficiency). A result these reject is never reported without a verdict against it."""
+    out = []
+    for m, r in motors.items():
+        msg = kt_not_constant(r)
+        if msg:
+            shift = ((r.get("fit") or {}).get("kt_linearity") or {}).get("kt_shift_rel")
+            out.append(LimitResult(f"kt_constant[{m}]", shift, None, None, False,
+                                   f"motors.{m}.kt_linearity", msg))
+    for p in efficiency:
+        msg = above_one(p)
+        if msg:
+            key = "eta_incremental" if msg.startswith("incremental") else "eta_absolute"
+            out.append(LimitResult(point_name("efficiency_at_most_1", p), p.get(key), None, 1.0,
+                                   False, f"efficiency.{key}", msg))
     return out

@@ -135,17 +135,20 @@ class LimitResult(Record):
     high: float | None
     passed: bool
     quantity: str = ""
+    # why a verdict failed that its value alone would pass (a model check: Kt not constant
+    # over current, an efficiency above 1); empty otherwise
+    reason: str = ""
     kind = "limit"
 
     def to_dict(self) -> dict:
         """As written out (one entry of result.json ``limits``)."""
         return dict(name=self.name, quantity=self.quantity, value=self.value, low=self.low,
-                    high=self.high, passed=self.passed)
+                    high=self.high, passed=self.passed, **({"reason": self.reason} if self.reason else {}))
 
     @classmethod
     def from_dict(cls, d: dict) -> "LimitResult":
         return cls(d["name"], d.get("value"), d.get("low"), d.get("high"), bool(d["passed"]),
-                   d.get("quantity", ""))
+                   d.get("quantity", ""), d.get("reason", ""))
 
 
 @dataclass(frozen=True)

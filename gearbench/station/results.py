@@ -98,6 +98,7 @@ def write_junit(path: str | Path, result: dict) -> Path:
                              name=lim["name"])
         if not lim.get("passed"):
             f = ET.SubElement(case, "failure", message=(
+                lim["reason"] if lim.get("reason") else
                 f"{lim['name']} = {lim.get('value')} outside [{lim.get('low')}, {lim.get('high')}]"))
             f.text = json.dumps(_clean(lim))
     if errors:

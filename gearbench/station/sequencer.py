@@ -429,7 +429,9 @@ class Sequencer:
             unloaded, loaded = (self._motor_run(self.traces[name], m) for name in (action.unloaded, action.loaded))
             cal = analyse.calibrate(unloaded, loaded, motor=m, disk_kgm2=action.disk_kgm2, method=self.method,
                                     disk_std_kgm2=action.disk_std_kgm2, disk_name=action.disk_name,
-                                    sampling=_drive_description(self.profile.motors[m]))
+                                    sampling=_drive_description(self.profile.motors[m]),
+                                    rated_current_a=self.profile.motors[m].rated_current_a,
+                                    current_limit_a=self.profile.motors[m].current_limit_a)
             self.calibrations[m] = cal
             self.emit(Calibration(m, cal))
             return
