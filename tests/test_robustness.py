@@ -354,29 +354,13 @@ def test_kick_drives_without_x_bias_once_their_loop_is_declared():
     x = Kp·Kt·T/J of the unloaded run (+0.16 % at x 0.175); with the kick computed from
     the declared loop (and the current delay fitted) the error no longer follows x (8
     drives: |error| 0.11 % mean, 0.33 % max fitted; 0.02 %, 0.06 % computed)."""
-    from dataclasses import replace
-
-    from gearbench.analysis.calibration import calibrate_motor
-    from gearbench.analysis.identify import DRIVE_LOOP_KEYS
-    from gearbench.sim import simulate_motor
-
     rows = []
     for idx in range(20):
         case = R.draw_case(idx, 4)
         for side, m in (("in", case.plant.motor_in), ("out", case.plant.motor_out)):
             if m.setpoint_interpolation or m.current_avg_s or case.reversing:
                 continue
-            m = replace(m, current_noise_a=0.0, current_resolution_a=0.0)
-            cmd, disk = case.commands[side], case.disks_kgm2[side]
-            runs = [simulate_motor(m, cmd, seed=1, period_s=R.PERIOD_S, disk_kgm2=d)
-                    for d in (0.0, disk)]
-            errs = []
-            for declared in (False, True):
-                for t in runs:
-                    t.meta["drive"] = {k: v for k, v in R.drive_description(m).items()
-                                       if declared or k not in DRIVE_LOOP_KEYS}
-                cal = calibrate_motor(*runs, disk, model_errors=False)
-                errs.append(100 * (cal.Kt / m.Kt - 1))
+            errs = _kick_errors_noise_free(case, side, m)
             rows.append((m.vel_kp * m.Kt * R.PERIOD_S / m.J, *errs))
     x, fitted, known = np.array(rows).T
     assert len(x) >= 5 and x.max() > 0.1
@@ -385,18 +369,35 @@ def test_kick_drives_without_x_bias_once_their_loop_is_declared():
     assert np.max(np.abs(known)) < 0.1 and np.mean(np.abs(known)) < np.mean(np.abs(fitted)) / 3
 
 
-def test_reversing_kick_drives_take_the_declared_kick_too():
-    """Noise-free stepping drives on reversing runs of robustness seed 5 (the first 60
-    cases): with the kick fitted (one shared term, nearly collinear with θ'') Kt is high
-    (+0.16 % mean, up to +0.53 %: the term takes up the zero crossing's misfit); with
-    the kick computed from the declared loop and the current delay fitted, as on forward
-    runs, the error halves (+0.07 % mean |error|)."""
+def _kick_errors_noise_free(case, side, m) -> list[float]:
+    """Kt error (%) of one drawn motor's noise-free calibration with the kick fitted, then
+    computed from the drive's declared loop."""
     from dataclasses import replace
 
     from gearbench.analysis.calibration import calibrate_motor
     from gearbench.analysis.identify import DRIVE_LOOP_KEYS
     from gearbench.sim import simulate_motor
 
+    m = replace(m, current_noise_a=0.0, current_resolution_a=0.0)
+    cmd, disk = case.commands[side], case.disks_kgm2[side]
+    runs = [simulate_motor(m, cmd, seed=1, period_s=R.PERIOD_S, disk_kgm2=d)
+            for d in (0.0, disk)]
+    errs = []
+    for declared in (False, True):
+        for t in runs:
+            t.meta["drive"] = {k: v for k, v in R.drive_description(m).items()
+                               if declared or k not in DRIVE_LOOP_KEYS}
+        cal = calibrate_motor(*runs, disk, model_errors=False)
+        errs.append(100 * (cal.Kt / m.Kt - 1))
+    return errs
+
+
+def test_reversing_kick_drives_take_the_declared_kick_too():
+    """Noise-free stepping drives on reversing runs of robustness seed 5 (the first 60
+    cases): with the kick fitted (one shared term, nearly collinear with θ'') Kt is high
+    (+0.16 % mean, up to +0.53 %: the term takes up the zero crossing's misfit); with
+    the kick computed from the declared loop and the current delay fitted, as on forward
+    runs, the error halves (+0.07 % mean |error|)."""
     rows = []
     for idx in range(60):
         case = R.draw_case(idx, 5)
@@ -405,18 +406,7 @@ def test_reversing_kick_drives_take_the_declared_kick_too():
         for side, m in (("in", case.plant.motor_in), ("out", case.plant.motor_out)):
             if m.setpoint_interpolation or m.current_avg_s:
                 continue
-            m = replace(m, current_noise_a=0.0, current_resolution_a=0.0)
-            cmd, disk = case.commands[side], case.disks_kgm2[side]
-            runs = [simulate_motor(m, cmd, seed=1, period_s=R.PERIOD_S, disk_kgm2=d)
-                    for d in (0.0, disk)]
-            errs = []
-            for declared in (False, True):
-                for t in runs:
-                    t.meta["drive"] = {k: v for k, v in R.drive_description(m).items()
-                                       if declared or k not in DRIVE_LOOP_KEYS}
-                cal = calibrate_motor(*runs, disk, model_errors=False)
-                errs.append(100 * (cal.Kt / m.Kt - 1))
-            rows.append(errs)
+            rows.append(_kick_errors_noise_free(case, side, m))
     fitted, known = np.array(rows).T
     assert len(rows) >= 8
     assert np.mean(fitted) > 0.1                          # +0.16 % here
