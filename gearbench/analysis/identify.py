@@ -356,13 +356,6 @@ def _reverses(w_smooth: np.ndarray) -> bool:
     return bool(np.mean(w_smooth > w_rev) > 0.05 and np.mean(w_smooth < -w_rev) > 0.05)
 
 
-def run_reverses(time_s: np.ndarray, position_rad: np.ndarray) -> bool:
-    """Whether a run reverses, as ``identify_default`` judges it (``_reverses``)."""
-    dt = float(np.median(np.diff(time_s)))
-    th = np.asarray(position_rad, float)
-    return _reverses(dv.smooth_velocity(th - th[0], dt, half_width=smoothing_half_width(dt)))
-
-
 def kick_coefficient(kp_a_s_per_rad: float, current_lag_s: float, period_s: float,
                      loop_period_s: float) -> float:
     """The current kick of a drive that steps its speed setpoint each SYNC and samples its
