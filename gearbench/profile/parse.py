@@ -800,6 +800,12 @@ SIM_RATINGS = ("rated_current_a", "current_limit_a", "speed_limit_rad_s", "count
 SIM_CHECKED = ("rated_current_a", "counts_per_rev")
 
 
+def rating_differs(given, want: float) -> bool:
+    """A simulated motor's rating (``SIM_CHECKED``) that is a number other than the
+    profile motor's (beyond rounding): its drive would report it and the run be refused."""
+    return isinstance(given, (int, float)) and abs(float(given) - float(want)) > 1e-9 * max(abs(float(want)), 1.0)
+
+
 def _sim_ratings(c: _Checker, m: dict, motors: dict) -> dict:
     """``simulation.motors.<m>`` with the profile motor's ratings filled in; a rating that
     differs from the profile's is refused here (validate), not at the start of ``run --sim``."""
@@ -814,8 +820,8 @@ def _sim_ratings(c: _Checker, m: dict, motors: dict) -> dict:
         given = dict(given or {})
         for key in SIM_RATINGS:
             want = getattr(spec, key)
-            if key in SIM_CHECKED and key in given and isinstance(given[key], (int, float)) and not isinstance(given[key], bool) \
-                    and abs(float(given[key]) - float(want)) > 1e-9 * max(abs(float(want)), 1.0):
+            if key in SIM_CHECKED and key in given and not isinstance(given[key], bool) \
+                    and rating_differs(given[key], want):
                 c.fail(("simulation", "motors", name, key),
                        f"({given[key]:g}) differs from motors.{name}.{key} ({want:g}): the simulated "
                        f"drive would report {given[key]:g} and the run be refused at its start",

@@ -6,7 +6,7 @@ from pathlib import Path
 import yaml
 
 from ..errors import GearbenchError, ProfileError
-from ..profile.parse import SIM_CHECKED
+from ..profile.parse import SIM_CHECKED, rating_differs
 from ..sim import MotorParams, PlantParams
 
 
@@ -44,7 +44,7 @@ def check_twin_bench(block: dict, profile, path: str) -> None:
         for key in SIM_CHECKED:
             # the emulator reads the twin alone: a rating left out is the plant's default
             got, want = motors[name].get(key, getattr(MotorParams, key)), getattr(spec, key)
-            if isinstance(got, (int, float)) and abs(float(got) - float(want)) > 1e-9 * max(abs(float(want)), 1.0):
+            if rating_differs(got, want):
                 raise ProfileError(f"{path}: motors.{name}.{key} is {got:g} in the twin but {want:g} in "
                                    f"{profile.path}: the twin was fitted on another bench; fit a twin on a "
                                    f"run of this bench (gearbench twin RUN_DIR --write)")
