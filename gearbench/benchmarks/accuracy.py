@@ -210,9 +210,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dev-dir", type=Path, default=DEV_DIR, help="dev datasets folder")
     ap.add_argument("--real-only", action="store_true",
                     help="only the real section (EMPS at 1 kHz/250 Hz/100 Hz, robot joints)")
+    ap.add_argument("--joint-seeds", type=int, default=20,
+                    help="seeds of both joint simulators for the intervals' coverage (default 20)")
     args = ap.parse_args(argv)
     if args.real_only:
-        return _real_section()
+        return _real_section(args.joint_seeds)
     seeds = 2 if args.quick else max(args.seeds, 1)
     t0 = time.perf_counter()
     rows = simulated(seeds, args.quick)
@@ -225,14 +227,15 @@ def main(argv: list[str] | None = None) -> int:
     sp = speed()
     print(f"identification of 1,000,000 samples: default {sp['default']:.3f} s, "
           f"paper {sp['paper']:.3f} s (target <= 0.3 s)")
-    _real_section()
+    _real_section(args.joint_seeds)
     print(f"benchmark time {time.perf_counter() - t0:.1f} s")
     return 0
 
 
-def _real_section() -> int:
+def _real_section(joint_seeds: int = 20) -> int:
     """EMPS against its published values and simulated robot joints against truth, per
-    identification form (``gearbench.benchmarks._real``)."""
+    identification form (``gearbench.benchmarks._real``); then the joints' interval
+    coverage over ``joint_seeds`` seeds."""
     rows = _real.emps_rows() + _real.joint_rows() + _real.stick_joint_rows()
     score = _real.print_real(rows)
     for key, s in score.items():
@@ -242,4 +245,12 @@ def _real_section() -> int:
         print(f"  {key:<26} truth inside the 95 % interval {s['covered']}/{s['total']} "
               f"(inertia {s['inertia_covered']}/{n}, median |error| "
               f"{np.median(s['inertia_errors_pct']) if n else float('nan'):.1f} %){emps}")
+    if joint_seeds > 0:
+        cov = _real.joint_coverage(range(joint_seeds))
+        print(f"  coverage of the 95 % intervals over seeds 0-{joint_seeds - 1} (100 Hz; an honest "
+              f"interval holds the truth in ~95 %;\n  base+Stribeck: the model has no Stribeck term, its Fv and Fc are biased by design):")
+        for key, d in cov.items():
+            c, n = sum(v[0] for v in d.values()), sum(v[1] for v in d.values())
+            per = "  ".join(f"{k} {v[0]}/{v[1]}" for k, v in d.items())
+            print(f"  {key:<34} {c}/{n} = {100 * c / n:.1f} %   ({per})")
     return 0
