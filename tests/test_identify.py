@@ -8,7 +8,8 @@ import pytest
 
 from gearbench.analysis.calibration import calibrate_motor
 from gearbench.analysis.identify import (D_J, TC_J, identify, identify_default,
-                                         identify_paper, identify_trace, t_quantile)
+                                         identify_paper, identify_trace)
+from gearbench.analysis.uncertainty import coverage_factor
 from gearbench.benchmarks._data import DEV_DIR
 from gearbench.errors import ExcitationError
 from gearbench.trace import Trace
@@ -98,7 +99,7 @@ def test_default_recovers_b2_friction_and_its_interval_covers_truth():
     assert fit.b2 == pytest.approx(b2, rel=1e-3)
     assert fit.value(D_J) * tr["J"] + 0 == pytest.approx(tr["D"], rel=0.3)
     assert fit.value(TC_J) * tr["J"] == pytest.approx(tr["Tc"], rel=0.03)
-    half = t_quantile(fit.dof) * fit.b2_std
+    half = coverage_factor(fit.dof) * fit.b2_std
     assert abs(fit.b2 - b2) <= half + 1e-3 * b2 * 0.1
     # the paper's method on the same data is visibly worse (why the default exists)
     paper = identify(t, th, i, method="paper-15ms", check=False)

@@ -235,7 +235,7 @@ def test_overlapping_covariance_is_honest_for_coloured_residuals():
     repeats (white OLS covariance is ~4x too small), with ~1.5 (n/L − 1) dof."""
     from scipy.signal import lfilter
 
-    from gearbench.analysis.identify import _block_covariance, covariance_block
+    from gearbench.analysis.uncertainty import block_covariance, covariance_block
     rng = np.random.default_rng(3)
     n = 4000
     x = np.sin(2 * np.pi * np.arange(n) / 500.0)
@@ -245,7 +245,7 @@ def test_overlapping_covariance_is_honest_for_coloured_residuals():
         b = (x @ e) / (x @ x)
         r = e - b * x
         L = covariance_block(r, 20)
-        cov, dof, _ = _block_covariance(x[None, :], r, np.array([[x @ x]]), block=L)
+        cov, dof, _ = block_covariance(x[None, :], r, np.array([[x @ x]]), block=L)
         est.append(b)
         var.append(cov[0, 0])
     ratio = np.mean(var) / np.var(est)

@@ -37,12 +37,11 @@ from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
-from scipy import fft as sp_fft
 from scipy import ndimage
-from scipy import stats
 
 from ..errors import ExcitationError, TraceError
 from . import derivatives as dv
+from .uncertainty import block_covariance, covariance_block, coverage_factor
 
 # Regression written as  θ'' = b2·i − (D/J)·θ' − (Tc/J)·s(θ') − (C/J)·θ + bias.
 KT_J, D_J, TC_J, C_J, BIAS, LAG = "Kt/J", "D/J", "Tc/J", "C/J", "bias", "lag"
@@ -237,8 +236,6 @@ FORM_SPREAD = 0.25
 FORM_SPREAD_MAX_SHARE = 0.1
 LOAD_SIN, LOAD_COS = "load_sin", "load_cos"
 SP_STEP = "setpoint_step"
-BLOCK_CORRELATION_TIMES = 8.0   # window length / the residual's integrated correlation time
-MIN_BLOCKS = 16
 
 
 @dataclass
@@ -629,7 +626,7 @@ def _select_cogging(sig, cols, form, fit, cogging, rad_per_unit, lag, eiv, block
                    lag=lag, eiv=eiv)
         if cogging is not True:
             return fit, orders
-        cov, _, n_eff = _block_covariance(fit.Xt, fit.residual, fit.A, block=block, Z=fit.Z)
+        cov, _, n_eff = block_covariance(fit.Xt, fit.residual, fit.A, block=block, Z=fit.Z)
         wald = []
         for j in range(len(orders)):
             sl = slice(n_base + 2 * j, n_base + 2 * j + 2)
@@ -853,11 +850,11 @@ def _identify_form(sig: _Signals, form: str, *, spring, use_bias, lag, eiv, cogg
     block = covariance_block(fit.residual, len(sig.taps))
     fit, orders = _select_cogging(sig, cols, form, fit, cogging, rad_per_unit, lag, eiv, block)
     e = fit.residual
-    cov_own, dof, n_eff = _block_covariance(fit.Xt, e, fit.A, block=block, Z=fit.Z)
+    cov_own, dof, n_eff = block_covariance(fit.Xt, e, fit.A, block=block, Z=fit.Z)
     names, values, cov = _to_accel_names(fit, cov_own)
     b2 = float(values[0])
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    tq = t_quantile(dof)
+    tq = coverage_factor(dof)
     identified = {nm: bool(abs(v) > tq * s) for nm, v, s in zip(names, values, std)}
     identified[KT_J] = bool(b2 > 0 and std[0] <= MAX_B2_REL_STD * b2)
     cog_amps = {int(k): float(np.hypot(values[names.index(f"cog{k}_sin")],
@@ -905,7 +902,7 @@ def _with_form_spread(main: IdentificationResult, other: IdentificationResult) -
     cov = main.covariance.copy()
     cov[np.ix_(idx, idx)] += FORM_SPREAD * np.outer(delta, delta)
     identified = dict(main.extras["identified"])
-    tq = t_quantile(main.dof)
+    tq = coverage_factor(main.dof)
     for n, k in zip(names, idx):
         identified[n] = bool(abs(main.values[k]) > tq * np.sqrt(cov[k, k]))
     b2, b2_std = main.values[idx[0]], float(np.sqrt(cov[idx[0], idx[0]]))
@@ -981,7 +978,7 @@ def _check(sig: _Signals, fit: IdentificationResult) -> None:
     acc = fs["acceleration"]
     accel_noise = sig.accel_noise
     b2, b2_std = fit.b2, fit.b2_std
-    b2_seen = b2 > t_quantile(fit.dof) * b2_std
+    b2_seen = b2 > coverage_factor(fit.dof) * b2_std
     try:
         advice = check_excitation(
             velocity=fs["velocity"], acceleration=acc, accel_noise_rms=accel_noise,
@@ -1759,82 +1756,3 @@ def encoder_resolution(position_rad: np.ndarray) -> float:
     q = float(np.sum(k * centres) / np.sum(k * k))
     off = np.abs(steps / q - np.round(steps / q)) * q
     return q if np.mean(off <= 2.5 * digit) >= 0.99 else digit
-
-
-def covariance_block(residual: np.ndarray, filter_taps: int) -> int:
-    """Window length (samples) of the overlapping block covariance: twice the FIR's length
-    (a filtered white residual is correlated over less), or ``BLOCK_CORRELATION_TIMES``
-    x the residual's integrated autocorrelation time τ = 1 + 2 Σ ρ_k (summed while
-    ρ_k > 0) where model error correlates it for longer, capped at n / ``MIN_BLOCKS``.
-
-    Parameters
-    ----------
-    residual : the fit's residual.
-    filter_taps : length of the FIR applied to the signals.
-
-    Returns
-    -------
-    int
-
-    References
-    ----------
-    W. K. Newey and K. D. West, "A simple, positive semi-definite, heteroskedasticity and autocorrelation consistent covariance matrix", Econometrica 55(3), 1987, pp. 703-708; A. Sokal, "Monte Carlo methods in statistical mechanics", 1997 (integrated autocorrelation time)
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> covariance_block(np.random.default_rng(0).normal(size=6400), 11)
-    22
-    """
-    n = len(residual)
-    # the correlation time from at most 2^16 samples (a long run's is the same)
-    e = np.asarray(residual[:1 << 16], float)
-    e = e - np.mean(e)
-    base = 2 * int(filter_taps)
-    if len(e) < 4 or not np.any(e):
-        return base
-    m = sp_fft.next_fast_len(2 * len(e), real=True)
-    f = sp_fft.rfft(e, m)
-    acf = sp_fft.irfft(f * np.conj(f), m)[:len(e)]
-    acf = acf / acf[0]
-    neg = np.nonzero(acf[1:] <= 0)[0]
-    stop = int(neg[0]) + 1 if len(neg) else len(e)
-    tau = 1.0 + 2.0 * float(np.sum(acf[1:stop]))
-    return int(min(max(base, BLOCK_CORRELATION_TIMES * tau), max(n // MIN_BLOCKS, base)))
-
-
-def _block_covariance(Xt: np.ndarray, e: np.ndarray, A: np.ndarray, *, block: int,
-                      Z: np.ndarray | None = None):
-    """Sandwich covariance A⁻¹ Ω A⁻ᵀ, Ω from overlapping block sums of the scores
-    s_t = z_t e_t (z = x for least squares, the instruments for IV; A = X'X or Z'X):
-    Ω = n/(n−L+1) · (1/L) Σ_t S_t S_tᵀ, S_t = Σ_{i=t}^{t+L−1} s_i, every window of
-    L = ``block`` samples (overlapping batch means, a Bartlett-kernel HAC estimate:
-    honest for residuals correlated over less than L samples). Overlapping windows use
-    the data ~1.5x better than disjoint blocks: with disjoint blocks of 4 filter lengths
-    a 3 s run had 5 blocks, 4 degrees of freedom and a standard uncertainty that was
-    itself uncertain by ±35 %. Degrees of freedom ν = 1.5 (n/L − 1) (Meketon & Schmeiser
-    1984) for the t quantile. Also returns an effective sample count.
-
-    References: W. K. Newey and K. D. West, Econometrica 55(3), 1987; M. S. Meketon and
-    B. Schmeiser, "Overlapping batch means", Proc. Winter Simulation Conf. 1984."""
-    W = Xt if Z is None else Z
-    k, n = W.shape
-    L = int(min(max(block, 1), max(n // 2, 1)))
-    scores = W * e[None, :]
-    c = np.zeros((k, n + 1))
-    np.cumsum(scores, axis=1, out=c[:, 1:])
-    # every window starting a step apart (L/8: as good as all of them, 8x cheaper)
-    step = max(1, L // 8)
-    S = c[:, L::step] - c[:, :n + 1 - L:step]         # window sums
-    omega = (S @ S.T) / L * n / S.shape[1]
-    Ainv = np.linalg.inv(A)
-    cov = Ainv @ omega @ Ainv.T
-    # Effective n: how many white samples would give the same first-parameter variance.
-    white = float(e @ e) / max(n - k, 1) * (Ainv @ (W @ W.T) @ Ainv.T)[0, 0]
-    n_eff = float(n * white / cov[0, 0]) if cov[0, 0] > 0 else float(n)
-    dof = max(int(1.5 * (n / L - 1.0)), 1)
-    return cov, dof, min(n_eff, float(n))
-
-
-def t_quantile(dof: int, level: float = 0.95) -> float:
-    return float(stats.t.ppf(0.5 + level / 2, max(dof, 1)))

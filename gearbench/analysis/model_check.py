@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import derivatives as dv
+from .uncertainty import block_covariance, covariance_block, coverage_factor
 
 
 @dataclass(frozen=True)
@@ -161,8 +162,6 @@ def current_dependence(time_s, position_rad, current_a, *, cutoff_hz: float | No
     >>> round(d.peak_current_a, 2), round(d.drop_at_peak, 3), round(1 - 1 / (1 + (1.93 / 6.0) ** 2), 3)
     (1.93, 0.092, 0.094)
     """
-    from .identify import _block_covariance, covariance_block
-
     t = np.asarray(time_s, float)
     th = np.asarray(position_rad, float)
     i = np.asarray(current_a, float)
@@ -182,7 +181,7 @@ def current_dependence(time_s, position_rad, current_a, *, cutoff_hz: float | No
     try:
         beta = np.linalg.solve(A, X @ y)
         e = y - beta @ X
-        cov, dof, _ = _block_covariance(X, e, A, block=covariance_block(e, len(taps)))
+        cov, dof, _ = block_covariance(X, e, A, block=covariance_block(e, len(taps)))
         X0 = np.vstack(base)
         b_avg = float(np.linalg.solve(X0 @ X0.T, X0 @ y)[0])
         gamma = float(np.linalg.solve(X0 @ X0.T, X0 @ cube)[0])
@@ -220,15 +219,13 @@ def kt_linearity(unloaded: CurrentDependence, loaded: CurrentDependence, *, kt_h
     >>> r.constant, round(r.kt_shift_rel, 2)
     (False, -0.41)
     """
-    from .identify import t_quantile
-
     d0 = loaded.b_small_current - unloaded.b_small_current
     d = loaded.b_average - unloaded.b_average
     shift = d0 / d - 1.0 if d and d0 else 0.0
     # b_average = b0 + c·gamma per run: d(shift)/dc_L = −d0·gamma_L/d², d/dc_U = +d0·gamma_U/d²
     std = abs(d0) / d ** 2 * float(np.hypot(loaded.shift_gradient * loaded.c_std,
                                             unloaded.shift_gradient * unloaded.c_std)) if d else float("inf")
-    t = t_quantile(min(unloaded.dof, loaded.dof), KT_LINEARITY_LEVEL)
+    t = coverage_factor(min(unloaded.dof, loaded.dof), KT_LINEARITY_LEVEL)
     constant = not (abs(shift) > kt_half_width_rel and abs(shift) > t * std)
     drive = ", ".join(f"{k} {v:g} A" for k, v in (("rated", rated_current_a), ("drive limit", current_limit_a)) if v)
     message = (f"motor {motor or '?'}: Kt is not constant over the calibration's currents: it falls by about "

@@ -9,7 +9,7 @@ reported results still come from the full analysis of the recorded run
                  sufficient statistics: each new block of filtered samples adds its
                  Gram matrix G_b = X_b X_bᵀ and X_b y_b; the estimate is β = (ΣG_b)⁻¹ Σ X_b y_b
                  and its covariance the block sandwich (ΣG)⁻¹ Σ S_b S_bᵀ (ΣG)⁻¹ with
-                 S_b = X_b y_b − G_b β — the same form as ``identify._block_covariance``,
+                 S_b = X_b y_b − G_b β — the same form as ``uncertainty.block_covariance``,
                  so no sample is ever re-filtered. The regression is the default method's
                  base model (current, speed, Coulomb sign through the same FIR and
                  second-difference match); cogging, current lag and the errors-in-variables

@@ -20,6 +20,7 @@ import math
 
 import numpy as np
 
+from scipy import fft as sp_fft
 from scipy import stats
 
 COVERAGE = 0.95
@@ -28,6 +29,8 @@ TOLERANCE_SOURCES = {
     "datasheet": math.sqrt(3.0),   # ± limits, rectangular
     "measured": 2.0,               # expanded uncertainty, k = 2 (95 %)
 }
+BLOCK_CORRELATION_TIMES = 8.0   # window length / the residual's integrated correlation time
+MIN_BLOCKS = 16
 
 
 def coverage_factor(dof: float, level: float = COVERAGE) -> float:
@@ -223,3 +226,78 @@ def design_effect(hits: np.ndarray, trials: np.ndarray) -> float:
         return 1.0
     var_cluster = np.sum((hits - p * trials) ** 2) / n**2
     return max(1.0, float(var_cluster / (p * (1 - p) / n)))
+
+
+def covariance_block(residual: np.ndarray, filter_taps: int) -> int:
+    """Window length (samples) of the overlapping block covariance: twice the FIR's length
+    (a filtered white residual is correlated over less), or ``BLOCK_CORRELATION_TIMES``
+    x the residual's integrated autocorrelation time τ = 1 + 2 Σ ρ_k (summed while
+    ρ_k > 0) where model error correlates it for longer, capped at n / ``MIN_BLOCKS``.
+
+    Parameters
+    ----------
+    residual : the fit's residual.
+    filter_taps : length of the FIR applied to the signals.
+
+    Returns
+    -------
+    int
+
+    References
+    ----------
+    W. K. Newey and K. D. West, "A simple, positive semi-definite, heteroskedasticity and autocorrelation consistent covariance matrix", Econometrica 55(3), 1987, pp. 703-708; A. Sokal, "Monte Carlo methods in statistical mechanics", 1997 (integrated autocorrelation time)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> covariance_block(np.random.default_rng(0).normal(size=6400), 11)
+    22
+    """
+    n = len(residual)
+    # the correlation time from at most 2^16 samples (a long run's is the same)
+    e = np.asarray(residual[:1 << 16], float)
+    e = e - np.mean(e)
+    base = 2 * int(filter_taps)
+    if len(e) < 4 or not np.any(e):
+        return base
+    m = sp_fft.next_fast_len(2 * len(e), real=True)
+    f = sp_fft.rfft(e, m)
+    acf = sp_fft.irfft(f * np.conj(f), m)[:len(e)]
+    acf = acf / acf[0]
+    neg = np.nonzero(acf[1:] <= 0)[0]
+    stop = int(neg[0]) + 1 if len(neg) else len(e)
+    tau = 1.0 + 2.0 * float(np.sum(acf[1:stop]))
+    return int(min(max(base, BLOCK_CORRELATION_TIMES * tau), max(n // MIN_BLOCKS, base)))
+
+
+def block_covariance(Xt: np.ndarray, e: np.ndarray, A: np.ndarray, *, block: int,
+                      Z: np.ndarray | None = None):
+    """Sandwich covariance A⁻¹ Ω A⁻ᵀ, Ω from overlapping block sums of the scores
+    s_t = z_t e_t (z = x for least squares, the instruments for IV; A = X'X or Z'X):
+    Ω = n/(n−L+1) · (1/L) Σ_t S_t S_tᵀ, S_t = Σ_{i=t}^{t+L−1} s_i, every window of
+    L = ``block`` samples (overlapping batch means, a Bartlett-kernel HAC estimate:
+    honest for residuals correlated over less than L samples). Overlapping windows use
+    the data ~1.5x better than disjoint blocks: with disjoint blocks of 4 filter lengths
+    a 3 s run had 5 blocks, 4 degrees of freedom and a standard uncertainty that was
+    itself uncertain by ±35 %. Degrees of freedom ν = 1.5 (n/L − 1) (Meketon & Schmeiser
+    1984) for the t quantile. Also returns an effective sample count.
+
+    References: W. K. Newey and K. D. West, Econometrica 55(3), 1987; M. S. Meketon and
+    B. Schmeiser, "Overlapping batch means", Proc. Winter Simulation Conf. 1984."""
+    W = Xt if Z is None else Z
+    k, n = W.shape
+    L = int(min(max(block, 1), max(n // 2, 1)))
+    scores = W * e[None, :]
+    c = np.zeros((k, n + 1))
+    np.cumsum(scores, axis=1, out=c[:, 1:])
+    # every window starting a step apart (L/8: as good as all of them, 8x cheaper)
+    step = max(1, L // 8)
+    S = c[:, L::step] - c[:, :n + 1 - L:step]         # window sums
+    omega = (S @ S.T) / L * n / S.shape[1]
+    Ainv = np.linalg.inv(A)
+    cov = Ainv @ omega @ Ainv.T
+    # Effective n: how many white samples would give the same first-parameter variance.
+    white = float(e @ e) / max(n - k, 1) * (Ainv @ (W @ W.T) @ Ainv.T)[0, 0]
+    n_eff = float(n * white / cov[0, 0]) if cov[0, 0] > 0 else float(n)
+    dof = max(int(1.5 * (n / L - 1.0)), 1)
+    return cov, dof, min(n_eff, float(n))

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import math
 
-from ..analysis.identify import METHODS, identify_trace, t_quantile
+from ..analysis.identify import METHODS, identify_trace
+from ..analysis.uncertainty import coverage_factor
 from ..errors import GearbenchError
 from ..trace import SINGLE_MOTOR_COLUMNS
 from ._offline import dump, read_trace
@@ -52,7 +53,7 @@ def run(args) -> int:
     if args.json:
         dump({"file": str(args.trace), **fit.to_dict()})
         return 0
-    t = t_quantile(fit.dof)
+    t = coverage_factor(fit.dof)
     print(f"{args.trace}: method {fit.method}, {fit.n_samples} samples at {1 / fit.dt_s:.6g} Hz")
     for name, v in zip(fit.names, fit.values):
         print(f"  {name:<6} {v:14.6g}  ± {t * fit.std(name):.3g} (95 %)")

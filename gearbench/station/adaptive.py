@@ -32,7 +32,7 @@ import math
 
 import numpy as np
 
-from ..analysis.identify import t_quantile
+from ..analysis.uncertainty import coverage_factor
 from ..analysis.efficiency import SPEED_SPAN_S, inertia_corrected_current
 from ..analysis.streaming import MIN_SETTLED_CHUNKS, SETTLE_MARGIN, LevelMean, StreamingB2, Z95, slope_fit, slope_target_sem, window_stats
 
@@ -105,7 +105,7 @@ class CalibrationRuns:
         b2, sd, dof = est
         self.b2[m] = b2
         share = self.runs[m]["share"](b2)
-        self.reached[m] = share * t_quantile(dof) * sd / abs(b2) if b2 else math.inf
+        self.reached[m] = share * coverage_factor(dof) * sd / abs(b2) if b2 else math.inf
 
     def update(self, k: int, cols: dict) -> bool:
         """Called with ``k`` samples recorded; returns True when the segment is over."""
@@ -277,7 +277,7 @@ class Staircase:
         b, eta = self._slope_now(rec)
         need = slope_target_sem(self.eta_pp, eta, b, self._x_levels(), self.level)
         # the final interval is t(dof) wide on block-means errors, not 1.96
-        have = math.hypot(st["sem_in"], b * st["sem_out"]) * t_quantile(st["dof"]) / Z95
+        have = math.hypot(st["sem_in"], b * st["sem_out"]) * coverage_factor(st["dof"]) / Z95
         if have <= need and st["steady"]:
             self._next(k, "target", cols, st)
         return False
@@ -317,7 +317,7 @@ class Staircase:
             rec["settle_s"] = st["settle_chunk"] * self.chunk * self.period_s
             # the slope's half-width if every level had its share of the error like this one
             need = slope_target_sem(self.eta_pp, eta, b, self._x_levels(), self.level)
-            have = math.hypot(st["sem_in"], b * st["sem_out"]) * t_quantile(st.get("dof", 1e9)) / Z95
+            have = math.hypot(st["sem_in"], b * st["sem_out"]) * coverage_factor(st.get("dof", 1e9)) / Z95
             rec["interval_reached"] = self.eta_pp * have / need if need > 0 else math.inf
         self.done_levels.append(rec)
         if self.level == 0:
