@@ -68,55 +68,44 @@ def emps_rows(rates=(1000, 250, 100)) -> list[dict]:
     return rows
 
 
-def joint_rows(seeds=(0, 1, 2)) -> list[dict]:
+def _joint_fit(d: dict, joint, form: str = "auto"):
+    """The default identification of one simulated joint run (gravity terms where the
+    joint carries gravity; the command as the iv form's instrument)."""
+    return identify_default(d["time_s"], d["position_rad"], d["current_a"], form=form,
+                            check=False, command=d["command"] if form == "iv" else None,
+                            load_rad_per_unit=1.0 if joint.gravity_nm else None,
+                            rad_per_unit=None)
+
+
+def joint_rows(seeds=(0, 1, 2), forms=FORMS) -> list[dict]:
     rows = []
     for joint in JOINTS:
         for seed in seeds:
             d = simulate_joint(joint, seed=seed)
             truth = {"J": joint.J, "Fv": joint.Fv, "Fc": joint.Fc}
-            for form in FORMS:
-                fit = identify_default(d["time_s"], d["position_rad"], d["current_a"], form=form,
-                                       check=False, command=d["command"] if form == "iv" else None,
-                                       load_rad_per_unit=1.0 if joint.gravity_nm else None,
-                                       rad_per_unit=None)
+            for form in forms:
+                fit = _joint_fit(d, joint, form)
                 rows.append({"data": f"joint {joint.name} s{seed}", "form": form,
+                             "group": f"joints {joint.name} {form}",
                              "vals": physical(fit, joint.gain_nm_a), "truth": truth,
                              "cross": fit.extras["cross_check"]})
     return rows
 
 
-def joint_coverage(seeds, forms=("torque",)) -> dict:
+def joint_coverage(seeds) -> dict:
     """Coverage of the 95 % intervals of J, Fv and Fc over many seeds of both joint
     simulators at 100 Hz, per joint (the table's three seeds are too few to judge an
-    interval by: the joints of one seed share its disturbance's draw) → {family joint form:
-    {parameter: (covered, total)}}."""
+    interval by: the joints of one seed share its disturbance's draw) → {joint: {parameter:
+    (covered, total)}}."""
     out: dict = {}
-
-    def add(key, vals, truth):
-        d = out.setdefault(key, {})
+    rows = (joint_rows(seeds, forms=("torque",))
+            + stick_joint_rows(seeds, rates=(100,), textbook=False))
+    for r in rows:
+        d = out.setdefault(r["group"], {})
         for name in ("J", "Fv", "Fc"):
-            v, h = vals[name]
+            v, h = r["vals"][name]
             c, n = d.get(name, (0, 0))
-            d[name] = (c + int(abs(v - truth[name]) <= h), n + 1)
-
-    for seed in seeds:
-        for joint in JOINTS:
-            d = simulate_joint(joint, seed=seed)
-            truth = {"J": joint.J, "Fv": joint.Fv, "Fc": joint.Fc}
-            for form in forms:
-                fit = identify_default(d["time_s"], d["position_rad"], d["current_a"], form=form,
-                                       check=False, command=d["command"] if form == "iv" else None,
-                                       load_rad_per_unit=1.0 if joint.gravity_nm else None,
-                                       rad_per_unit=None)
-                add(f"joints {joint.name} {form}", physical(fit, joint.gain_nm_a), truth)
-        for joint in STICK_JOINTS:
-            for motion in ("sine", "p2p"):
-                d = simulate_stick_joint(joint, motion=motion, seed=seed, rate_hz=100)
-                fit = identify_default(d["time_s"], d["position_rad"], d["current_a"], check=False,
-                                       load_rad_per_unit=1.0 if joint.gravity_nm else None,
-                                       rad_per_unit=None)
-                add(f"2nd sim 100 Hz {joint.name} {motion}", physical(fit, joint.gain_nm_a),
-                    d["truth"])
+            d[name] = (c + int(abs(v - r["truth"][name]) <= h), n + 1)
     return out
 
 
@@ -152,7 +141,7 @@ def textbook_idim(t: np.ndarray, q: np.ndarray, i: np.ndarray, gain: float, *,
     return {k: (float(gain * v), float(gain * h)) for k, v, h in zip(("J", "Fv", "Fc"), beta[:3], half)}
 
 
-def stick_joint_rows(seeds=(0, 1), rates=(100, 1000)) -> list[dict]:
+def stick_joint_rows(seeds=(0, 1), rates=(100, 1000), textbook: bool = True) -> list[dict]:
     """The second simulator's joints, two motions, at 100 Hz and 1 kHz, the default beside
     the textbook."""
     rows = []
@@ -161,19 +150,19 @@ def stick_joint_rows(seeds=(0, 1), rates=(100, 1000)) -> list[dict]:
             for motion in ("sine", "p2p"):
                 for seed in seeds:
                     d = simulate_stick_joint(joint, motion=motion, seed=seed, rate_hz=rate)
-                    gravity = bool(joint.gravity_nm)
-                    fit = identify_default(d["time_s"], d["position_rad"], d["current_a"],
-                                           check=False, load_rad_per_unit=1.0 if gravity else None,
-                                           rad_per_unit=None)
+                    fit = _joint_fit(d, joint)
                     label = f"{joint.name} {motion} s{seed} {rate:g}Hz"
                     family = f"joints (2nd sim) {rate:g} Hz"
                     rows.append({"data": label, "form": "default", "family": family,
+                                 "group": f"2nd sim {rate:g} Hz {joint.name} {motion}",
                                  "vals": physical(fit, joint.gain_nm_a), "truth": d["truth"],
                                  "cross": fit.extras["cross_check"]})
+                    if not textbook:
+                        continue
                     rows.append({"data": label, "form": "textbook", "family": family,
                                  "vals": textbook_idim(d["time_s"], d["position_rad"],
                                                        d["current_a"], joint.gain_nm_a,
-                                                       gravity=gravity),
+                                                       gravity=bool(joint.gravity_nm)),
                                  "truth": d["truth"], "cross": None})
     return rows
 
