@@ -554,3 +554,22 @@ def test_a_joint_that_sticks_between_point_to_point_moves_keeps_its_inertia():
         assert abs(v - truth) <= half, (key, v, half, truth)
     tb = textbook_idim(d["time_s"], d["position_rad"], d["current_a"], joint.gain_nm_a, gravity=True)
     assert abs(tb["J"][0] - joint.J) > tb["J"][1]
+
+
+def test_a_stop_as_long_as_the_standstill_window_is_left_out_at_100_hz():
+    """A stick-slip joint at 100 Hz stops for 54-68 ms at each reversal: 7 equal angle
+    readings, the drive's current ramping through the static band. The centred 6-sample
+    difference is zero on one reading only (a dwell needs 3), so the stop stayed in the
+    equation with a Coulomb sign that does not hold there; a held angle counts in full."""
+    from gearbench.analysis import derivatives as dv
+    from gearbench.analysis.identify import equation_weight, smoothing_half_width, standstill_speed
+    dt, count = 0.01, 2 * np.pi / 2 ** 17
+    steps = np.r_[-np.tile([2.0, 3.0], 50), np.zeros(6), np.tile([2.0, 3.0], 50)]   # counts/sample
+    theta = np.cumsum(np.r_[0.0, steps]) * count
+    stop = np.r_[np.zeros(100, bool), np.ones(7, bool), np.zeros(100, bool)]
+    current = np.where(stop, np.linspace(-0.3, 0.3, len(theta)), np.sign(np.gradient(theta)) * 0.3)
+    w = dv.smooth_velocity(theta, dt, half_width=smoothing_half_width(dt))
+    weight = equation_weight(w, standstill_speed(theta, w, dt), dt, current=current,
+                             current_noise=1e-3, angle=theta)
+    assert np.all(weight[stop] == 0.0), weight[stop]
+    assert np.all(weight[:80] == 1.0) and np.all(weight[-80:] == 1.0)
