@@ -587,8 +587,12 @@ def efficiency(trace: Trace, motor_in: MotorCalibration, motor_out: MotorCalibra
                              f"reported speed (column 'in_velocity_rad_s'); record it or "
                              f"analyse without the correction")
         dt = float(np.median(np.diff(trace.time_s)))
+        # the gain from the levels alone: on the ramps and steps the drive's speed lags the
+        # encoder's, a difference the current answers through the loop, not ripple
+        ranges = windows if windows is not None else steady_windows(
+            trace.time_s, trace["in_command"], trace["out_command"], settle_s=settle_s)
         cur, _ = ripple_corrected_current(trace["in_current_a"], trace["in_velocity_rad_s"],
-                                          trace["in_position_rad"], dt)
+                                          trace["in_position_rad"], dt, ranges=ranges)
         trace = trace.with_columns(in_current_a=cur)
     wins = with_level_scatter(measure_windows(trace, settle_s=settle_s, ranges=windows))
     refs = [w for w in wins if w.is_reference]

@@ -31,16 +31,19 @@ def speed_estimate_error(drive_velocity_rad_s: np.ndarray, position_rad: np.ndar
     return e
 
 
-def ripple_gain(current_a: np.ndarray, error_rad_s: np.ndarray, chunk: int) -> float:
+def ripple_gain(current_a: np.ndarray, error_rad_s: np.ndarray, chunk: int,
+                ranges: list[tuple[int, int]] | None = None) -> float:
     """Least-squares gain β (A per rad/s) of i = c_j + β e within chunks j of ``chunk``
-    samples (each chunk its own constant c_j): the pooled within-chunk regression slope."""
+    samples (each chunk its own constant c_j): the pooled within-chunk regression slope;
+    only chunks inside ``ranges`` (index pairs [a, b)) where given."""
     i = np.asarray(current_a, float)
     e = np.asarray(error_rad_s, float)
-    n = (len(i) // chunk) * chunk
-    if n < 2 * chunk:
+    spans = ranges if ranges is not None else [(0, len(i))]
+    starts = [a + k * chunk for a, b in spans for k in range(max(b - a, 0) // chunk)]
+    if len(starts) < 2:
         return 0.0
-    ic = i[:n].reshape(-1, chunk)
-    ec = e[:n].reshape(-1, chunk)
+    idx = np.asarray(starts)[:, None] + np.arange(chunk)
+    ic, ec = i[idx], e[idx]
     ic = ic - ic.mean(axis=1, keepdims=True)
     ec = ec - ec.mean(axis=1, keepdims=True)
     sxx = float(np.sum(ec * ec))
@@ -49,9 +52,11 @@ def ripple_gain(current_a: np.ndarray, error_rad_s: np.ndarray, chunk: int) -> f
 
 def ripple_corrected_current(current_a: np.ndarray, drive_velocity_rad_s: np.ndarray,
                              position_rad: np.ndarray, period_s: float,
-                             gain: float | None = None) -> tuple[np.ndarray, float]:
+                             gain: float | None = None,
+                             ranges: list[tuple[int, int]] | None = None) -> tuple[np.ndarray, float]:
     """i − β·e: the current less the speed loop's quantisation ripple (module docstring),
-    β fitted on these samples (``ripple_gain``) unless given. Returns (current, β).
+    β fitted on these samples (``ripple_gain``, within ``ranges`` where given) unless given.
+    Returns (current, β).
 
     Examples
     --------
@@ -63,5 +68,5 @@ def ripple_corrected_current(current_a: np.ndarray, drive_velocity_rad_s: np.nda
     """
     e = speed_estimate_error(drive_velocity_rad_s, position_rad, period_s)
     if gain is None:
-        gain = ripple_gain(current_a, e, max(2, int(round(RIPPLE_CHUNK_S / period_s))))
+        gain = ripple_gain(current_a, e, max(2, int(round(RIPPLE_CHUNK_S / period_s))), ranges)
     return np.asarray(current_a, float) - gain * e, float(gain)
