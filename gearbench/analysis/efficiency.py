@@ -44,6 +44,7 @@ import numpy as np
 from ..errors import ExcitationError, GearbenchError, TraceError
 from ..trace import BENCH_COLUMNS, Trace
 from .calibration import MotorCalibration
+from .ripple import ripple_corrected_current
 from .streaming import slope_fit
 from .streaming import tapered_mean_sem as _mean_sem
 from .uncertainty import DOF_MAX, effective_dof, interval
@@ -529,7 +530,8 @@ def inertia_corrected_current(current_a: np.ndarray, position_rad: np.ndarray, p
 def efficiency(trace: Trace, motor_in: MotorCalibration, motor_out: MotorCalibration, *,
                ratio: float | None = None, settle_s: float = 0.5,
                windows: list[tuple[int, int]] | None = None,
-               incremental: str = "secant", inertia_corrected: bool = False) -> EfficiencyResult:
+               incremental: str = "secant", inertia_corrected: bool = False,
+               ripple_corrected: bool = False) -> EfficiencyResult:
     """Efficiency points of a bench trace (see module docstring).
 
     ``windows``: the steady index ranges (else found from the commands and ``settle_s``).
@@ -541,6 +543,9 @@ def efficiency(trace: Trace, motor_in: MotorCalibration, motor_out: MotorCalibra
     loop is still recovering (the adaptive staircase) carry no transient. The output
     motor, current-controlled, is left as measured (corrected, the shaft ripple its
     rotor's inertia passes on would add more noise than a braking step's transient).
+    ``ripple_corrected``: the input motor's current also less its speed loop's
+    quantisation ripple (``ripple.ripple_corrected_current``, from the drive's reported
+    speed ``in_velocity_rad_s``): for a drive that reports one current-loop instant.
     Either way, a speed whose zero-load level lies off its braking levels' line by more
     than ``OFF_LINE_SIGMAS`` takes eq. 18 from their slope (``staircase_fit``), and a
     speed whose levels scatter beyond their errors has them widened (``with_level_scatter``).
@@ -576,6 +581,19 @@ def efficiency(trace: Trace, motor_in: MotorCalibration, motor_out: MotorCalibra
             f"{side}_current_a": inertia_corrected_current(trace[f"{side}_current_a"], trace[f"{side}_position_rad"],
                                                            dt, cal.J, cal.Kt)
             for side, cal in (("in", motor_in),)})
+    if ripple_corrected:
+        if "in_velocity_rad_s" not in trace:
+            raise TraceError(f"{trace.source}: the ripple correction needs the input drive's "
+                             f"reported speed (column 'in_velocity_rad_s'); record it or "
+                             f"analyse without the correction")
+        dt = float(np.median(np.diff(trace.time_s)))
+        # the gain from the levels alone: on the ramps and steps the drive's speed lags the
+        # encoder's, a difference the current answers through the loop, not ripple
+        ranges = windows if windows is not None else steady_windows(
+            trace.time_s, trace["in_command"], trace["out_command"], settle_s=settle_s)
+        cur, _ = ripple_corrected_current(trace["in_current_a"], trace["in_velocity_rad_s"],
+                                          trace["in_position_rad"], dt, ranges=ranges)
+        trace = trace.with_columns(in_current_a=cur)
     wins = with_level_scatter(measure_windows(trace, settle_s=settle_s, ranges=windows))
     refs = [w for w in wins if w.is_reference]
     loaded = [w for w in wins if not w.is_reference]

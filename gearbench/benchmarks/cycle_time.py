@@ -368,7 +368,8 @@ def _adapt_profile(profile, case, speeds, torques, excitation: str = "drawn"):
     for name, m in (("in", p.motor_in), ("out", p.motor_out)):
         motors[name] = replace(motors[name], kt_datasheet=m.Kt * 1.03, rated_current_a=m.rated_current_a,
                                current_limit_a=m.current_limit_a, speed_limit_rad_s=1e4,
-                               rotor_inertia_kgm2=m.J, counts_per_rev=m.counts_per_rev)
+                               rotor_inertia_kgm2=m.J, counts_per_rev=m.counts_per_rev,
+                               sampling=_sampling(m))
     disks = dict(profile.disks)
     steps = []
     waves = dict(profile.waveforms)
@@ -396,6 +397,16 @@ def _adapt_profile(profile, case, speeds, torques, excitation: str = "drawn"):
                 waves[s.waveform] = designed_waveform(out, s)
         out = replace(out, waveforms=waves)
     return out
+
+
+def _sampling(motor) -> dict:
+    """The drawn drive's ``motors.<m>.sampling`` as its set-up gives it (setpoint stepped or
+    interpolated, current one instant or the period mean, its speed loop as set): what
+    ``robustness.drive_description`` tells the analysis, without the current limit (the
+    profile's own ``current_limit_a``)."""
+    from .robustness import drive_description
+
+    return {k: v for k, v in drive_description(motor).items() if k != "current_limit_a"}
 
 
 def designed_waveform(profile, step):

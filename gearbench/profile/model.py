@@ -52,6 +52,12 @@ class MotorSpec:
     # "current": "instant"|"mean"} (identify.drive_sampling); None = not said
     sampling: dict | None = None
 
+    @property
+    def current_instant(self) -> bool:
+        """The drive reports its current as one current-loop instant (``sampling.current``):
+        its speed loop's quantisation ripple is in the samples (``analysis.ripple``)."""
+        return (self.sampling or {}).get("current") == "instant"
+
 
 @dataclass(frozen=True)
 class ReducerSpec:

@@ -86,12 +86,15 @@ def calibrate(unloaded: Trace, loaded: Trace, *, motor: str, disk_kgm2: float,
 def efficiency(step: Trace, motor_in: MotorCalibration, motor_out: MotorCalibration, *,
                ratio: float | None, settle_s: float, speed_setpoint_rad_s: float,
                skip_samples: int = 0, windows: list[tuple[int, int]] | None = None,
-               incremental: str = "secant", inertia_corrected: bool = False) -> EfficiencyResult:
+               incremental: str = "secant", inertia_corrected: bool = False,
+               ripple_corrected: bool = False) -> EfficiencyResult:
     """Efficiency points of one recorded efficiency segment (eq. 18 and P_out/P_in), each
     stamped with the commanded speed. ``windows``: the steady ranges as drive
     sample-counter values [first, last) (an adaptive run's settled levels); they survive
     filled-in lost samples. ``inertia_corrected``: window means of the currents less each
-    rotor's inertial part (as the adaptive staircase stopped on them)."""
+    rotor's inertial part (as the adaptive staircase stopped on them); ``ripple_corrected``:
+    the input current less its speed loop's quantisation ripple (a drive that samples its
+    current at one instant, ``ripple.ripple_corrected_current``)."""
     filled = fill_lost_samples(step)
     trimmed = filled.slice(skip_samples, None)
     ranges = None
@@ -101,7 +104,8 @@ def efficiency(step: Trace, motor_in: MotorCalibration, motor_out: MotorCalibrat
     bench = bench_trace(trimmed)
     bench.source = f"step {step.source}"
     res = _efficiency(bench, motor_in, motor_out, ratio=ratio, settle_s=settle_s, windows=ranges,
-                      incremental=incremental, inertia_corrected=inertia_corrected)
+                      incremental=incremental, inertia_corrected=inertia_corrected,
+                      ripple_corrected=ripple_corrected)
     n_filled = filled.meta.get("interpolated_samples", 0)
     return replace(res, points=tuple(replace(p, speed_setpoint_rad_s=speed_setpoint_rad_s,
                                              interpolated_samples=n_filled) for p in res.points))

@@ -446,7 +446,8 @@ class Sequencer:
                                  speed_setpoint_rad_s=action.speed_rad_s,
                                  skip_samples=seg.meta["n_ramp"], windows=seg.meta.get("windows"),
                                  incremental="slope" if adaptive else "secant",
-                                 inertia_corrected=bool(seg.meta.get("inertia_corrected")))
+                                 inertia_corrected=bool(seg.meta.get("inertia_corrected")),
+                                 ripple_corrected=self.profile.motors["in"].current_instant)
         self.ratio = res.ratio
         for pt in res.points:
             self.points.append(pt)
