@@ -117,43 +117,6 @@ def test_fit_recovers_moved_parameters_within_intervals():
         assert p.sigma > 0
 
 
-class _RoughProblem:
-    """S(a) = noise + a trend in a, plus a triangle-wave roughness of period 0.006 in a: a
-    forward difference at the fit's step (0.005) sees the roughness's slope (±33), several times
-    the trend's (5); one at 10x that step sees mostly the trend (as the smoothed replay near
-    the noise)."""
-
-    def __init__(self, n=4000):
-        rng = np.random.default_rng(5)
-        self.x, self.noise, self.block, self.evaluations = np.linspace(-1, 1, n), rng.normal(size=n), {"a": 1.9}, 0
-
-    def residual_vector(self, block, smooth=None):
-        a = float(block["a"])
-        tri = 2 * abs((a / 0.006) % 1.0 - 0.5) - 0.5
-        return self.noise + self.x * (5.0 * (a - 2.0) + 0.1 * tri)
-
-    def blocks(self, span_s=F.BLOCK_S):
-        return np.arange(len(self.x)) // 40
-
-
-def test_fit_goes_on_past_a_rough_floor_on_longer_differences(monkeypatch):
-    """A fit near the noise whose short differences see only the roughness of S takes a last
-    stage on COARSE_FD-longer ones (``fit``): without it, it stalls where it starts."""
-    def run(coarse_iterations):
-        monkeypatch.setattr(F, "COARSE_ITERATIONS", coarse_iterations)
-        prob = _RoughProblem()
-        params = [F.Param("a", 1.9, 1.0, 0.0)]
-        res = F.fit(prob, params, iterations=6, intervals=False)
-        return params[0].value, res
-    n_coarse = F.COARSE_ITERATIONS
-    a_fine, res_fine = run(0)
-    a, res = run(n_coarse)
-    # measured: 1.9873 on the short differences alone, 1.9959 with the coarse stage
-    assert abs(a_fine - 2.0) > 0.01          # stalled on the roughness
-    assert abs(a - 2.0) < 0.5 * abs(a_fine - 2.0) and abs(a - 2.0) < 0.008
-    assert res["S"] <= res_fine["S"] <= res["S0"]
-
-
 def test_intervals_take_the_widest_covariance_and_add_the_model_bias():
     """A residual made of a slow wave (coloured, as a model's misfit is) is not
     averaged down as white noise would be: its block sandwich is wider than the

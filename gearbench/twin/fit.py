@@ -83,14 +83,6 @@ STOP_GAIN = 3e-5
 # update of its Jacobian, not a fresh one (21-23 replays): near the minimum the Jacobian
 # hardly changes; a fresh one is taken when the carried one fails, and before the fit stops
 REFRESH_GAIN = 0.01
-# near the noise the smoothed replay's S is still rough at the forward-difference step (the
-# drive's loops run on encoder counts): a fit whose steps stall there gets a last stage of up
-# to COARSE_ITERATIONS on a Jacobian of COARSE_FD × the steps, which sees the trend past the
-# roughness. Measured from the final fit of the alt cyclo run, seed 53 (LM stalled at S/n
-# 0.7832, lambda 5.8e6): 4 iterations at 10x took S/n to 0.7388 and in.D −18 % → +12 %,
-# in.Tc +1.8 % → +0.2 %, in.current_lag_s −7.6 % → −1.1 %, drag −3.3 % → −1.5 % of the truth
-COARSE_FD = 10.0
-COARSE_ITERATIONS = 4
 FD_WEAK = {"D": 40.0, "current_lag_s": 10.0, "eta_mesh": 10.0, "eta_max": 10.0, "ripple_amp": 10.0}
 MIN_DROP = 25.0        # held-out S must fall by this many floors² ...
 MIN_SHRINK = 0.05      # ... and by this fraction of itself (a stalled fit leaves a few % to any candidate)
@@ -532,11 +524,7 @@ def fit(prob: Problem, params: list[Param], *, iterations: int = 8, mask: np.nda
     one replay each) while they keep gaining. The fit stops when an iteration moved no
     parameter by more than ``STOP_FRACTION`` of its current 95 % half-width 1.96·σ
     (``_covariances``, no replay): iterating on changes nothing the intervals can tell
-    (the first version ran its 12 iterations to S/n changes in the 4th decimal). A fit
-    with fresh Jacobians that stops, stalls or runs out of iterations near the noise
-    (S/n ≤ ``MODEL_LIMITED_S_N``) goes on for up to ``COARSE_ITERATIONS`` on differences
-    ``COARSE_FD`` × longer, once: S is rough at the short step there, and a secant over
-    the longer one still sees the way down (LM accepts only steps that lower S).
+    (the first version ran its 12 iterations to S/n changes in the 4th decimal).
 
     Returns {"S": final S, "n": residual count, "S0": starting S, "jac": a fresh
     Jacobian at the final values, "r": residuals, "u": values, "iterations"}. ``mask``
@@ -567,21 +555,7 @@ def fit(prob: Problem, params: list[Param], *, iterations: int = 8, mask: np.nda
         d[d <= 0] = 1.0
         return np.linalg.lstsq(H + lam * np.diag(d), -(J.T @ r[sel]), rcond=1e-12)[0] * sc
 
-    coarse = False
-
-    def go_coarse() -> bool:
-        # the coarse stage (COARSE_FD), once, for a fit with fresh Jacobians near the noise
-        nonlocal coarse, fd, lam, need_fresh, carry
-        if coarse or max_fresh is not None or S / max(int(sel.sum()), 1) > MODEL_LIMITED_S_N:
-            return False
-        coarse, fd, lam, need_fresh, carry = True, FD_REL * COARSE_FD, 1e-3, True, False
-        if verbose:
-            verbose(f"  (steps stalled near the noise: on differences {COARSE_FD:g}x longer)")
-        return True
-
-    for it in range(iterations + COARSE_ITERATIONS):
-        if it >= iterations and not coarse and not go_coarse():
-            break
+    for it in range(iterations):
         if it == 0 and jac0 is not None and jac0.shape == (len(r), len(params)):
             jac, at_u = jac0, False
         elif jac is None or (need_fresh and (max_fresh is None or n_fresh < max_fresh)) \
@@ -633,8 +607,6 @@ def fit(prob: Problem, params: list[Param], *, iterations: int = 8, mask: np.nda
             fd, lam = fd / 10, 1e-3
             continue
         if not improved:
-            if go_coarse():
-                continue
             break
         covs = _covariances(prob, jac[sel] * sc, r[sel], sel)[0]
         half = Z95 * np.sqrt(np.maximum(np.max([np.diag(c) for c in covs], axis=0), 0.0)) * sc
@@ -648,8 +620,6 @@ def fit(prob: Problem, params: list[Param], *, iterations: int = 8, mask: np.nda
             carry = False
             continue
         if stop:
-            if go_coarse():
-                continue
             break
         carry = (S_start - S) / S_start < REFRESH_GAIN
     for p, v in zip(params, u):
