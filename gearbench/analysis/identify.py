@@ -1118,12 +1118,12 @@ def _held(angle: np.ndarray, samples: int) -> np.ndarray:
     array([False,  True,  True,  True, False])
     """
     th = np.asarray(angle, float)
-    same = np.diff(th) == 0
-    edges = np.diff(np.concatenate([[0], same.astype(np.int8), [0]]))
+    # runs of zero steps (the standstill finder on the one-sample difference): n readings
+    # are n - 1 steps, and a step's run holds the readings on both its sides
+    still = dv.standstill(np.diff(th), np.finfo(float).tiny, min_samples=samples - 1) > 0
     held = np.zeros(len(th), bool)
-    for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)):
-        if b - a + 1 >= samples:          # b - a equal steps: b - a + 1 readings
-            held[a:b + 1] = True
+    held[:-1] |= still
+    held[1:] |= still
     return held
 
 
