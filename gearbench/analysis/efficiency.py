@@ -589,10 +589,11 @@ def efficiency(trace: Trace, motor_in: MotorCalibration, motor_out: MotorCalibra
         dt = float(np.median(np.diff(trace.time_s)))
         # the gain from the levels alone: on the ramps and steps the drive's speed lags the
         # encoder's, a difference the current answers through the loop, not ripple
-        ranges = windows if windows is not None else steady_windows(
-            trace.time_s, trace["in_command"], trace["out_command"], settle_s=settle_s)
+        if windows is None:     # found once, for the gain and the windows below
+            windows = steady_windows(trace.time_s, trace["in_command"], trace["out_command"],
+                                     settle_s=settle_s)
         cur, _ = ripple_corrected_current(trace["in_current_a"], trace["in_velocity_rad_s"],
-                                          trace["in_position_rad"], dt, ranges=ranges)
+                                          trace["in_position_rad"], dt, ranges=windows)
         trace = trace.with_columns(in_current_a=cur)
     wins = with_level_scatter(measure_windows(trace, settle_s=settle_s, ranges=windows))
     refs = [w for w in wins if w.is_reference]
