@@ -427,7 +427,8 @@ def test_stepping_drive_at_its_current_limit_gives_kt_within_target():
     speed loop (22 Hz) whose loaded run sits at the 3 A current limit on 66 % of its
     samples (the unloaded on 20 %). There the P part of the kick is clipped away, so
     one c for both runs over-corrects the loaded run: Kt −0.55 ± 0.11 % (biased) when the
-    limit is not known; with the drive's declared limit the term is 0 at those samples
+    limit is not known (−0.32 ± 0.16 % since the speed loop's ripple term is fitted too,
+    ``identify.SPEED_ERR``); with the drive's declared limit the term is 0 at those samples
     (``identify._below_current_limit``): within 0.2 % and covered."""
     from gearbench.analysis.calibration import calibrate_motor
 
@@ -443,7 +444,7 @@ def test_stepping_drive_at_its_current_limit_gives_kt_within_target():
     for t in (u, lo):
         del t.meta["drive"]["current_limit_a"]
     unknown = calibrate_motor(u, lo, case.disks_kgm2["out"])
-    assert unknown.Kt < m.Kt - 2 * unknown.Kt_std
+    assert unknown.Kt / m.Kt - 1 < -0.002
 
 
 def _kick_factor(tau_per_period: float, ticks: int, n: int = 400) -> float:

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..errors import ExcitationError, GearbenchError
 from ..trace import Trace
-from .identify import (C_J, D_J, KT_J, MAX_B2_REL_STD, SP_STEP, TC_J, IdentificationResult,
+from .identify import (C_J, D_J, KT_J, MAX_B2_REL_STD, SP_STEP, SPEED_ERR, TC_J, IdentificationResult,
                        declared_kick, drive_sampling, identify_trace, is_speed_command,
                        own_to_accel_names)
 from .torque_constant import torque_constant
@@ -263,6 +263,8 @@ def calibrate_from_fits(unloaded: IdentificationResult, loaded: IdentificationRe
     }
     if "setpoint_step" in unloaded.extras:
         fit["setpoint_step"] = unloaded.extras["setpoint_step"]
+    if "speed_error" in unloaded.extras:
+        fit["speed_error"] = unloaded.extras["speed_error"]
     if C_J in unloaded.names:
         fit["C"] = unloaded.value(C_J) * J
     if speed_range is not None:
@@ -276,11 +278,12 @@ def calibrate_from_fits(unloaded: IdentificationResult, loaded: IdentificationRe
 
 def share_setpoint_step(unloaded: IdentificationResult, loaded: IdentificationResult, *,
                         declared: bool | None = None):
-    """Both runs' fits with one setpoint-step coefficient for the motor's drive.
+    """Both runs' fits with one coefficient per drive term for the motor's drive.
 
-    The setpoint-step term c·Δcmd (``identify._setpoint_steps``) is a property of the
-    drive (its gains and current lag), the same in both runs, but within one run it is
-    nearly collinear with θ'' and leaves J/Kt known to ~1 %. Conditioning the two runs'
+    The setpoint-step term c·Δcmd (``identify._setpoint_steps``) and the speed-loop
+    ripple term γ·e (``identify.SPEED_ERR``) are properties of the drive (its gains and
+    current lag), the same in both runs, but within one run each is nearly collinear
+    with θ'' and leaves J/Kt known to ~1 %. Conditioning the two runs'
     torque-side estimates x = (β_unloaded, β_loaded), covariance Σ (block diagonal), on
     the constraint H x = c_unloaded − c_loaded = 0 — x* = x − Σ Hᵀ (H Σ Hᵀ)⁻¹ H x,
     Σ* = Σ − Σ Hᵀ (H Σ Hᵀ)⁻¹ H Σ (the Gaussian conditional; generalised least squares
@@ -291,12 +294,12 @@ def share_setpoint_step(unloaded: IdentificationResult, loaded: IdentificationRe
 
     Parameters
     ----------
-    unloaded, loaded : the two runs' fits, each with ``setpoint_step`` in a torque-side
-        form (otherwise they are returned unchanged).
+    unloaded, loaded : the two runs' fits, each with ``setpoint_step`` or ``speed_error``
+        in a torque-side form (otherwise they are returned unchanged).
     declared : True when the drive says it steps its setpoint and samples its current
-        at one instant (``identify.drive_sampling``): the term is then part of the
-        physical model (``identify._setpoint_steps``) and kept whatever its Wald; False
-        or None: kept only where the shared c is significant.
+        at one instant (``identify.drive_sampling``): the setpoint-step term is then part
+        of the physical model (``identify._setpoint_steps``) and kept whatever its Wald;
+        False or None: kept only where the shared c is significant.
 
     Returns
     -------
@@ -311,29 +314,39 @@ def share_setpoint_step(unloaded: IdentificationResult, loaded: IdentificationRe
     --------
     >>> fu, fl, cov_b2 = share_setpoint_step(fit_unloaded, fit_loaded)   # doctest: +SKIP
     """
-    if not all(_carries_setpoint_step(f) for f in (unloaded, loaded)):
+    terms = [t for t in (SP_STEP, SPEED_ERR) if all(_carries(f, t) for f in (unloaded, loaded))]
+    if not terms:
         return unloaded, loaded, 0.0
     own = [f.extras["own_form"] for f in (unloaded, loaded)]
     nu = len(own[0]["beta"])
     x = np.concatenate([own[0]["beta"], own[1]["beta"]])
     S = np.zeros((len(x), len(x)))
     S[:nu, :nu], S[nu:, nu:] = own[0]["cov"], own[1]["cov"]
-    ku, kl = own[0]["names"].index(SP_STEP), nu + own[1]["names"].index(SP_STEP)
-    shared = _condition_on(x, S, np.eye(len(x))[[ku]] - np.eye(len(x))[[kl]])
+    eye = np.eye(len(x))
+    pairs = {t: (own[0]["names"].index(t), nu + own[1]["names"].index(t)) for t in terms}
+    same = np.vstack([eye[[ku]] - eye[[kl]] for ku, kl in pairs.values()])
+    shared = _condition_on(x, S, same)
     if shared is None:
         return unloaded, loaded, 0.0
     x1, S1 = shared
-    # a drive that interpolates its setpoint has c = 0: unless the drive says it kicks,
-    # keep the term only where the shared c is significant (Wald above the BIC price),
-    # else condition on c = 0
-    n_eff = min(f.n_effective for f in (unloaded, loaded))
-    wald = x1[ku] ** 2 / S1[ku, ku] if S1[ku, ku] > 0 else 0.0
-    kept = bool(declared) or bool(wald > 2.0 * np.log(max(n_eff, 2.0)))
-    if not kept:
-        zero = _condition_on(x, S, np.eye(len(x))[[ku, kl]])
-        if zero is None:
-            return unloaded, loaded, 0.0
-        x1, S1 = zero
+    step = {"kept": False}
+    if SP_STEP in pairs:
+        ku, kl = pairs[SP_STEP]
+        # a drive that interpolates its setpoint has c = 0: unless the drive says it kicks,
+        # keep the term only where the shared c is significant (Wald above the BIC price),
+        # else condition on c = 0
+        n_eff = min(f.n_effective for f in (unloaded, loaded))
+        wald = x1[ku] ** 2 / S1[ku, ku] if S1[ku, ku] > 0 else 0.0
+        kept = bool(declared) or bool(wald > 2.0 * np.log(max(n_eff, 2.0)))
+        if not kept:
+            zero = _condition_on(x, S, np.vstack([same, eye[[ku]]]))
+            if zero is None:
+                return unloaded, loaded, 0.0
+            x1, S1 = zero
+        step = {"coefficient_a_s2_per_rad": float(x1[ku]) if kept else 0.0,
+                "coefficient_std_a_s2_per_rad": (float(np.sqrt(max(S1[ku, ku], 0.0)))
+                                                 if kept else 0.0),
+                "wald": float(wald), "kept": kept, "declared": declared}
     x, S = x1, S1
     out = []
     for k, (fit, o, sl) in enumerate(zip((unloaded, loaded), own, (slice(0, nu), slice(nu, None)))):
@@ -345,16 +358,16 @@ def share_setpoint_step(unloaded: IdentificationResult, loaded: IdentificationRe
         # a run's own advice on Kt/J no longer holds once the two runs are combined
         warnings = [w for w in fit.extras.get("warnings", [])
                     if not (b2_known and w.startswith("Kt/J is not identifiable"))]
+        extras = {**fit.extras, "warnings": warnings,
+                  "identified": {**fit.extras["identified"], KT_J: b2_known}}
+        if SP_STEP in pairs:
+            extras["setpoint_step"] = step
+        if SPEED_ERR in pairs:
+            ku = pairs[SPEED_ERR][0]
+            extras["speed_error"] = {"coefficient_a_s_per_rad": float(x[ku]),
+                                     "coefficient_std_a_s_per_rad": float(np.sqrt(max(S[ku, ku], 0.0)))}
         out.append(replace(fit, values=tuple(map(float, values)), covariance=cov,
-                           B=np.array([0.0, float(values[0])]),
-                           extras={**fit.extras, "warnings": warnings,
-                                   "identified": {**fit.extras["identified"], KT_J: b2_known},
-                                   "setpoint_step": {
-                               "coefficient_a_s2_per_rad": float(x[ku]) if kept else 0.0,
-                               "coefficient_std_a_s2_per_rad": (float(np.sqrt(max(S[ku, ku], 0.0)))
-                                                                if kept else 0.0),
-                               "wald": float(wald), "kept": kept,
-                               "declared": declared}}))
+                           B=np.array([0.0, float(values[0])]), extras=extras))
     # cov(b2_u, b2_l) = dv_u/dp_u · cov(p_u, p_l) · dv_l/dp_l, v = 1/p
     pu, pl = x[0], x[nu]
     b2_cov = float(S[0, nu] / (pu * pu * pl * pl))
@@ -403,7 +416,10 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
     (forward or reversing runs alike), the kick is computed from it and added to the current, the
     current delay fitted, the spread to the fit without the delay and to a kick
     ``KICK_REL_STD`` larger added; one that says it interpolates or averages gets none; a
-    trace that does not say gets the term where it is significant.
+    trace that does not say gets the term where it is significant. A drive that says it
+    samples its current at one instant, with the speed it acted on recorded
+    (``velocity_rad_s``), also gets the speed loop's ripple term (``identify.SPEED_ERR``,
+    one gain for both runs; not on reversing runs).
 
     Returns
     -------
@@ -447,8 +463,19 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
                 if "lag" not in given:
                     options["lag"] = True
 
+    if "speed_error" not in options and method in ("default", "torque", "iv"):
+        # a drive that samples its current at one instant passes its speed loop's
+        # quantisation ripple on (``identify.SPEED_ERR``); the speed it acted on, recorded,
+        # gives the ripple's regressor
+        options["speed_error"] = _samples_instant(unloaded, loaded)
+
     def fits(opts):
-        return tuple(identify_trace(t, method=method, **opts) for t in (unloaded, loaded))
+        fs = tuple(identify_trace(t, method=method, **opts) for t in (unloaded, loaded))
+        if sum(SPEED_ERR in f.names for f in fs) == 1:
+            # one run reverses and the other does not: the ripple gain cannot be shared
+            fs = tuple(identify_trace(t, method=method, **{**opts, "speed_error": False})
+                       for t in (unloaded, loaded))
+        return fs
 
     def combine(fu, fl):
         return calibrate_from_fits(fu, fl, disk_kgm2, disk_std_kgm2=disk_std_kgm2,
@@ -515,8 +542,11 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
                    else {"cogging": False})
             return calibrate_motor(unloaded, loaded, disk_kgm2, method, **kw, **{**given, **opt})
         # (the current delay's spread is already counted where the drive declared its kick)
+        # (the accel form is no alternative where the ripple term is in: its coefficient,
+        # −b2·γ, differs between the runs and cannot be shared)
         names = tuple(n for n in MODEL_VARIANTS
-                      if n != "current delay" or "delay_model_difference" not in cal.fit)
+                      if (n != "current delay" or "delay_model_difference" not in cal.fit)
+                      and (n != "accel form" or "speed_error" not in cal.fit))
 
         def half(k):
             mu, ml = len(unloaded) // 2, len(loaded) // 2
@@ -612,6 +642,13 @@ def _declared_kick(unloaded: Trace, loaded: Trace) -> bool | None:
     return said.pop() == "kick"
 
 
+def _samples_instant(unloaded: Trace, loaded: Trace) -> bool:
+    """Both runs' drive says it samples its current at one instant and both record the
+    speed estimate the drive acted on (``velocity_rad_s``)."""
+    return all((t.meta.get("drive") or {}).get("current") == "instant"
+               and "velocity_rad_s" in t for t in (unloaded, loaded))
+
+
 def _declared_current_limit(unloaded: Trace, loaded: Trace) -> float | None:
     """The drive's current limit both runs' descriptions give (``meta["drive"]``
     ``current_limit_a``), or None when they do not say or disagree."""
@@ -622,8 +659,13 @@ def _declared_current_limit(unloaded: Trace, loaded: Trace) -> float | None:
 
 def _carries_setpoint_step(fit: IdentificationResult) -> bool:
     """The fit has the setpoint-step term in a torque-side form (``share_setpoint_step``)."""
+    return _carries(fit, SP_STEP)
+
+
+def _carries(fit: IdentificationResult, term: str) -> bool:
+    """The fit has the drive term ``term`` in a torque-side form (``share_setpoint_step``)."""
     own = fit.extras.get("own_form")
-    return (own is not None and SP_STEP in own["names"]
+    return (own is not None and term in own["names"]
             and fit.extras.get("form") in ("torque", "iv"))
 
 
