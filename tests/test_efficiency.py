@@ -254,7 +254,7 @@ def test_a_zero_load_level_off_the_braking_line_is_not_the_reference():
     of the braking levels (``staircase_fit``); eq. 18 then comes from their slope, with
     the drift the two zero-load levels measure taken out, and the biased secant kept."""
     tr, _, lvl = hand_bench(noise=0.002, seed=1, drift_a_per_s=0.0005)
-    clean = efficiency(tr, M_IN, M_OUT)
+    clean = efficiency(tr, M_IN, M_OUT, incremental="secant")
     assert all(p.incremental_method == "secant" for p in clean.points)   # on the line: unchanged
     res = efficiency(_with_level_offsets(tr, lvl, {0.0: 0.003}), M_IN, M_OUT)
     for p in res.points:
@@ -278,3 +278,36 @@ def test_levels_scattering_beyond_their_window_errors_widen_the_intervals():
         assert q.eta_incremental_std > 5 * p.eta_incremental_std
         assert q.eta_incremental_ci95[0] <= 0.9 <= q.eta_incremental_ci95[1]
         assert p.eta_incremental_dof > q.eta_incremental_dof >= 2     # ν of the scatter: 6 − 4
+
+
+def test_levels_on_one_line_give_eq18_from_the_line_through_every_level():
+    """``incremental="auto"`` (the default): where a speed's levels lie on one straight
+    line within their errors, every secant estimates the same slope; the line through
+    every level (zero-load included, the drift free) is that slope with a smaller error
+    — at half load the secant's is about twice the line's here — and its interval holds
+    the truth as often as it should. A staircase that bends beyond its errors keeps each
+    point's secant (eq. 18 as printed)."""
+    levels = (0, 0.5, 1.0, 1.5, 2.0, 0)
+    hits_line = hits_secant = 0
+    n = 100
+    ratios = []
+    for seed in range(n):
+        tr, _, _ = hand_bench(noise=0.004, seed=seed, levels=levels, drift_a_per_s=0.0003)
+        auto = efficiency(tr, M_IN, M_OUT)
+        sec = efficiency(tr, M_IN, M_OUT, incremental="secant")
+        assert {p.incremental_method for p in auto.points} <= {"slope", "secant"}
+        if seed == 0:
+            assert all(p.incremental_method == "slope" for p in auto.points)
+            assert len({p.eta_incremental for p in auto.points}) == 1    # one value per speed
+            assert auto.points[0].eta_incremental_secant == sec.points[0].eta_incremental
+        ratios.append(sec.points[0].eta_incremental_std / auto.points[0].eta_incremental_std)
+        lo, hi = auto.points[0].eta_incremental_ci95
+        hits_line += lo <= 0.9 <= hi
+        lo, hi = sec.points[0].eta_incremental_ci95
+        hits_secant += lo <= 0.9 <= hi
+    assert np.median(ratios) > 1.8                       # half load: the line's error is smaller
+    assert 88 <= hits_line <= 100 and 88 <= hits_secant <= 100   # both intervals honest
+    # a staircase bent beyond its errors (3 mA at the middle level): the secants stay
+    tr, _, lvl = hand_bench(noise=0.002, seed=3, levels=levels)
+    bent = efficiency(_with_level_offsets(tr, lvl, {1.0: 0.003}), M_IN, M_OUT)
+    assert all(p.incremental_method == "secant" for p in bent.points)

@@ -30,7 +30,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..analysis.calibration import calibrate_motor
-from ..analysis.efficiency import OFF_LINE_SIGMAS, efficiency, measure_windows, with_level_scatter
+from ..analysis.efficiency import (OFF_LINE_SIGMAS, efficiency, measure_windows, staircase_fit,
+                                   with_level_scatter)
 
 METHODS = ("paper-15ms", "paper", "default")
 TARGETS = {"kt_pct": 0.2, "inc_pp": 0.2, "abs_pp": 0.3}
@@ -282,9 +283,13 @@ def run_case(case: Case, methods=METHODS, data: dict | None = None) -> dict[str,
                 oc.kt_cover.append(cal.Kt_ci95[0] <= motor.Kt <= cal.Kt_ci95[1])
                 oc.motors.append(_motor_notes(cal, motor))
             res = efficiency(data["bench"], cals["in"], cals["out"])
-            oc.off_line_reference = any(p.incremental_method == "slope" for p in res.points)
             wins = measure_windows(data["bench"])
-            oc.level_scatter = with_level_scatter(wins) != wins
+            scat = with_level_scatter(wins)
+            oc.level_scatter = scat != wins
+            fits = [staircase_fit([v for v in scat if v.in_command == c])
+                    for c in {v.in_command for v in scat}]
+            oc.off_line_reference = any(f is not None and f["off_line_sigmas"] > OFF_LINE_SIGMAS
+                                        for f in fits)
             for p in res.points:
                 if abs(p.window.out_command) < 0.5 * plant.motor_out.rated_current_a - 1e-12:
                     continue

@@ -86,7 +86,7 @@ def calibrate(unloaded: Trace, loaded: Trace, *, motor: str, disk_kgm2: float,
 def efficiency(step: Trace, motor_in: MotorCalibration, motor_out: MotorCalibration, *,
                ratio: float | None, settle_s: float, speed_setpoint_rad_s: float,
                skip_samples: int = 0, windows: list[tuple[int, int]] | None = None,
-               incremental: str = "secant", inertia_corrected: bool = False,
+               incremental: str = "auto", inertia_corrected: bool = False,
                ripple_corrected: bool = False) -> EfficiencyResult:
     """Efficiency points of one recorded efficiency segment (eq. 18 and P_out/P_in), each
     stamped with the commanded speed. ``windows``: the steady ranges as drive

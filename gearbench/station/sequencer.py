@@ -445,7 +445,7 @@ class Sequencer:
                                  ratio=ratio, settle_s=seg.meta["settle_s"],
                                  speed_setpoint_rad_s=action.speed_rad_s,
                                  skip_samples=seg.meta["n_ramp"], windows=seg.meta.get("windows"),
-                                 incremental="slope" if adaptive else "secant",
+                                 incremental="slope" if adaptive else "auto",
                                  inertia_corrected=bool(seg.meta.get("inertia_corrected")),
                                  ripple_corrected=self.profile.motors["in"].current_instant)
         self.ratio = res.ratio
