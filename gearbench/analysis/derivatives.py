@@ -20,6 +20,14 @@ from scipy import signal
 
 # Central second difference ≈ this kernel applied to the sampled acceleration.
 SECOND_DIFFERENCE_MATCH = np.array([1.0, 10.0, 1.0]) / 12.0
+# The same match for samples that are each the mean over the period ending at them (a
+# drive's period-mean current): the central second difference weights the acceleration
+# by a triangle about the sample instant, boxcar ∗ boxcar, so the period means' own mean
+# over the next period is the match; from the samples, the fourth-order cell average
+# (−m₋₁ + 13 m₀ + 13 m₁ − m₂)/24. The 3-tap match on period means instead, with the half
+# period left to the fitted current delay, put Kt 0.03-0.05 % high on noise-free random
+# plants (a magnitude error ~x², x = πfT, that a delay cannot take).
+PERIOD_MEAN_MATCH = np.array([-1.0, 13.0, 13.0, -1.0]) / 24.0
 
 
 def forward_differences(position_rad: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -507,6 +515,83 @@ def match_samples(x: np.ndarray) -> np.ndarray:
     c = SECOND_DIFFERENCE_MATCH
     out = x.copy()
     out[..., 1:-1] = c[0] * x[..., :-2] + c[1] * x[..., 1:-1] + c[2] * x[..., 2:]
+    return out
+
+
+def match_period_means(x: np.ndarray) -> np.ndarray:
+    """``PERIOD_MEAN_MATCH`` at each raw sample (samples k−1…k+2; ends copied): the
+    triangle-weighted value about sample k of a signal sampled as means over the period
+    ending at each sample.
+
+    Parameters
+    ----------
+    x : rows (..., n) of period means.
+
+    Returns
+    -------
+    numpy.ndarray, same shape.
+
+    References
+    ----------
+    C.-W. Shu, "Essentially non-oscillatory and weighted essentially non-oscillatory
+    schemes for hyperbolic conservation laws", NASA/CR-97-206253 (1997), sec. 2.1 (cell
+    averages and point values)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> t = np.arange(8.0)
+    >>> m = ((t + 0.5) ** 2 * 0 + t - 0.5)      # period means of a ramp v(t) = t
+    >>> match_period_means(m)[1:-2]              # triangle about k of a ramp: v(k)
+    array([1., 2., 3., 4., 5.])
+    """
+    x = np.asarray(x, float)
+    c = PERIOD_MEAN_MATCH
+    out = x.copy()
+    if x.shape[-1] >= 4:
+        out[..., 1:-2] = (c[0] * x[..., :-3] + c[1] * x[..., 1:-2] + c[2] * x[..., 2:-1]
+                          + c[3] * x[..., 3:])
+    return out
+
+
+def shift_samples(x: np.ndarray, shift: float) -> np.ndarray:
+    """x at k + ``shift`` samples, by 4-point (cubic) Lagrange interpolation (ends held).
+
+    Linear interpolation at a fraction f of a sample scales a tone of x = πfT by about
+    1 − 2f(1−f)x²: at half a sample and 10 Hz content of a 1 kHz run that is −0.05 %, the
+    size of the Kt errors it caused; the cubic's error is of order x⁴.
+
+    Parameters
+    ----------
+    x : samples (n,).
+    shift : samples (any real).
+
+    Returns
+    -------
+    numpy.ndarray (n,).
+
+    References
+    ----------
+    T. I. Laakso, V. Välimäki, M. Karjalainen and U. K. Laine, "Splitting the unit delay",
+    IEEE Signal Processing Magazine 13(1), 1996, pp. 30-60 (Lagrange fractional delay)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> shift_samples(np.arange(6.0) ** 3, 0.5)[1:4]
+    array([ 3.375, 15.625, 42.875])
+    """
+    x = np.asarray(x, float)
+    n = len(x)
+    base = int(np.floor(shift))
+    f = float(shift - base)
+    w = np.array([-f * (f - 1) * (f - 2) / 6, (f + 1) * (f - 1) * (f - 2) / 2,
+                  -(f + 1) * f * (f - 2) / 2, (f + 1) * f * (f - 1) / 6])
+    pad = abs(base) + 2
+    xp = np.pad(x, pad, mode="edge")
+    out = np.zeros(n)
+    for j, wj in zip((-1, 0, 1, 2), w):
+        out += wj * xp[pad + base + j:pad + base + j + n]
     return out
 
 

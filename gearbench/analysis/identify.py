@@ -267,6 +267,7 @@ class _Signals:
     noise_var_raw: float        # white current-noise variance, A²
     source: str
     i_raw: np.ndarray | None = None   # raw current (weighted form: the lag refit filters it again)
+    current_mean: bool = False        # each current sample the mean over the period ending at it
 
     @property
     def n(self) -> int:
@@ -285,6 +286,18 @@ class _Signals:
         x = dv.match_samples(np.atleast_2d(rows)) * self.moving
         return dv.filter_valid_rows(x, self.taps)[:, 1:-1]
 
+    def matched_current(self, rows: np.ndarray) -> np.ndarray:
+        """Current-like rows through the current's match (``current_mean``:
+        ``derivatives.match_period_means``), the equation weight and the FIR."""
+        if not self.current_mean or self.i_raw is None:
+            return self.matched(rows)
+        x = dv.match_period_means(np.atleast_2d(rows)) * self.moving
+        return dv.filter_valid_rows(x, self.taps)[:, 1:-1]
+
+    @property
+    def current_match(self) -> np.ndarray:
+        return dv.PERIOD_MEAN_MATCH if self.current_mean else dv.SECOND_DIFFERENCE_MATCH
+
     @cached_property
     def speed_range(self) -> list[float]:
         """Speeds the run covered (once per run: a percentile of n samples is not free)."""
@@ -297,7 +310,8 @@ class _Signals:
 
 
 def _prepare(t, th, i, *, cutoff_hz, friction_width_rad_s, command, source,
-             current_limit_a=None, kick_a_per_rad_s=None, drive_velocity=None) -> _Signals:
+             current_limit_a=None, kick_a_per_rad_s=None, drive_velocity=None,
+             current_mean=False) -> _Signals:
     """Filter every signal with one zero-phase FIR (``derivatives.consistent_derivatives``).
 
     The Coulomb step is integrated at its sub-sample reversal instant as the angle's second
@@ -352,12 +366,16 @@ def _prepare(t, th, i, *, cutoff_hz, friction_width_rad_s, command, source,
                 i, current_limit_a, float(np.sqrt(_white_noise_variance(i))))
         # the masked offset column is needed only where an offset is fitted (reversing)
         others = {"current": i, **({"moving": np.ones_like(th)} if reverses else {})}
+        if current_mean:
+            # period means: their own match (``derivatives.match_period_means``)
+            matched["current"] = dv.match_period_means(others.pop("current"))
         if drive_velocity is not None:
             others["drive_velocity"] = np.asarray(drive_velocity, float)
         fs = dv.weighted_derivatives(th, others, dt, taps, moving, matched=matched,
                                      unweighted=extra)
         return _Signals(th, dt, cutoff_hz, taps, w_smooth, moving, fs, reverses,
-                        _white_noise_variance(i), source, i_raw=np.asarray(i, float))
+                        _white_noise_variance(i), source, i_raw=np.asarray(i, float),
+                        current_mean=bool(current_mean))
     return _Signals(th, dt, cutoff_hz, taps, w_smooth, moving, fs, reverses,
                     _white_noise_variance(i), source)
 
@@ -532,7 +550,7 @@ class _Fit:
 def _fit(sig: _Signals, cols: list, form: str, *, lag: bool, eiv: bool) -> _Fit:
     """Solve ``cols`` in ``form`` (see ``_solve`` for the accel form's lag and EIV)."""
     if form == "accel":
-        noise = sig.noise_var_raw * float(np.sum(np.convolve(dv.SECOND_DIFFERENCE_MATCH,
+        noise = sig.noise_var_raw * float(np.sum(np.convolve(sig.current_match,
                                                              sig.taps) ** 2))
         beta, Xt, G, Gc, shift = _solve(cols, y=sig.fs["acceleration"],
                                         noise_var=noise if eiv else 0.0, lag=lag, dt=sig.dt,
@@ -578,7 +596,7 @@ def _solve_torque(cols, sig: _Signals, *, Z, lag, accel_noise_var):
         # weight steps: differentiate the raw current, then weight and filter it
         if raw is None:
             return -np.gradient(y, sig.dt)
-        return -sig.matched(np.gradient(shifted, sig.dt))[0]
+        return -sig.matched_current(np.gradient(shifted, sig.dt))[0]
 
     if lag:
         Xt[-1] = lag_column(y, raw)
@@ -586,7 +604,6 @@ def _solve_torque(cols, sig: _Signals, *, Z, lag, accel_noise_var):
     if Z is not None:
         Zt = np.vstack([Z, Xt[-1:]]) if lag else Z
     shift_s = 0.0
-    idx = np.arange(n, dtype=float)
     for _ in range(4 if lag else 1):
         G = Xt @ Xt.T
         if Zt is None:
@@ -609,12 +626,11 @@ def _solve_torque(cols, sig: _Signals, *, Z, lag, accel_noise_var):
             break
         shift_s += tau
         if raw is None:
-            y = np.interp(idx + shift_s / sig.dt, idx, base)
+            y = dv.shift_samples(base, shift_s / sig.dt)
             Xt[-1] = lag_column(y, None)
         else:
-            ir = np.arange(len(raw), dtype=float)
-            shifted = np.interp(ir + shift_s / sig.dt, ir, raw)
-            y = sig.matched(shifted)[0]
+            shifted = dv.shift_samples(raw, shift_s / sig.dt)
+            y = sig.matched_current(shifted)[0]
             Xt[-1] = lag_column(y, shifted)
         if Zt is not None:
             Zt[-1] = Xt[-1]
@@ -719,7 +735,8 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
                      form_spread: bool = True, setpoint_step: bool = False,
                      current_limit_a: float | None = None,
                      kick_a_per_rad_s: float | None = None,
-                     drive_velocity_rad_s: np.ndarray | None = None) -> IdentificationResult:
+                     drive_velocity_rad_s: np.ndarray | None = None,
+                     current_period_mean: bool = False) -> IdentificationResult:
     """Bias-reduced fit of ``J θ'' + D θ' + Tc s(θ') [+ C θ] [+ q·(sin, cos) θ_L] = Kt i [+ c]``.
 
     Every run is fitted twice: in ``form`` and, as a cross-check, by the plain filtered
@@ -768,6 +785,9 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
         unit as the angle per second): adds the speed loop's ripple regressor
         ``speed_error`` (``SPEED_ERR``) on a run that does not reverse; for a drive that
         samples its current at one instant (``calibrate_motor`` passes it then).
+    current_period_mean : each current sample is the mean over the period ending at it
+        (a drive that says ``current: mean``; ``identify_trace`` reads it from the
+        trace's drive description): matched by ``derivatives.match_period_means``.
     form_spread : also fit the other regression direction (accel for the torque side,
         and vice versa) with the same terms and add ``FORM_SPREAD``·ΔΔᵀ of their
         difference Δ in (Kt/J, D/J, Tc/J) to the covariance: with a correct model both
@@ -803,7 +823,7 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
                    np.asarray(current_a, float), cutoff_hz=cutoff_hz,
                    friction_width_rad_s=friction_width_rad_s, command=command, source=source,
                    current_limit_a=current_limit_a, kick_a_per_rad_s=kick_a_per_rad_s,
-                   drive_velocity=drive_velocity_rad_s)
+                   drive_velocity=drive_velocity_rad_s, current_mean=current_period_mean)
     use_bias = sig.reverses if bias is None else bias
     if use_bias and not sig.reverses:
         raise ExcitationError(f"{source}: a current offset and Coulomb friction cannot be told "
@@ -1028,8 +1048,7 @@ def _check(sig: _Signals, fit: IdentificationResult) -> None:
         fit.extras.setdefault("warnings", []).append(
             f"{advice}; identified: {', '.join(friction) or 'none of D/J, Tc/J'} "
             f"(per ampere in extras['per_ampere'])")
-    noise_i = sig.noise_var_raw * float(np.sum(np.convolve(dv.SECOND_DIFFERENCE_MATCH,
-                                                           sig.taps) ** 2))
+    noise_i = sig.noise_var_raw * float(np.sum(np.convolve(sig.current_match, sig.taps) ** 2))
     if fit.extras["form"] == "accel":
         floor_var, y = accel_noise ** 2 + b2 ** 2 * noise_i, acc
     else:
@@ -1240,7 +1259,6 @@ def _solve(cols, *, y, noise_var, lag, dt, source):
     if lag:
         Xt[-1] = np.gradient(base, dt)
     shift_s = 0.0
-    idx = None
     for _ in range(4 if lag else 1):
         G = Xt @ Xt.T
         Gc = G.copy()
@@ -1256,9 +1274,7 @@ def _solve(cols, *, y, noise_var, lag, dt, source):
         if abs(tau) < 0.02 * dt or abs(shift_s + tau) > 5 * dt:
             break
         shift_s += tau
-        if idx is None:
-            idx = np.arange(len(y), dtype=float)
-        Xt[0] = np.interp(idx + shift_s / dt, idx, base)            # i(t + shift)
+        Xt[0] = dv.shift_samples(base, shift_s / dt)                 # i(t + shift)
         Xt[-1] = np.gradient(Xt[0], dt)
     return beta, Xt, G, Gc, shift_s
 
@@ -1426,6 +1442,8 @@ def identify_trace(trace, *, method: str = "default", **options) -> Identificati
     if "command" in trace and "command" not in options and (
             method == "iv" or (method in ("default", "torque") and is_speed_command(trace))):
         options["command"] = trace["command"]
+    if "current_period_mean" not in options and method in ("default", "accel", "torque", "iv"):
+        options["current_period_mean"] = (trace.meta.get("drive") or {}).get("current") == "mean"
     if options.pop("speed_error", False) and "velocity_rad_s" in trace:
         options["drive_velocity_rad_s"] = trace["velocity_rad_s"]
     return identify(trace.time_s, trace["position_rad"], trace["current_a"], method=method,
