@@ -491,7 +491,7 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
         # interpolates its setpoint)
         try:
             fu, fl = fits(options)
-            if all(_carries_setpoint_step(f) for f in (fu, fl)):
+            if all(_carries(f, SP_STEP) for f in (fu, fl)):
                 cal = combine(fu, fl)
         except ExcitationError:
             pass
@@ -655,11 +655,6 @@ def _declared_current_limit(unloaded: Trace, loaded: Trace) -> float | None:
     said = {(t.meta.get("drive") or {}).get("current_limit_a") for t in (unloaded, loaded)}
     limit = said.pop() if len(said) == 1 else None
     return float(limit) if limit else None
-
-
-def _carries_setpoint_step(fit: IdentificationResult) -> bool:
-    """The fit has the setpoint-step term in a torque-side form (``share_setpoint_step``)."""
-    return _carries(fit, SP_STEP)
 
 
 def _carries(fit: IdentificationResult, term: str) -> bool:

@@ -279,20 +279,17 @@ class _Signals:
         half = (len(self.taps) - 1) // 2
         return slice(half + 1, half + 1 + self.n)
 
-    def matched(self, rows: np.ndarray) -> np.ndarray:
-        """Rows through the match, the equation weight and the FIR (as ``fs``)."""
+    def matched(self, rows: np.ndarray, match=dv.match_samples) -> np.ndarray:
+        """Rows through ``match``, the equation weight and the FIR (as ``fs``)."""
         if self.i_raw is None:
             return dv.matched_filter(rows * self.moving, self.taps)
-        x = dv.match_samples(np.atleast_2d(rows)) * self.moving
+        x = match(np.atleast_2d(rows)) * self.moving
         return dv.filter_valid_rows(x, self.taps)[:, 1:-1]
 
     def matched_current(self, rows: np.ndarray) -> np.ndarray:
         """Current-like rows through the current's match (``current_mean``:
         ``derivatives.match_period_means``), the equation weight and the FIR."""
-        if not self.current_mean or self.i_raw is None:
-            return self.matched(rows)
-        x = dv.match_period_means(np.atleast_2d(rows)) * self.moving
-        return dv.filter_valid_rows(x, self.taps)[:, 1:-1]
+        return self.matched(rows, dv.match_period_means if self.current_mean else dv.match_samples)
 
     @property
     def current_match(self) -> np.ndarray:
