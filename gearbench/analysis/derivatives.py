@@ -483,8 +483,10 @@ def weighted_derivatives(position_rad: np.ndarray, others: dict[str, np.ndarray]
     for m, x in (matched or {}).items():
         rows[m] = np.asarray(x, float)
     names = list(rows)
-    filt = signal.oaconvolve(np.vstack([rows[m] for m in names]) * w[None, :],
-                             taps[None, :], mode="valid", axes=1)
+    stack = np.empty((len(names), n))        # weighted in place: one k x n array, not two
+    for j, m in enumerate(names):
+        np.multiply(rows[m], w, out=stack[j])
+    filt = signal.oaconvolve(stack, taps[None, :], mode="valid", axes=1)
     for j, m in enumerate(names):
         out[m] = filt[j][1:-1]
     return out

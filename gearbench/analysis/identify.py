@@ -338,6 +338,7 @@ def _prepare(t, th, i, *, cutoff_hz, friction_width_rad_s, command, source,
         i = np.asarray(i, float) + kick_a_per_rad_s * dt * _setpoint_steps(
             extra["command"], dt) * _below_current_limit(
             i, current_limit_a, float(np.sqrt(_white_noise_variance(i))))
+    noise_var = _white_noise_variance(i)     # once: a robust scale of n samples is not free
     if friction_width_rad_s:
         # Legacy: smoothed sign of the raw speed, sampled, then 3-tap matched.
         w_raw = np.empty_like(th)
@@ -350,7 +351,7 @@ def _prepare(t, th, i, *, cutoff_hz, friction_width_rad_s, command, source,
     else:
         w_still = standstill_speed(th, w_smooth, dt)
         moving = equation_weight(w_smooth, w_still, dt, current=i,
-                                 current_noise=float(np.sqrt(_white_noise_variance(i))),
+                                 current_noise=float(np.sqrt(noise_var)),
                                  angle=th)
         # a rotor at rest that nothing pushes stays in the equation (J θ'' = Kt i = 0, a
         # speed step from rest), its friction is zero there, not ±Tc
@@ -360,7 +361,7 @@ def _prepare(t, th, i, *, cutoff_hz, friction_width_rad_s, command, source,
         if command is not None:
             matched["command_sign"] = np.sign(extra["command"]) * sliding
             matched["setpoint_step"] = _setpoint_steps(extra["command"], dt) * _below_current_limit(
-                i, current_limit_a, float(np.sqrt(_white_noise_variance(i))))
+                i, current_limit_a, float(np.sqrt(noise_var)))
         # the masked offset column is needed only where an offset is fitted (reversing)
         others = {"current": i, **({"moving": np.ones_like(th)} if reverses else {})}
         if current_mean:
@@ -371,10 +372,10 @@ def _prepare(t, th, i, *, cutoff_hz, friction_width_rad_s, command, source,
         fs = dv.weighted_derivatives(th, others, dt, taps, moving, matched=matched,
                                      unweighted=extra)
         return _Signals(th, dt, cutoff_hz, taps, w_smooth, moving, fs, reverses,
-                        _white_noise_variance(i), source, i_raw=np.asarray(i, float),
+                        noise_var, source, i_raw=np.asarray(i, float),
                         current_mean=bool(current_mean))
     return _Signals(th, dt, cutoff_hz, taps, w_smooth, moving, fs, reverses,
-                    _white_noise_variance(i), source)
+                    noise_var, source)
 
 
 def _reverses(w_smooth: np.ndarray) -> bool:
