@@ -81,8 +81,10 @@ def test_free_running_modbus_master_reads_each_drive_once_per_sample_at_a_bounde
     # per cell, lost ones included: a cell lost to a read sent late was still read
     assert own["requests"] <= 2 * (r["syncs_or_cells"] + 2) + own["repeat_reads"], own
     # a lost cell is only ever one whose read went out after the cell had ended (the host did not run
-    # the master: a stall no schedule avoids); a read sent in time always falls in its cell
-    assert sup["lost_misplaced"] == 0 and sup["lost_sent_late"] >= r["lost"]
+    # the master: a stall no schedule avoids); a read sent in time falls in its cell unless the drive
+    # answered it late (its SCHED_FIFO stand-in not run in time: CI, the suite's other worker running
+    # real-time runs too, saw 1 such cell with 33 answers late, the latest 1.0 ms of a 2 ms cell)
+    assert sup["lost_misplaced"] <= own["late_answers"] and sup["lost_sent_late"] >= r["lost"] - sup["lost_misplaced"]
     assert r["client_cpu_us"] <= MODBUS_MAX_CPU_PER_SAMPLE_S * 1e6, f"master CPU {r['client_cpu_us']:.0f} us per sample"
     assert r["wakeups_per_sample"] <= MODBUS_MAX_WAKEUPS_PER_SAMPLE, f"{r['wakeups_per_sample']:.2f} wake-ups per sample"
 
