@@ -616,26 +616,32 @@ def _with_model_variant_spread(cal: MotorCalibration, variant,
     return replace(cal, Kt_std=std, Kt_ci95=interval(cal.Kt, std, cal.Kt_dof), fit=fit)
 
 
+def _loss_spread(cal: MotorCalibration, alt: MotorCalibration, share: float):
+    """(Δ, covariance): the (D, Tc) difference Δ of ``alt`` to ``cal`` and ``cal``'s
+    loss covariance with share·ΔΔᵀ added (a model alternative's spread)."""
+    d = np.array([alt.D - cal.D, alt.Tc - cal.Tc])
+    cov = np.array(cal.loss_covariance) + share * np.outer(d, d)
+    return d, tuple(tuple(float(x) for x in r) for r in cov)
+
+
 def _with_delay_model_spread(cal: MotorCalibration, alt: MotorCalibration) -> MotorCalibration:
     """``cal`` with DELAY_MODEL_SPREAD·Δ² of its difference Δ to ``alt`` (the same runs
     fitted with a current delay) added to the variances of Kt and of (D, Tc)."""
-    d = np.array([alt.D - cal.D, alt.Tc - cal.Tc])
-    cov = np.array(cal.loss_covariance) + DELAY_MODEL_SPREAD * np.outer(d, d)
+    d, cov = _loss_spread(cal, alt, DELAY_MODEL_SPREAD)
     std = float(np.hypot(cal.Kt_std, np.sqrt(DELAY_MODEL_SPREAD) * (alt.Kt - cal.Kt)))
     fit = {**cal.fit, "delay_model_difference": {"Kt": alt.Kt - cal.Kt, "D": float(d[0]),
                                                  "Tc": float(d[1])}, "Kt_std": std}
     return replace(cal, Kt_std=std, Kt_ci95=interval(cal.Kt, std, cal.Kt_dof), fit=fit,
-                   loss_covariance=tuple(tuple(float(x) for x in r) for r in cov))
+                   loss_covariance=cov)
 
 
 def _with_ripple_term_loss_spread(cal: MotorCalibration, alt: MotorCalibration) -> MotorCalibration:
     """``cal`` with RIPPLE_TERM_LOSS_SPREAD·Δ² of its (D, Tc) difference Δ to ``alt`` (the
     same runs without the speed loop's ripple term) added to the losses' covariance; Kt's
     variance is left as it is (the term is what makes Kt right)."""
-    d = np.array([alt.D - cal.D, alt.Tc - cal.Tc])
-    cov = np.array(cal.loss_covariance) + RIPPLE_TERM_LOSS_SPREAD * np.outer(d, d)
+    d, cov = _loss_spread(cal, alt, RIPPLE_TERM_LOSS_SPREAD)
     fit = {**cal.fit, "ripple_term_loss_difference": {"D": float(d[0]), "Tc": float(d[1])}}
-    return replace(cal, fit=fit, loss_covariance=tuple(tuple(float(x) for x in r) for r in cov))
+    return replace(cal, fit=fit, loss_covariance=cov)
 
 
 def _with_kick_spread(cal: MotorCalibration, alt: MotorCalibration) -> MotorCalibration:
