@@ -228,6 +228,46 @@ def test_a_refused_model_variant_measures_nothing():
     assert out.Kt_std == pytest.approx(np.sqrt(5e-4 ** 2 - 3e-4 ** 2 + 1e-4 ** 2))
 
 
+def test_split_run_excess_counts_only_beyond_noise():
+    """The two halves' Kt difference widens the interval only where it is significant
+    ((Δh/2)² above χ²(1)'s 95 % quantile times σ_stat²): a difference of 1.5 σ_stat
+    (1.5² < 3.84) is noise and adds nothing, one of 3 σ_stat adds (3² − 1) σ_stat²."""
+    from types import SimpleNamespace
+
+    from gearbench.analysis.calibration import MotorCalibration, _with_model_variant_spread
+    stat = 2e-4
+    cal = MotorCalibration(Kt=0.1, Kt_ci95=(0.099, 0.101), J=1e-5, D=0.0, Tc=0.0, method="default",
+                           fit={"Kt_std_model": 0.0, "Kt_std_statistical": stat}, Kt_std=stat, Kt_dof=100)
+
+    def same(name):
+        return SimpleNamespace(Kt=0.1)
+
+    def halves(dh):
+        return lambda k: SimpleNamespace(Kt=0.1 + (dh if k == 0 else 0.0))
+    quiet = _with_model_variant_spread(cal, same, ("accel form",), halves(2 * 1.5 * stat))
+    assert quiet.Kt_std == pytest.approx(stat)
+    assert quiet.fit["model_variant_difference"]["split run"] == pytest.approx(3 * stat)
+    loud = _with_model_variant_spread(cal, same, ("accel form",), halves(2 * 3.0 * stat))
+    assert loud.Kt_std == pytest.approx(np.sqrt(stat ** 2 + (9 - 1) * stat ** 2))
+
+
+def test_cogging_orders_the_data_select_leave_no_model_without_them():
+    """``_cogging_in_doubt``: orders kept by their Wald test reject the model without
+    cogging (its Kt difference is not this model's error); a run that fell back to the
+    cross-check, or orders named by the user, leave it a defensible variant."""
+    from types import SimpleNamespace
+
+    from gearbench.analysis.calibration import _cogging_in_doubt
+
+    def fit(cogging=(), returned=False):
+        return SimpleNamespace(extras={"cogging": cogging,
+                                       "cross_check": {"returned": "torque"} if returned else {}})
+    assert not _cogging_in_doubt(fit((7,)), fit(), {})
+    assert not _cogging_in_doubt(fit(), fit(), {"cogging": (7,)})
+    assert _cogging_in_doubt(fit(), fit(returned=True), {})
+    assert _cogging_in_doubt(fit((7,)), fit((7,)), {"cogging": (7,)})
+
+
 def test_model_error_refits_fit_the_estimate_only():
     """The model-error refits read only the estimate (Kt, D, Tc): they are fitted without
     measuring their own model errors (``model_errors=False``), so a drive that declares
