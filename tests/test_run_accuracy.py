@@ -16,6 +16,13 @@ from gearbench.api import run_profile
 from gearbench.benchmarks.robustness import TARGETS
 from gearbench.sim.truth import simulation_truth
 
+from _host_speed import python_loop_cpu_s
+
+# the interpreter loop's CPU seconds (``_host_speed.python_loop_cpu_s``) on the host the CPU
+# bound below was set on, scaled from identify's 1,000,000 samples (0.63 s there, 0.95 s
+# where the loop took 0.45 s)
+REFERENCE_PYTHON_LOOP_S = 0.30
+
 PROFILE = Path(__file__).resolve().parents[1] / "profiles" / "cvt.yaml"
 
 
@@ -40,7 +47,11 @@ def test_run_costs_less_cpu_than_real_time(run):
     CI neighbour slows the wall clock, not the cost (~25 CPU s quiet, ~75 s on a loaded host)."""
     result, cpu_s = run
     assert result["status"] == "passed", result.get("reason")
-    assert cpu_s <= 2 * result["bench_time_s"], f"{cpu_s:.0f} CPU s for {result['bench_time_s']:.0f} s of bench time"
+    # on a host slower than the one the bound was set on, in proportion (``_host_speed``:
+    # the interpreter loop 0.45 s and 36 CPU s for 16 s of bench time on the AMD EPYC VM)
+    slower = max(1.0, python_loop_cpu_s() / REFERENCE_PYTHON_LOOP_S)
+    assert cpu_s <= 2 * slower * result["bench_time_s"], \
+        f"{cpu_s:.0f} CPU s for {result['bench_time_s']:.0f} s of bench time (host {slower:.2f}x slower)"
 
 
 def test_torque_constants_within_0p2_percent(run):
