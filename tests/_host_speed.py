@@ -18,7 +18,7 @@ import time
 def paced_loop_cpu_s(periods: int = 500, period_s: float = 1e-3) -> float:
     """CPU seconds per period of a minimal paced loop: sleep to the next deadline, one UDP
     datagram sent and received over loopback, 200 additions (what any paced master does at
-    the least). 67-70 us on the AMD EPYC VM above."""
+    the least). 46-70 us on the AMD EPYC VM above."""
     rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
@@ -42,8 +42,9 @@ def paced_loop_cpu_s(periods: int = 500, period_s: float = 1e-3) -> float:
 
 @functools.lru_cache(maxsize=None)
 def python_loop_cpu_s(n: int = 3_000_000) -> float:
-    """CPU seconds of ``n`` interpreted additions (best of 3): 0.45 s on the AMD EPYC VM
-    above, where identifying 1,000,000 samples took 0.95 s against 0.63 s on the first host."""
+    """CPU seconds of ``n`` interpreted additions to a local (best of 3): 0.16 s on the AMD
+    EPYC VM above, where identifying 1,000,000 samples took 0.95 s against 0.63 s on the
+    first host."""
     best = float("inf")
     for _ in range(3):
         x, c0 = 0, time.process_time()
