@@ -164,9 +164,13 @@ def test_identification_of_a_million_samples_is_fast():
         t0 = time.process_time()     # CPU seconds: what the code costs, whatever else the host runs
         identify_default(t, th, i, check=False)
         best = min(best, time.process_time() - t0)
-    # ~0.15-0.3 s of CPU on a quiet 2-core machine; CPU seconds still grow ~2x when the other
-    # core is busy (shared caches), so the budget catches a real slowdown, not a neighbour
-    assert best < 1.0
+    # ~0.15-0.3 s of CPU on a quiet 2-core machine (0.63 s by 2026-12-03 on the same host); CPU
+    # seconds still grow ~2x when the other core is busy (shared caches), so the budget catches
+    # a real slowdown, not a neighbour; on a slower host in proportion (``_host_speed``: the
+    # AMD EPYC VM 0.95 s quiet, 1.5x the first host)
+    from _host_speed import slower_than_reference
+    slower = slower_than_reference()
+    assert best < 1.0 * slower, f"{best:.2f} CPU s (host {slower:.2f}x slower)"
 
 
 # ------------------------------------------------------------------------ cogging
@@ -480,6 +484,24 @@ def test_equation_weight_finds_a_touch_and_go_stop_from_the_angle():
     assert equation_weight(ws, still, dt, current=current, current_noise=0.004).min() == 1.0
     out = equation_weight(ws, still, dt, current=current, current_noise=0.004, angle=th)
     assert out[101:130].max() == 0.0 and out[:80].min() == 1.0 and out[160:].min() == 1.0
+
+
+def test_a_creeping_reversal_is_a_dwell_whatever_the_encoder():
+    """A reversal that creeps through zero (the current swinging through the friction's
+    transition while a 20-bit encoder still counts) is left out once ``creep_speed`` is
+    given, and kept with the encoder's band alone; a start from rest is not a reversal."""
+    from gearbench.analysis.identify import equation_weight
+    dt = 1e-3
+    w = np.r_[np.linspace(50, 0.05, 100), np.linspace(0.05, -0.05, 60), np.linspace(-0.05, -50, 100)]
+    current = np.r_[np.full(100, 0.2), np.linspace(0.2, -0.2, 60), np.full(100, -0.2)]
+    still = 1e-3                   # 1 count per 6 samples of a 2^20-count encoder
+    assert equation_weight(w, still, dt, current=current, current_noise=0.004).min() == 1.0
+    out = equation_weight(w, still, dt, current=current, current_noise=0.004, creep_speed=0.05)
+    assert out[100:160].max() == 0.0 and out[:60].min() == 1.0 and out[-60:].min() == 1.0
+    start = np.r_[np.zeros(50), np.linspace(0.0, 50, 100)]       # from rest: no sign change
+    pushed = np.r_[np.zeros(50), np.full(100, 0.3)]
+    assert equation_weight(start, still, dt, current=pushed, current_noise=0.004,
+                           creep_speed=0.05)[60:].min() == 1.0
 
 
 def test_speed_step_from_rest_keeps_its_acceleration():

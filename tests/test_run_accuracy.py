@@ -16,12 +16,7 @@ from gearbench.api import run_profile
 from gearbench.benchmarks.robustness import TARGETS
 from gearbench.sim.truth import simulation_truth
 
-from _host_speed import python_loop_cpu_s
-
-# the interpreter loop's CPU seconds (``_host_speed.python_loop_cpu_s``) on the host the CPU
-# bound below was set on, scaled from identify's 1,000,000 samples (0.63 s there, 0.95 s on
-# the AMD EPYC VM, where the loop takes 0.16 s and this run 34-36 CPU s for 16 s of bench time)
-REFERENCE_PYTHON_LOOP_S = 0.11
+from _host_speed import slower_than_reference
 
 PROFILE = Path(__file__).resolve().parents[1] / "profiles" / "cvt.yaml"
 
@@ -49,7 +44,7 @@ def test_run_costs_less_cpu_than_real_time(run):
     assert result["status"] == "passed", result.get("reason")
     # on a host slower than the one the bound was set on, in proportion (``_host_speed``:
     # the interpreter loop 0.16 s and 34-36 CPU s for 16 s of bench time on the AMD EPYC VM)
-    slower = max(1.0, python_loop_cpu_s() / REFERENCE_PYTHON_LOOP_S)
+    slower = slower_than_reference()
     assert cpu_s <= 2 * slower * result["bench_time_s"], \
         f"{cpu_s:.0f} CPU s for {result['bench_time_s']:.0f} s of bench time (host {slower:.2f}x slower)"
 

@@ -1129,8 +1129,9 @@ def equation_weight(velocity: np.ndarray, standstill_speed_: float, dt_s: float,
         core |= _held(angle, SHORT_SPEED_SPAN + 1)
         w = np.where(np.abs(w_short) < np.abs(w), w_short, w)
     stuck = np.zeros(len(w), bool)
-    if creep_speed > standstill_speed_:
-        core |= _reversing_stretches(w, STICK_BAND * creep_speed) & (dv.standstill(w, creep_speed) > 0)
+    creeping = (_reversing_stretches(w, STICK_BAND * creep_speed) if creep_speed > standstill_speed_
+                else np.zeros(len(w), bool))
+    core |= creeping & (dv.standstill(w, creep_speed) > 0)
     if core.any():
         # each dwell widened to the slow stretch around it (hysteresis) and the margin; a
         # fast crossing (below the standstill speed for fewer than 3 samples) is no dwell
@@ -1138,9 +1139,7 @@ def equation_weight(velocity: np.ndarray, standstill_speed_: float, dt_s: float,
         # (left out too, a 2,000-count encoder's 1.5 rad/s band cost seed 0 case 2's
         # heavy output motor 3x its Kt interval; seeds 0/7/8/9 biased 7/3/3/8 % vs 4/3/7/8 %)
         margin = max(int(round(STICK_MARGIN_S / dt_s)), STICK_MARGIN_SAMPLES)
-        slow = np.abs(w) < STICK_BAND * standstill_speed_
-        if creep_speed > standstill_speed_:
-            slow |= _reversing_stretches(w, STICK_BAND * creep_speed)
+        slow = (np.abs(w) < STICK_BAND * standstill_speed_) | creeping
         edges = np.diff(np.concatenate([[0], slow.astype(np.int8), [0]]))
         # pushed for the margin's time (at least PUSHED_MIN_SAMPLES: at 100 Hz a 2-sample
         # mean beyond 4 of its sigmas twice in a row is no rare event over a long dwell)
