@@ -26,6 +26,27 @@ def test_draws_are_deterministic_and_forward_runs_stay_forward():
             assert min(c.commands["in"].min(), c.commands["out"].min()) > 0
 
 
+def test_covering_draws_move_only_the_commands_and_reach_the_bench_speeds():
+    """The benchmark's calibrations reach each motor's bench speed (as validate demands
+    of a profile) where the drive's limits let them; the plant is drawn as before, a
+    forward run stays forward, a reversing one still reverses."""
+    reached = 0
+    for k in range(40):
+        a, c = R.draw_case(k, 1), R.draw_case(k, 1, cover_bench_speed=True)
+        assert c.plant == a.plant and c.bench_speed_rad_s == a.bench_speed_rad_s
+        for side, speed in (("in", c.bench_speed_rad_s), ("out", c.bench_speed_rad_s / c.plant.ratio)):
+            cmd = c.commands[side]
+            if c.reversing:
+                assert cmd.min() < 0 < cmd.max()
+            else:
+                assert cmd.min() > 0
+                # the same swing, only moved
+                np.testing.assert_allclose(np.ptp(cmd), np.ptp(a.commands[side]), rtol=1e-12)
+                # the top reached beyond the loop's rounding; below, down to half the speed
+                assert cmd.min() <= speed <= np.percentile(cmd, 98), (k, side)
+            reached += bool(np.percentile(cmd, 2) <= speed <= np.percentile(cmd, 98))
+    assert reached >= 50, reached       # of 80 motors (54: forward dips stop at half)
+
 def test_coulomb_regressor_is_the_triangle_mean_of_the_sign_with_sub_sample_reversals():
     dt = 1e-3
     t = np.arange(40) * dt

@@ -165,6 +165,16 @@ def smooth_velocity(position_rad: np.ndarray, dt_s: float, *, half_width: int = 
     return v + slope / dt_s
 
 
+def runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """The ``(start, stop)`` slices of every stretch where ``mask`` is True.
+
+    >>> runs(np.array([False, True, True, False, True]))
+    [(1, 3), (4, 5)]
+    """
+    edges = np.diff(np.concatenate([[0], np.asarray(mask).astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()))
+
+
 def standstill(velocity: np.ndarray, speed_rad_s: float, *, min_samples: int = 3) -> np.ndarray:
     """1.0 on samples inside a dwell of at least ``min_samples`` with |ω| < ``speed_rad_s``
     (the rotor sticking at a reversal), else 0.0. A fast reversal crosses the band
@@ -193,10 +203,8 @@ def standstill(velocity: np.ndarray, speed_rad_s: float, *, min_samples: int = 3
     slow = np.abs(velocity) < speed_rad_s
     if not slow.any():
         return np.zeros(len(velocity))
-    edges = np.diff(np.concatenate([[0], slow.astype(np.int8), [0]]))
-    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
     out = np.zeros(len(velocity))
-    for a, b in zip(starts, stops):
+    for a, b in runs(slow):
         if b - a >= min_samples:
             out[a:b] = 1.0
     return out

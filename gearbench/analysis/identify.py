@@ -1140,12 +1140,11 @@ def equation_weight(velocity: np.ndarray, standstill_speed_: float, dt_s: float,
         # heavy output motor 3x its Kt interval; seeds 0/7/8/9 biased 7/3/3/8 % vs 4/3/7/8 %)
         margin = max(int(round(STICK_MARGIN_S / dt_s)), STICK_MARGIN_SAMPLES)
         slow = (np.abs(w) < STICK_BAND * standstill_speed_) | creeping
-        edges = np.diff(np.concatenate([[0], slow.astype(np.int8), [0]]))
         # pushed for the margin's time (at least PUSHED_MIN_SAMPLES: at 100 Hz a 2-sample
         # mean beyond 4 of its sigmas twice in a row is no rare event over a long dwell)
         width = max(margin, PUSHED_MIN_SAMPLES)
         pushed = None if current is None else _pushed(current, current_noise, width)
-        for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)):
+        for a, b in dv.runs(slow):
             if core[a:b].any() and (pushed is None
                                     or np.count_nonzero(pushed[a:b]) >= min(width, (b - a) / 2)):
                 stuck[a:b] = True
@@ -1167,8 +1166,7 @@ def _reversing_stretches(w: np.ndarray, speed: float) -> np.ndarray:
     """
     slow = np.abs(w) < speed
     out = np.zeros(len(w), bool)
-    edges = np.diff(np.concatenate([[0], slow.astype(np.int8), [0]]))
-    for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)):
+    for a, b in dv.runs(slow):
         seg = w[a:b]
         if seg.max() > 0 > seg.min() or (a > 0 and b < len(w) and w[a - 1] * w[b] < 0):
             out[a:b] = True

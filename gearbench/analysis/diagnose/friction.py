@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from ..derivatives import runs
 from . import fastsim as fs
 from .base import MIN_SUPPORT, Base, Effect, _amp_phase, _pm
 from .nominal import Signals, Term
@@ -157,13 +158,12 @@ def stuck_width_bound(sig: Signals) -> float | None:
     q = lattice_step(sig.position_rad)
     if q:
         moved = np.abs(np.diff(sig.position_rad)) > 0.5 * q
-        edges = np.flatnonzero(np.diff(np.concatenate([[1], moved.astype(int), [1]])))
-        starts, ends = edges[::2], edges[1::2]        # runs of samples without a count
         i_min = 3.0 * current_noise(sig)
-        runs = [e - s for s, e in zip(starts, ends) if e - s >= MIN_STUCK_SAMPLES
+        # stretches of steps without a count (a run of n steps holds n + 1 readings)
+        held = [e - s for s, e in runs(~moved) if e - s >= MIN_STUCK_SAMPLES
                 and float(np.mean(np.abs(sig.current_a[s:e + 1]))) > i_min]
-        if runs:
-            out = float(q / (max(runs) * sig.dt_s))
+        if held:
+            out = float(q / (max(held) * sig.dt_s))
     sig.cache["stuck_width"] = out
     return out
 
