@@ -14,7 +14,7 @@ from ..errors import ExcitationError, GearbenchError
 from ..trace import Trace
 from .identify import (C_J, D_J, KT_J, MAX_B2_REL_STD, SP_STEP, SPEED_ERR, TC_J, IdentificationResult,
                        declared_kick, drive_sampling, identify_trace, is_speed_command,
-                       own_to_accel_names)
+                       own_to_accel_names, speed_ripple_to_noise)
 from .torque_constant import torque_constant
 from .uncertainty import DOF_MAX, interval
 
@@ -75,6 +75,13 @@ SPLIT_RUN_CHI2 = 3.84
 # An assumption (not fitted): noise-free, Kp 10 % off moves Kt by 0.02-0.04 %.
 KICK_REL_STD = 0.10
 MODEL_VARIANTS = ("current delay", "no cogging", "accel form")
+# The speed loop's ripple term is fitted only where the ripple one encoder count makes
+# (the drive's declared P gain x one count per loop period) is at least the current's
+# other noise: below it the term has no ripple to fit, only the drive estimate's lag, and
+# takes up friction misfit (20-bit encoders, ratio 0.001-0.9: seed 8 case 26's output
+# motor D 1.95x and Tc 0.85x its truth with the term, 1.08x and 0.99x without; drawn
+# 2,000-20,000-count encoders: ratio 0.1-380, median 5.8).
+RIPPLE_MIN_TO_NOISE = 1.0
 # The speed loop's ripple term (``identify.SPEED_ERR``) was measured to make Kt right (noise-
 # free instant-current motors over 0.1 % off: 8 -> 1 of 137), not the losses: with and
 # without it D and Tc are as often right (loss at the bench speed off by > 2 sd: 4.9/2.6/
@@ -484,7 +491,7 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
         # a drive that samples its current at one instant passes its speed loop's
         # quantisation ripple on (``identify.SPEED_ERR``); the speed it acted on, recorded,
         # gives the ripple's regressor
-        options["speed_error"] = _samples_instant(unloaded, loaded)
+        options["speed_error"] = _samples_instant(unloaded, loaded) and _ripple_shows(unloaded, loaded)
 
     def fits(opts):
         fs = tuple(identify_trace(t, method=method, **opts) for t in (unloaded, loaded))
@@ -697,6 +704,14 @@ def _samples_instant(unloaded: Trace, loaded: Trace) -> bool:
     speed estimate the drive acted on (``velocity_rad_s``)."""
     return all((t.meta.get("drive") or {}).get("current") == "instant"
                and "velocity_rad_s" in t for t in (unloaded, loaded))
+
+
+def _ripple_shows(unloaded: Trace, loaded: Trace) -> bool:
+    """The speed loop's quantisation ripple stands out of the current's noise in either
+    run (``identify.speed_ripple_to_noise`` at least RIPPLE_MIN_TO_NOISE), or the drive
+    does not say enough to tell (then the term is fitted, as before)."""
+    ratios = [speed_ripple_to_noise(t) for t in (unloaded, loaded)]
+    return any(r is None or r >= RIPPLE_MIN_TO_NOISE for r in ratios)
 
 
 def _declared_current_limit(unloaded: Trace, loaded: Trace) -> float | None:

@@ -1504,6 +1504,32 @@ def drive_sampling(trace) -> str | None:
 DRIVE_LOOP_KEYS = ("speed_kp_a_s_per_rad", "current_loop_time_constant_s", "speed_loop_period_s")
 
 
+def speed_ripple_to_noise(trace) -> float | None:
+    """How far the speed loop's quantisation ripple stands out of the current's noise.
+
+    A drive that estimates its speed from the encoder's counts per loop period T sees
+    one count q as a speed step q/T, which its P gain Kp turns into current: a ripple of
+    rms Kp·q/(T·√12) (uniform quantisation error). Its ratio to the rest of the
+    current's white noise (``_white_noise_variance`` of the recorded current, the ripple's
+    own share taken out), or None where the drive does not declare its loop
+    (``speed_kp_a_s_per_rad``, ``speed_loop_period_s``) or the angle shows no count.
+
+    >>> speed_ripple_to_noise(trace)            # doctest: +SKIP
+    5.8
+    """
+    drive = trace.meta.get("drive") or {}
+    try:
+        kp, period = float(drive["speed_kp_a_s_per_rad"]), float(drive["speed_loop_period_s"])
+    except (KeyError, TypeError, ValueError):
+        return None
+    q = encoder_resolution(np.asarray(trace["position_rad"], float))
+    if not (kp > 0 and period > 0 and q > 0):
+        return None
+    ripple_var = (kp * q / period) ** 2 / 12.0
+    rest = _white_noise_variance(np.asarray(trace["current_a"], float)) - ripple_var
+    return float("inf") if rest <= 0 else float(np.sqrt(ripple_var / rest))
+
+
 def declared_kick(trace) -> float | None:
     """The setpoint-step kick c (A per rad/s, ``kick_coefficient``) of a drive whose
     description (``meta["drive"]``) declares its loop: ``speed_kp_a_s_per_rad`` (speed-loop
