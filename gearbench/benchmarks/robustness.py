@@ -12,7 +12,7 @@ data; about one case in four a reversing multisine) and a reducer bench (ratio
 3-60, mesh efficiency 0.6-0.97, Coulomb and viscous drag, input speed, braking
 levels). Each calibration command is then moved to reach its motor's bench speed, as
 ``gearbench validate`` demands of a profile (``--as-drawn``: not moved; seeds 7/8 then
-use an extrapolated motor loss on 237/252 of 300 absolute points, moved 69/57). Each
+use an extrapolated motor loss on 237/252 of 300 absolute points, moved 108/87). Each
 motor is calibrated with ``calibrate_motor`` (excitation check on, as
 ``gearbench calibrate`` runs it) by every method; the calibrations feed
 ``efficiency`` on the simulated bench run. Errors against the simulator's truth:
@@ -195,8 +195,9 @@ def _covering_offset(offset: float, swing: np.ndarray, speed_rad_s: float, rever
     speeds reach the bench speed, as ``gearbench validate`` demands of a profile (no
     motor loss extrapolated). The speed loop rounds the command's brief extremes off, so
     its 2nd/98th percentiles, not its extremes, reach 5 % beyond the bench speed. A
-    forward run stays forward; a reversing run keeps reversing (down to 10 % of its swing below zero): where its swing
-    is too small it still falls short, and the result says so."""
+    forward run stays forward (its slowest speed at least half the bench's); a reversing
+    run keeps reversing (down to 10 % of its swing below zero): where its swing is too
+    small it still falls short, and the result says so."""
     lo, hi = offset + np.percentile(swing, 2.0), offset + np.percentile(swing, 98.0)
     if hi < 1.05 * speed_rad_s:
         offset += 1.05 * speed_rad_s - hi
@@ -204,7 +205,7 @@ def _covering_offset(offset: float, swing: np.ndarray, speed_rad_s: float, rever
         offset -= lo - 0.95 * speed_rad_s
     if reversing:
         offset = float(np.clip(offset, 0.9 * swing.min(), -0.9 * swing.min()))
-    else:       # a forward run stays forward: its slowest speed at least half the bench's
+    else:
         offset = max(offset, 0.5 * speed_rad_s - float(swing.min()))
     return offset
 
