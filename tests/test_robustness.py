@@ -47,6 +47,7 @@ def test_covering_draws_move_only_the_commands_and_reach_the_bench_speeds():
             reached += bool(np.percentile(cmd, 2) <= speed <= np.percentile(cmd, 98))
     assert reached >= 50, reached       # of 80 motors (54: forward dips stop at half)
 
+
 def test_coulomb_regressor_is_the_triangle_mean_of_the_sign_with_sub_sample_reversals():
     dt = 1e-3
     t = np.arange(40) * dt
