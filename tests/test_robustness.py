@@ -48,6 +48,26 @@ def test_covering_draws_move_only_the_commands_and_reach_the_bench_speeds():
     assert reached >= 50, reached       # of 80 motors (54: forward dips stop at half)
 
 
+def test_a_case_sampled_at_250_hz_is_the_same_plant_and_commands_every_fourth_sample():
+    """``--period-ms 4``: the drawn plant and commands, sampled every 4 ms (a period-mean
+    current drive averages the whole new period), simulated and analysed at that period."""
+    c = R.draw_case(3, 7, cover_bench_speed=True)
+    s = R.with_period(c, 4e-3)
+    assert s.plant.period_s == 4e-3 and s.plant.ratio == c.plant.ratio
+    for side in ("in", "out"):
+        np.testing.assert_array_equal(s.commands[side], c.commands[side][::4])
+        m, m4 = getattr(c.plant, f"motor_{side}"), getattr(s.plant, f"motor_{side}")
+        assert m4.current_avg_s == (4e-3 if m.current_avg_s > 0 else 0.0)
+        assert m4.Kt == m.Kt and m4.counts_per_rev == m.counts_per_rev
+    data = R.simulate_case(s)
+    unloaded, _ = data["runs"]["in"]
+    assert np.median(np.diff(unloaded.time_s)) == pytest.approx(4e-3)
+    assert len(unloaded) == len(s.commands["in"])
+    assert np.median(np.diff(data["bench"].time_s)) == pytest.approx(4e-3)
+    with pytest.raises(ValueError, match="whole multiple"):
+        R.with_period(c, 2.5e-3)
+
+
 def test_coulomb_regressor_is_the_triangle_mean_of_the_sign_with_sub_sample_reversals():
     dt = 1e-3
     t = np.arange(40) * dt

@@ -1,6 +1,7 @@
 """Robustness benchmark: identification and efficiency over randomly drawn plants.
 
     python -m gearbench.benchmarks robustness [--cases N] [--quick] [--seed S] [--worst K]
+                                              [--period-ms MS] [--encoder-counts N] [--as-drawn]
 
 The accuracy benchmark checks one plant; held-out data comes from *other* motors,
 drives and benches of the same kind. Each case here draws, from realistic ranges
@@ -23,6 +24,8 @@ intervals): *coverage* is the fraction of intervals holding the truth (an honest
 95 % interval covers ~95 %), and a case that misses a target is *biased* when a
 missed error exceeds twice its own standard uncertainty, else *noise-limited* (the
 data could not do better, and the interval says so). Deterministic for ``--seed``.
+``--period-ms 4`` or ``10`` samples the same plants and commands at 250 or 100 Hz
+(``with_period``): a family of rates the analysis was not tuned on.
 """
 from __future__ import annotations
 
@@ -281,15 +284,16 @@ def simulate_case(case: Case) -> dict:
     from ..sim import waveforms as wf
 
     runs = {}
+    period_s = case.plant.period_s
     for k, (side, motor) in enumerate((("in", case.plant.motor_in), ("out", case.plant.motor_out))):
         s = case.seed + 10 * k
         cmd = case.commands[side]
-        runs[side] = (simulate_motor(motor, cmd, seed=s, period_s=PERIOD_S),
+        runs[side] = (simulate_motor(motor, cmd, seed=s, period_s=period_s),
                       simulate_motor(motor, cmd, disk_kgm2=case.disks_kgm2[side], seed=s + 1,
-                                     period_s=PERIOD_S))
+                                     period_s=period_s))
         for trace in runs[side]:
             trace.meta["drive"] = drive_description(motor)
-    t = wf.time_base(case.dwell_s * len(case.levels_a), PERIOD_S)
+    t = wf.time_base(case.dwell_s * len(case.levels_a), period_s)
     cin = wf.ramp(t, slope=360.0, final=case.bench_speed_rad_s)
     cout = -wf.staircase(t, levels=list(case.levels_a), dwell_s=case.dwell_s)
     bench = simulate_bench(case.plant, cin, cout, seed=case.plant.seed)
@@ -427,15 +431,34 @@ def with_encoder(case: Case, counts_per_rev: int) -> Case:
     return replace(case, plant=plant)
 
 
+def with_period(case: Case, period_s: float) -> Case:
+    """``case`` sampled every ``period_s`` (a whole multiple of the drawn 1 ms) instead: the
+    same plants and commands (every k-th sample of them) behind a bus master that syncs
+    at 250 or 100 Hz; a drive that reports its current as the period mean averages the
+    new period."""
+    k = int(round(period_s / PERIOD_S))
+    if k < 1 or abs(k * PERIOD_S - period_s) > 1e-12:
+        raise ValueError(f"period_s must be a whole multiple of {PERIOD_S * 1e3:g} ms (got {period_s * 1e3:g} ms)")
+    p = case.plant
+
+    def motor(m):
+        return replace(m, current_avg_s=period_s if m.current_avg_s > 0 else 0.0)
+    plant = replace(p, motor_in=motor(p.motor_in), motor_out=motor(p.motor_out), period_s=period_s)
+    return replace(case, plant=plant, commands={s: np.asarray(c)[::k].copy() for s, c in case.commands.items()})
+
+
 def run(cases: int, seed: int = 0, *, quick: bool = False, methods=METHODS,
-        encoder_counts: int | None = None, cover_bench_speed: bool = True):
+        encoder_counts: int | None = None, cover_bench_speed: bool = True, period_s: float = PERIOD_S):
     """Draw and run ``cases`` cases → (list of Case, list of {method: Outcome});
     ``encoder_counts``: every motor's encoder at that many counts per revolution;
-    ``cover_bench_speed``: calibrations that reach the bench speeds (``draw_case``)."""
+    ``cover_bench_speed``: calibrations that reach the bench speeds (``draw_case``);
+    ``period_s``: the sample period (``with_period``; drawn at 1 ms)."""
     kw = {"duration_s": 3.0, "dwell_s": 2.5 if quick else 4.0, "cover_bench_speed": cover_bench_speed}
     drawn = [draw_case(k, seed, **kw) for k in range(cases)]
     if encoder_counts:
         drawn = [with_encoder(c, encoder_counts) for c in drawn]
+    if period_s != PERIOD_S:
+        drawn = [with_period(c, period_s) for c in drawn]
     return drawn, [run_case(c, methods) for c in drawn]
 
 
@@ -554,6 +577,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--encoder-counts", type=int, default=None, metavar="N",
                     help="every motor's encoder at N counts/rev instead of as drawn "
                          "(2,000-20,000), e.g. 1048576 for a 20-bit absolute encoder")
+    ap.add_argument("--period-ms", type=float, default=PERIOD_S * 1e3, metavar="MS",
+                    help="sample period in ms, a whole multiple of 1 (default 1; e.g. 4 or 10: "
+                         "the same plants and commands sampled at 250 or 100 Hz)")
     ap.add_argument("--as-drawn", action="store_true",
                     help="calibration commands as drawn, without moving them to reach the bench "
                          "speeds (the draws before 2026-12-03: most absolute points then use an "
@@ -565,8 +591,9 @@ def main(argv: list[str] | None = None) -> int:
     n = 12 if args.quick else max(args.cases, 1)
     t0 = time.perf_counter()
     cases, outcomes = run(n, args.seed, quick=args.quick, methods=methods, encoder_counts=args.encoder_counts,
-                          cover_bench_speed=not args.as_drawn)
+                          cover_bench_speed=not args.as_drawn, period_s=args.period_ms * 1e-3)
     enc = f", encoders {args.encoder_counts:,} counts/rev" if args.encoder_counts else ""
+    enc += f", sampled every {args.period_ms:g} ms" if args.period_ms != PERIOD_S * 1e3 else ""
     enc += ", calibrations as drawn (not covering the bench speeds)" if args.as_drawn else ""
     print(f"robustness: {n} random plants (seed {args.seed}{enc}), 2 motors each; efficiency at loads "
           f">= 50 % rated; targets: Kt <= {TARGETS['kt_pct']} %, incremental <= "
