@@ -13,13 +13,16 @@ Sections (``--sections``, all by default):
   unit-to-unit spread of 1-8 %, another seed) beside ``run --sim --twin`` of unit 1's twin.
 * dev: the independent simulator's calibration pair as one axis.
 * emps: the real EMPS axis, its force replayed in torque mode.
+* perfect (not by default): the proof against a perfect twin - the shipped profile's own
+  simulated bench as the twin, each run a noisy replay of it (``--trials``): how often the
+  proof says a perfect twin does not reproduce its run, and the median z of its results.
 
 Runs and twin fits are cached (``--cache``, default /tmp/gearbench-twin-bench): a run
 takes ~20-30 s, a twin fit 440-610 replays (measured at load 2-5: cvt 40-65 s, cyclo 330-450 s;
 the cyclo's backlash needs 87 substeps a sample instead of 20).
 
     python -m gearbench.benchmarks twin [--cases cvt,cyclo] [--sections ...] [--cache DIR]
-                                        [--hidden-set main|alt|alt2] [--seed N]
+                                        [--hidden-set main|alt|alt2] [--seed N] [--trials N]
 """
 from __future__ import annotations
 
@@ -85,6 +88,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=7, help="noise seed of the hidden run (default 7)")
     ap.add_argument("--sections", default="hidden,unit2,dev,emps",
                     help="hidden (cvt/cyclo hidden bench), unit2 (second unit), dev, emps")
+    ap.add_argument("--trials", type=int, default=10, help="perfect section: trials per case (default 10)")
     ap.add_argument("--dev", default=str(ROOT.parent / "shared" / "datasets" / "dev"),
                     help="the independent simulator's data (skipped when absent)")
     ap.add_argument("--emps", default=str(ROOT.parent / "shared" / "datasets" / "real-emps"),
@@ -140,6 +144,14 @@ def main(argv=None) -> int:
         if "unit2" in sections and a.hidden_set == "main":
             unit2(case, hidden, twin_yaml, run1, cache, nominal)   # informative: a spread the twin cannot know
         print(f"({case}: {time.monotonic() - t0:.0f} s wall)")
+    for case in [c for c in a.cases.split(",") if c] if "perfect" in sections else []:
+        t0 = time.monotonic()
+        r = perfect_twin(record(ROOT / "profiles" / f"{case}.yaml", cache / f"run-nominal-{case}"), a.trials)
+        print(f"\n=== {case}: the proof against a perfect twin (the run's own simulated bench), "
+              f"{r['trials']} trials ===\n"
+              f"trials the proof failed: {r['failed']}/{r['trials']}; results outside: {r['outside']} of "
+              f"{r['results']}; median z {r['median_z']:.2f} (0.67 for exact intervals); limit verdicts "
+              f"differing: {r['verdicts_differing']} ({time.monotonic() - t0:.0f} s wall)")
     if "dev" in sections and Path(a.dev).is_dir():
         t0 = time.monotonic()
         # the dev fit starts from gearbench's default motor (S/n ~36,000), not from a near
@@ -153,6 +165,44 @@ def main(argv=None) -> int:
         print(f"(EMPS: {time.monotonic() - t0:.0f} s wall)")
     print(f"\ntotal wall time {time.monotonic() - t_all:.0f} s (load average {os.getloadavg()[0]:.1f} at the end)")
     return 0 if ok else 1
+
+
+def perfect_twin(run_dir: Path, trials: int) -> dict:
+    """The proof against a perfect twin: the run's own simulated bench (its profile's
+    ``simulation:`` block) is the twin, and each trial's run is a noisy replay of it (seeds
+    5000 + s; the replay of an emulated run is exact), proved against the usual noise draws
+    of the same bench (seeds 9000 + 10 s + k). z = 1.96·|run − twin mean| / half-width per
+    result; exact intervals give a median z of 0.67 and ~5 % of results outside."""
+    import numpy as np
+
+    from ..commands import twin as T
+    from ..fleet.reanalysis import reanalyse_result
+    from ..twin.proof import half_width, pool_draws, verdict_among_draws
+    from ..twin.replay import plan_segments, replay, simulated_trace
+
+    result, traces, prof, _ = T.load_run(str(run_dir), None)
+    segments, quanta = plan_segments(traces, prof), T.drive_quanta(prof)
+    truth = PlantParams.from_dict(prof.simulation, "simulation")
+    method = result.get("method", "default")
+
+    def summary(seed: int) -> dict:
+        rows = replay(truth, segments, noise=True, seed=seed, quanta=quanta)
+        tr = {s.name: simulated_trace(rows[s.name], s, quanta=quanta) for s in segments}
+        return T._summary(reanalyse_result(result, lambda n: tr[n], prof, method))
+
+    zs, failed, verdicts = [], 0, 0
+    for s in range(trials):
+        pr = {"real": summary(5000 + s),
+              "twin": pool_draws([summary(9000 + 10 * s + k) for k in range(T.PROOF_DRAWS)])}
+        k = pr["twin"]["draws"]
+        z = [1.96 * abs(a - b) / hw for _, a, ci, b, sd in T._proof_rows(pr)
+             if a is not None and b is not None and (hw := half_width(ci, sd, k))]
+        zs.append(z)
+        failed += any(v > 1.96 for v in z)
+        verdicts += sum(not verdict_among_draws(lim["passed"], t, k) for lim, t in T._limit_pairs(pr))
+    z = np.array([v for row in zs for v in row])
+    return {"trials": trials, "failed": failed, "outside": int((z > 1.96).sum()), "results": int(z.size),
+            "median_z": float(np.median(z)), "verdicts_differing": verdicts}
 
 
 def _param_table(rep: dict, tv, truth: dict) -> bool:
