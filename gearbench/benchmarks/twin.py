@@ -175,31 +175,32 @@ def perfect_twin(run_dir: Path, trials: int) -> dict:
     result; exact intervals give a median z of 0.67 and ~5 % of results outside."""
     import numpy as np
 
-    from ..commands import twin as T
     from ..fleet.reanalysis import reanalyse_result
-    from ..twin.proof import half_width, pool_draws, verdict_among_draws
+    from ..twin.proof import (PROOF_DRAWS, half_width, limit_pairs, pool_draws, proof_rows,
+                              summary as summarise, verdict_among_draws)
     from ..twin.replay import plan_segments, replay, simulated_trace
+    from ..twin.run import drive_quanta, load_run
 
-    result, traces, prof, _ = T.load_run(str(run_dir), None)
-    segments, quanta = plan_segments(traces, prof), T.drive_quanta(prof)
+    result, traces, prof, _ = load_run(str(run_dir), None)
+    segments, quanta = plan_segments(traces, prof), drive_quanta(prof)
     truth = PlantParams.from_dict(prof.simulation, "simulation")
     method = result.get("method", "default")
 
     def summary(seed: int) -> dict:
         rows = replay(truth, segments, noise=True, seed=seed, quanta=quanta)
         tr = {s.name: simulated_trace(rows[s.name], s, quanta=quanta) for s in segments}
-        return T._summary(reanalyse_result(result, lambda n: tr[n], prof, method))
+        return summarise(reanalyse_result(result, lambda n: tr[n], prof, method))
 
     zs, failed, verdicts = [], 0, 0
     for s in range(trials):
         pr = {"real": summary(5000 + s),
-              "twin": pool_draws([summary(9000 + 10 * s + k) for k in range(T.PROOF_DRAWS)])}
+              "twin": pool_draws([summary(9000 + 10 * s + k) for k in range(PROOF_DRAWS)])}
         k = pr["twin"]["draws"]
-        z = [1.96 * abs(a - b) / hw for _, a, ci, b, sd in T._proof_rows(pr)
+        z = [1.96 * abs(a - b) / hw for _, a, ci, b, sd in proof_rows(pr)
              if a is not None and b is not None and (hw := half_width(ci, sd, k))]
         zs.append(z)
         failed += any(v > 1.96 for v in z)
-        verdicts += sum(not verdict_among_draws(lim["passed"], t, k) for lim, t in T._limit_pairs(pr))
+        verdicts += sum(not verdict_among_draws(lim["passed"], t, k) for lim, t in limit_pairs(pr))
     z = np.array([v for row in zs for v in row])
     return {"trials": trials, "failed": failed, "outside": int((z > 1.96).sum()), "results": int(z.size),
             "median_z": float(np.median(z)), "verdicts_differing": verdicts}

@@ -13,18 +13,16 @@
 from __future__ import annotations
 
 import json
-import math
 import time
 from pathlib import Path
 
 import numpy as np
 import yaml
 
-from ..errors import GearbenchError, ProfileError
-from ..trace import Trace
+from ..twin.proof import PROOF_DRAWS, limit_pairs, proof_rows, summary
+from ..twin.run import drive_quanta, load_run
 
 NAME = "twin"
-PROOF_DRAWS = 5   # noise draws of the twin in the proof (their mean and spread; ~1 s of analysis each)
 HELP = "fit the simulated bench to a recorded run: replay, gap, fitted parameters, missing effects, proof"
 
 
@@ -38,58 +36,6 @@ def add_arguments(p) -> None:
     p.add_argument("--max-effects", type=int, default=3, help="effects added at most (default 3)")
     p.add_argument("--no-proof", action="store_true", help="skip re-analysing the twin's traces")
     p.add_argument("--json", metavar="FILE", help="also write the whole report as JSON")
-
-
-def load_run(run_dir: str, profile_path: str | None):
-    """(result dict, {step: Trace}, Profile of the run, starting Profile) with one-line errors."""
-    from ..profile import load_profile
-
-    root = Path(run_dir)
-    if not (root / "result.json").is_file():
-        raise GearbenchError(f"{root}: no result.json; is this a gearbench run folder?")
-    try:
-        result = json.loads((root / "result.json").read_text())
-    except json.JSONDecodeError as exc:
-        raise GearbenchError(f"{root}/result.json: not valid JSON (line {exc.lineno})") from None
-    traces = {}
-    for f in sorted(root.glob("trace-*.parquet")):
-        traces[f.name[len("trace-"):-len(".parquet")]] = Trace.read(f)
-    if not traces:
-        raise GearbenchError(f"{root}: no trace-*.parquet; the twin replays recorded steps")
-    run_profile_path = root / "profile.yaml"
-    if not run_profile_path.is_file() and not profile_path:
-        raise GearbenchError(f"{root}: no profile.yaml in the run folder; pass --profile PROFILE")
-    run_prof = load_profile(run_profile_path if run_profile_path.is_file() else profile_path)
-    start = load_profile(profile_path) if profile_path else run_prof
-    if not start.simulation:
-        raise ProfileError(f"{start.path}: no 'simulation:' section; the twin starts from the "
-                           f"profile's simulated bench (see profiles/cvt.yaml)")
-    return result, traces, run_prof, start
-
-
-def drive_quanta(profile):
-    """The drives' units of setpoints and reported current (``Quanta``), read from each
-    motor's drive description as the bus master does (CiA 402: 0x60FF in the drive's
-    velocity unit, 0x6071/0x6078 per mille of rated current); none for other buses."""
-    from ..twin.replay import AXES, Quanta
-
-    if profile.bench.bus.family != "cia402":
-        return Quanta()
-    vel, tq, cur = {}, {}, {}
-    for a, m in profile.motors.items():
-        if a not in AXES:
-            continue
-        per = 2 * math.pi / m.counts_per_rev
-        try:
-            from ..drives.description import resolve, velocity_unit_rad_s
-
-            d = resolve(str(m.drive), m.address)
-            if isinstance(d.velocity_unit, int):
-                per = velocity_unit_rad_s(d.velocity_unit) or per
-        except Exception:   # an unreadable description: assume inc/s, the CiA 402 default
-            pass
-        vel[a], tq[a], cur[a] = per, m.rated_current_a / 1000.0, m.rated_current_a / 1000.0
-    return Quanta(velocity_rad_s=vel, torque_a=tq, current_a=cur)
 
 
 def run(args) -> int:
@@ -185,43 +131,9 @@ def proof(result: dict, segments, plant, profile, quanta, draws: int = PROOF_DRA
     for k in range(draws):
         rows = replay(plant, segments, noise=True, seed=plant.seed + k, quanta=quanta)
         twin_traces = {s.name: simulated_trace(rows[s.name], s, quanta=quanta) for s in segments}
-        summaries.append(_summary(reanalyse_result(result, lambda n: twin_traces[n], profile,
+        summaries.append(summary(reanalyse_result(result, lambda n: twin_traces[n], profile,
                                                    result.get("method", "default"))))
-    return {"real": _summary(real), "twin": pool_draws(summaries), "twin_draws": summaries}
-
-
-def _summary(r: dict) -> dict:
-    motors = {m: {"Kt": v.get("Kt"), "Kt_ci95": v.get("Kt_ci95")} for m, v in (r.get("motors") or {}).items()}
-    eff = [{"speed_in_rad_s": e.get("speed_in_rad_s"), "torque_out_nm": e.get("torque_out_nm"),
-            "eta_incremental": e.get("eta_incremental"), "eta_incremental_ci95": e.get("eta_incremental_ci95"),
-            "eta_absolute": e.get("eta_absolute"), "eta_absolute_ci95": e.get("eta_absolute_ci95")}
-           for e in r.get("efficiency") or []]
-    limits = [{"name": lim["name"], "value": lim.get("value"), "passed": lim.get("passed")}
-              for lim in r.get("limits") or []]
-    return {"status": r.get("status"), "reason": r.get("reason"), "motors": motors,
-            "ratio": r.get("ratio"), "efficiency": eff, "limits": limits}
-
-
-def _proof_rows(pr: dict) -> list[tuple]:
-    """(label, real, its interval, twin mean, twin sd) of every Kt and efficiency."""
-    real, twin = pr["real"], pr["twin"]
-    rows = [(f"Kt {m}", v["Kt"], v.get("Kt_ci95"), (twin["motors"].get(m) or {}).get("Kt"),
-             (twin["motors"].get(m) or {}).get("Kt_sd")) for m, v in real["motors"].items()]
-    for e, f in zip(real["efficiency"], twin["efficiency"]):
-        for q in ("eta_incremental", "eta_absolute"):
-            rows.append((f"{q} at {e['speed_in_rad_s']:.0f} rad/s, {e['torque_out_nm']:.3f} N m",
-                         e[q], e.get(q + "_ci95"), f[q], f.get(q + "_sd")))
-    return rows
-
-
-def _limit_pairs(pr: dict) -> list[tuple[dict, dict]]:
-    """(run's limit, twin's) in the same order (the efficiency limits are labelled with the
-    torque each run measured, so their names differ in the last digit between run and twin)."""
-    real, twin = pr["real"], pr["twin"]
-    same_order = len(twin["limits"]) == len(real["limits"])
-    tl = {lim["name"]: lim for lim in twin["limits"]}
-    return [(lim, twin["limits"][i] if same_order else tl.get(lim["name"], {}))
-            for i, lim in enumerate(real["limits"])]
+    return {"real": summary(real), "twin": pool_draws(summaries), "twin_draws": summaries}
 
 
 def _print_proof(pr: dict) -> None:
@@ -232,14 +144,14 @@ def _print_proof(pr: dict) -> None:
     print(f"\nthe proof: the run's results (re-analysed) beside the twin's (its traces analysed the same "
           f"way; mean and standard deviation over {k} noise draws)")
     print(f"  {'quantity':<40} {'real':>9} {'twin':>9} {'twin sd':>8} {'±95 %':>8}  within")
-    notes, rows = [], _proof_rows(pr)
+    notes, rows = [], proof_rows(pr)
     for label, a, ci, b, sd in rows:
         hw = half_width(ci, sd, k)
         print(f"  {label:<40} {_f(a):>9} {_f(b):>9} {_f(sd):>8} {_f(hw):>8}  {within(a, b, ci, sd, k)}")
         if understated(ci, sd):
             notes.append((1.96 * sd / ((ci[1] - ci[0]) / 2), label))
     print(f"  {'ratio':<40} {_f(real['ratio']):>9} {_f(twin['ratio']):>9}")
-    for lim, t in _limit_pairs(pr):
+    for lim, t in limit_pairs(pr):
         same = "same verdict" if verdict_among_draws(lim["passed"], t, k) else "VERDICT DIFFERS"
         print(f"  {'limit ' + lim['name']:<40} {'PASS' if lim['passed'] else 'FAIL':>9} "
               f"{'PASS' if t.get('passed') else 'FAIL':>9}  {same} ({t.get('passed_draws', '?')}/{k} draws pass)")
@@ -255,8 +167,8 @@ def _verdict(pr: dict, after: list[dict], worst_floors: float = 3.0) -> list[str
     from ..twin.proof import verdict_among_draws, within
 
     k = pr["twin"].get("draws", 1)
-    misses = [label for label, a, ci, b, sd in _proof_rows(pr) if within(a, b, ci, sd, k) == "NO"]
-    misses += [f"limit {lim['name']} verdict" for lim, t in _limit_pairs(pr)
+    misses = [label for label, a, ci, b, sd in proof_rows(pr) if within(a, b, ci, sd, k) == "NO"]
+    misses += [f"limit {lim['name']} verdict" for lim, t in limit_pairs(pr)
                if not verdict_among_draws(lim["passed"], t, k)]
     if misses:
         print(f"\nthe twin does NOT reproduce the run within its intervals: {'; '.join(misses)}")

@@ -18,6 +18,7 @@ import math
 import numpy as np
 
 Z95 = 1.96
+PROOF_DRAWS = 5   # noise draws of the twin in the proof (their mean and spread; ~1 s of analysis each)
 
 
 def _pooled(values: list) -> tuple[float | None, float | None]:
@@ -29,7 +30,7 @@ def _pooled(values: list) -> tuple[float | None, float | None]:
 
 
 def pool_draws(draws: list[dict]) -> dict:
-    """One summary (the shape of ``commands.twin._summary``) from the summaries of several
+    """One summary (the shape of ``summary``) from the summaries of several
     noise draws: each Kt, the ratio and each η their mean over the draws, with ``<key>_sd``
     their sample standard deviation and ``draws`` their number; a limit's verdict and the
     status are the majority's, with ``passed_draws`` the number of draws that passed."""
@@ -93,3 +94,37 @@ def verdict_among_draws(run_passed: bool, twin_limit: dict, draws: int) -> bool:
         return False
     passed = twin_limit.get("passed_draws", draws if twin_limit.get("passed") else 0)
     return passed > 0 if run_passed else passed < draws
+
+
+def summary(r: dict) -> dict:
+    motors = {m: {"Kt": v.get("Kt"), "Kt_ci95": v.get("Kt_ci95")} for m, v in (r.get("motors") or {}).items()}
+    eff = [{"speed_in_rad_s": e.get("speed_in_rad_s"), "torque_out_nm": e.get("torque_out_nm"),
+            "eta_incremental": e.get("eta_incremental"), "eta_incremental_ci95": e.get("eta_incremental_ci95"),
+            "eta_absolute": e.get("eta_absolute"), "eta_absolute_ci95": e.get("eta_absolute_ci95")}
+           for e in r.get("efficiency") or []]
+    limits = [{"name": lim["name"], "value": lim.get("value"), "passed": lim.get("passed")}
+              for lim in r.get("limits") or []]
+    return {"status": r.get("status"), "reason": r.get("reason"), "motors": motors,
+            "ratio": r.get("ratio"), "efficiency": eff, "limits": limits}
+
+
+def proof_rows(pr: dict) -> list[tuple]:
+    """(label, real, its interval, twin mean, twin sd) of every Kt and efficiency."""
+    real, twin = pr["real"], pr["twin"]
+    rows = [(f"Kt {m}", v["Kt"], v.get("Kt_ci95"), (twin["motors"].get(m) or {}).get("Kt"),
+             (twin["motors"].get(m) or {}).get("Kt_sd")) for m, v in real["motors"].items()]
+    for e, f in zip(real["efficiency"], twin["efficiency"]):
+        for q in ("eta_incremental", "eta_absolute"):
+            rows.append((f"{q} at {e['speed_in_rad_s']:.0f} rad/s, {e['torque_out_nm']:.3f} N m",
+                         e[q], e.get(q + "_ci95"), f[q], f.get(q + "_sd")))
+    return rows
+
+
+def limit_pairs(pr: dict) -> list[tuple[dict, dict]]:
+    """(run's limit, twin's) in the same order (the efficiency limits are labelled with the
+    torque each run measured, so their names differ in the last digit between run and twin)."""
+    real, twin = pr["real"], pr["twin"]
+    same_order = len(twin["limits"]) == len(real["limits"])
+    tl = {lim["name"]: lim for lim in twin["limits"]}
+    return [(lim, twin["limits"][i] if same_order else tl.get(lim["name"], {}))
+            for i, lim in enumerate(real["limits"])]
