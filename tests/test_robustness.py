@@ -548,3 +548,23 @@ def test_zero_load_level_off_the_braking_line_no_longer_biases_the_incremental_e
     assert max(abs(e) for e in o.kt_err_pct) < 0.2
     assert max(abs(e) for e in o.inc_err_pp) <= R.TARGETS["inc_pp"]
     assert all(o.inc_cover)
+
+
+def test_kt_coverage_is_split_by_the_drives_setpoint_and_current_kind():
+    """The benchmark's per-drive-kind table groups each motor by how its drive steps its
+    setpoint and samples its current (at 250 Hz the stepping, period-mean drives are the
+    ones whose Kt intervals miss)."""
+    cases = [R.draw_case(k, 8) for k in range(6)]
+    outcomes, expect = [], {}
+    for j, c in enumerate(cases):
+        o = R.Outcome(kt_err_pct=[0.2 * j, -0.1], kt_std_pct=[0.1, 0.1], kt_cover=[j % 2 == 0, True])
+        outcomes.append({"default": o})
+        for motor, z, cov in zip((c.plant.motor_in, c.plant.motor_out), (2.0 * j, -1.0), o.kt_cover):
+            expect.setdefault(R.drive_kind(motor), []).append((z, cov))
+    got = R.kt_by_drive_kind(cases, outcomes)
+    assert set(got) == set(expect) and set(got) <= {"step/instant", "step/mean", "interpolated/instant",
+                                                    "interpolated/mean"}
+    for kind, rows in expect.items():
+        assert got[kind]["motors"] == len(rows)
+        assert got[kind]["cover"] == pytest.approx(np.mean([c for _, c in rows]))
+        assert got[kind]["mean_z"] == pytest.approx(np.mean([z for z, _ in rows]))

@@ -541,6 +541,32 @@ def print_quantities(cases: list[Case], outcomes: list[dict[str, Outcome]], meth
             print(f"{f'{name} ({len(idx)})':<16}{m:<12}{cov:>28}   {bia:>26}")
 
 
+def drive_kind(motor) -> str:
+    """How the drive meets the bus master (``drive_description``): setpoint stepped or
+    interpolated at each SYNC, current one instant or the period mean."""
+    d = drive_description(motor)
+    return f"{d['setpoint']}/{d['current']}"
+
+
+def kt_by_drive_kind(cases: list[Case], outcomes: list[dict[str, Outcome]], method: str = "default") -> dict:
+    """Per drive kind (``drive_kind``): motors, Kt coverage and the mean of error/σ (a
+    model error shows as a mean far from 0 where the coverage falls)."""
+    rows: dict[str, list] = {}
+    for case, oc in zip(cases, outcomes):
+        o = oc[method]
+        for motor, e, s, c in zip((case.plant.motor_in, case.plant.motor_out), o.kt_err_pct, o.kt_std_pct,
+                                  o.kt_cover):
+            rows.setdefault(drive_kind(motor), []).append((e / s if s > 0 else 0.0, c))
+    return {k: {"motors": len(v), "cover": _fraction([c for _, c in v]), "mean_z": float(np.mean([z for z, _ in v]))}
+            for k, v in sorted(rows.items())}
+
+
+def print_drive_kinds(cases, outcomes, method: str = "default") -> None:
+    print(f"\n{method}: Kt per drive kind (setpoint / current)   motors  coverage %  mean error/σ")
+    for kind, r in kt_by_drive_kind(cases, outcomes, method).items():
+        print(f"  {kind:<40}{r['motors']:6d}  {100 * r['cover']:10.1f}  {r['mean_z']:+12.2f}")
+
+
 def print_worst(cases, outcomes, k: int, method: str = "default") -> None:
     def score(o: Outcome) -> float:
         if o.error:
@@ -602,6 +628,7 @@ def main(argv: list[str] | None = None) -> int:
           f"coverage = truth inside the reported 95 % interval")
     print_table(cases, outcomes, methods)
     print_quantities(cases, outcomes, methods)
+    print_drive_kinds(cases, outcomes)
     s = summarise(outcomes, methods)["default"]
     print(f"default: {s['n_abs_extrapolated']} of {len(s['abs'])} absolute-efficiency points use a "
           f"motor loss extrapolated beyond its calibrated speed range; their coverage "
