@@ -389,7 +389,7 @@ def _sampling(c: _Checker, d: dict, mp) -> dict | None:
     out = {"setpoint": c.string(s, sp, "setpoint", choices=("step", "interpolated")),
            "current": c.string(s, sp, "current", choices=("instant", "mean"))}
     # the drive's loop as set (optional, all three): its kick is then computed
-    # (identify.declared_kick; a period-mean drive's, identify.declared_period_kick), not fitted
+    # (identify.declared_kick; a period-mean or interpolating drive's, identify.declared_period_kick), not fitted
     if any(k in s for k in loop):
         out["speed_kp_a_s_per_rad"] = c.number(s, sp, loop[0], gt=0.0)
         out["current_loop_time_constant_s"] = c.number(s, sp, loop[1], ge=0.0, le=1.0)
