@@ -326,6 +326,21 @@ def test_rotor_stuck_for_most_of_its_run_is_noise_limited_and_says_so():
     assert any("acceleration content" in w for w in cal.fit["warnings"])
 
 
+def test_the_same_stuck_rotor_at_100_hz_is_refused_not_returned_with_a_false_interval():
+    """The same drive sampled at 100 Hz moves on 6 of its 300 samples: about 1.2
+    independent equations through the 10 Hz filter for 3 parameters. The fit to them left
+    almost no residual, and Kt came out −10.6 % at ± 0.09 %; now the run is refused,
+    naming what it holds. At 1 kHz (3.5 equations) the wide interval above is kept."""
+    from gearbench.analysis.calibration import calibrate_motor
+    from gearbench.errors import ExcitationError
+
+    case = R.with_period(R.draw_case(94, 7), 1e-2)
+    u, lo = R.simulate_case(case)["runs"]["out"]
+    with pytest.raises(ExcitationError, match=r"moves on only \d+ of 300 samples.*independent "
+                                              r"equations.*for 3 parameters"):
+        calibrate_motor(u, lo, case.disks_kgm2["out"])
+
+
 def test_causes_name_the_missed_quantities_each_motors_kt_and_the_measured_conditions():
     stuck = {"left_out": (0.1, 0.9), "step_kept": False, "stepping_sampled": False}
     stepping = {"left_out": (0.0, 0.0), "step_kept": True, "stepping_sampled": True}
