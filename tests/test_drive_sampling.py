@@ -214,3 +214,30 @@ def test_an_interpolating_drive_sampling_its_current_at_one_instant_gets_its_kin
             assert all(errors[False, f] < bias_without for f in ("default", "torque")), errors
         else:
             assert all(abs(errors[False, f]) < 0.02 for f in ("default", "torque")), errors
+
+
+def test_the_station_gives_the_analysis_its_drives_limit_with_the_sampling(monkeypatch):
+    """A profile's ``sampling`` reaches the calibration with the motor's ``current_limit_a``
+    (the kicks and kinks are not added where the drive clips), as a trace's description
+    gives them to ``calibrate``; without sampling the runs say nothing of the drive."""
+    from gearbench.station import analyse
+    from gearbench.trace import Trace
+
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def capture(u, l_, disk, **kw):
+        seen.append((dict(u.meta.get("drive") or {}), dict(l_.meta.get("drive") or {})))
+        raise Stop
+    monkeypatch.setattr(analyse, "calibrate_motor", capture)
+    t = np.arange(200) * 1e-3
+    step = Trace(t, {"in.position_rad": t, "in.current_a": 0 * t, "in.command": 0 * t}, source="run")
+    sampling = {"setpoint": "interpolated", "current": "instant", "speed_kp_a_s_per_rad": 0.01,
+                "current_loop_time_constant_s": 3e-4, "speed_loop_period_s": 2.5e-4}
+    for kw, want in (({"sampling": sampling, "current_limit_a": 4.0}, {**sampling, "current_limit_a": 4.0}),
+                     ({"sampling": sampling}, sampling), ({"current_limit_a": 4.0}, {})):
+        with pytest.raises(Stop):
+            analyse.calibrate(step, step, motor="in", disk_kgm2=1e-5, **kw)
+        assert seen[-1] == (want, want)
