@@ -583,3 +583,17 @@ def test_kt_coverage_is_split_by_the_drives_setpoint_and_current_kind():
         assert got[kind]["motors"] == len(rows)
         assert got[kind]["cover"] == pytest.approx(np.mean([c for _, c in rows]))
         assert got[kind]["mean_z"] == pytest.approx(np.mean([z for z, _ in rows]))
+
+
+def test_the_biased_share_honest_intervals_would_give_by_chance():
+    """An error beyond its target and 2 sigma is 'biased'; with honest (normal) errors that
+    happens by chance where sigma is a good part of the target: 2Φ(−2) = 4.55 % per point
+    whose target is within 2 sigma, 2Φ(−target/σ) beyond."""
+    tgt = R.TARGETS
+    half = R.Outcome([0.0], [0.0], [0.0], [tgt["kt_pct"] / 2], [tgt["inc_pp"] / 4], [tgt["abs_pp"] / 4])
+    assert half.chance_biased("kt_pct") == pytest.approx(2 * stats.norm.sf(2.0), rel=1e-9)
+    assert half.chance_biased("inc_pp") == pytest.approx(2 * stats.norm.sf(4.0), rel=1e-9)
+    both = 1 - (1 - 2 * stats.norm.sf(2.0)) * (1 - 2 * stats.norm.sf(4.0)) ** 2
+    assert half.chance_biased() == pytest.approx(both, rel=1e-9)
+    s = R.summarise([{"default": half}, {"default": R.Outcome(error="ExcitationError: x")}], ("default",))
+    assert s["default"]["chance"] == pytest.approx(both / 2, rel=1e-9)    # a refused plant: no chance
