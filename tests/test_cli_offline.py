@@ -275,5 +275,36 @@ def test_calibrate_takes_the_drives_sampling_as_a_profile_does(capsys, tmp_path)
     assert abs(looped["Kt"] / kt - 1) <= 0.0015
     bad(capsys, *base, "--drive-loop", m.vel_kp, m.current_lag_s, m.loop_period_s,
         must=("--drive-loop goes with",))
+    # a drive whose setpoint's shape the analysis does not need its loop for
+    bad(capsys, *base, "--drive-setpoint", "interpolated", "--drive-current", "mean",
+        "--drive-loop", m.vel_kp, m.current_lag_s, m.loop_period_s, must=("--drive-loop goes with",))
     bad(capsys, *base, *step, "--drive-loop", -1, m.current_lag_s, m.loop_period_s,
         must=("--drive-loop takes",))
+
+
+def test_calibrate_takes_an_interpolating_drives_loop_for_its_kinks(capsys, tmp_path):
+    """``--drive-setpoint interpolated --drive-current instant --drive-loop ...`` gives the
+    ramps' kinks to the fit (``identify.interpolated_kink_weights``): seed 7 case 1's output
+    drive at 250 Hz, noise-free, Kt 0.11 % low without the loop and within 0.02 % with it."""
+    from dataclasses import replace as dc_replace
+
+    from gearbench.benchmarks import robustness as R
+    from gearbench.sim import simulate_motor
+
+    case = R.with_period(R.draw_case(1, 7), 4e-3)
+    m = dc_replace(case.plant.motor_out, current_noise_a=0.0, current_resolution_a=0.0,
+                   counts_per_rev=1 << 20, cog_amp=0.0)
+    files = []
+    for name, disk, seed in (("u", 0.0, 1), ("l", case.disks_kgm2["out"], 2)):
+        t = simulate_motor(m, case.commands["out"], disk_kgm2=disk, seed=seed, period_s=4e-3)
+        files.append(t.write_csv(tmp_path / f"{name}.csv"))
+    base = ("calibrate", "--unloaded", files[0], "--loaded", files[1], "--inertia",
+            case.disks_kgm2["out"], "--json", "--drive-setpoint", "interpolated", "--drive-current",
+            "instant", "--drive-current-limit", m.current_limit_a)
+    code, out, _ = run(capsys, *base)
+    plain = json.loads(out)
+    code2, out, _ = run(capsys, *base, "--drive-loop", m.vel_kp, m.current_lag_s, m.loop_period_s)
+    looped = json.loads(out)
+    assert code == code2 == 0
+    assert abs(looped["Kt"] / m.Kt - 1) < 2e-4, looped["Kt"] / m.Kt - 1
+    assert plain["Kt"] / m.Kt - 1 < -5e-4, plain["Kt"] / m.Kt - 1

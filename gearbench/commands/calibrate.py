@@ -52,8 +52,15 @@ def add_arguments(p) -> None:
                    help="the drive's loop as set: speed-loop P gain (A per rad/s), current-loop time "
                         "constant (s), speed-loop period (s), as a profile's motors.<m>.sampling declares "
                         "them: with --drive-setpoint step and --drive-current instant the kick is computed "
-                        "(identify.kick_coefficient) instead of fitted (forward and reversing runs)")
+                        "(identify.kick_coefficient) instead of fitted (forward and reversing runs); with "
+                        "step and mean the kicks, with interpolated and instant the ramps' kinks are "
+                        "added to the current's match (identify.declared_period_kick)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+# drive kinds whose declared loop the analysis uses (``identify.declared_kick``,
+# ``identify.declared_period_kick``)
+LOOP_KINDS = (("step", "instant"), ("step", "mean"), ("interpolated", "instant"))
 
 
 def run(args) -> int:
@@ -77,9 +84,10 @@ def run(args) -> int:
         raise GearbenchError("--drive-current-limit goes with --drive-setpoint and --drive-current "
                              "(it says where a stepping drive's setpoint kick is clipped); pass them too")
     loop = args.drive_loop
-    if loop is not None and (args.drive_setpoint, args.drive_current) != ("step", "instant"):
-        raise GearbenchError("--drive-loop goes with --drive-setpoint step --drive-current instant "
-                             "(it computes the current kick such a drive gives); pass them too")
+    if loop is not None and (args.drive_setpoint, args.drive_current) not in LOOP_KINDS:
+        raise GearbenchError("--drive-loop goes with --drive-setpoint step --drive-current instant|mean "
+                             "or --drive-setpoint interpolated --drive-current instant (it computes what "
+                             "such a drive's setpoint does to its current within each period); pass them too")
     if loop is not None and not (all(math.isfinite(v) for v in loop) and loop[0] > 0 and loop[1] >= 0
                                  and loop[2] > 0):
         raise GearbenchError(f"--drive-loop takes the speed-loop P gain in A per rad/s (> 0), the "
