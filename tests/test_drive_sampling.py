@@ -147,6 +147,22 @@ def test_a_ripple_below_the_current_noise_is_not_fitted():
     assert forced.D / motor.D > 1.5 or forced.Tc / motor.Tc < 0.9
 
 
+def _b2_errors_declared_or_not(trace, m, forms) -> dict:
+    """b2's error (%) per (loop declared, form) of a simulated run of motor ``m``: the drive
+    described as robustness describes it, with and without its speed loop."""
+    from gearbench.analysis.identify import DRIVE_LOOP_KEYS, declared_period_kick, identify_trace
+
+    errors = {}
+    for declared in (True, False):
+        trace.meta["drive"] = {k: v for k, v in rb.drive_description(m).items()
+                               if declared or k not in DRIVE_LOOP_KEYS}
+        assert (declared_period_kick(trace) is not None) == declared
+        for form in forms:
+            fit = identify_trace(trace, method=form, check=False)
+            errors[declared, form] = 100 * (float(fit.B[1]) / (m.Kt / m.J) - 1)
+    return errors
+
+
 def test_a_stepping_drive_reporting_the_period_mean_gets_its_kicks_at_250_hz():
     """At 250 Hz a drive that steps its setpoint each SYNC kicks its current at the start of
     every 4 ms period; the period means' match cannot see where in the period the current
@@ -154,8 +170,7 @@ def test_a_stepping_drive_reporting_the_period_mean_gets_its_kicks_at_250_hz():
     20-bit encoder, no cogging). The kicks computed from the declared loop
     (``identify.period_mean_kick_weights``) take it to within 0.03 %; without the declared
     loop the bias is back. A steady acceleration's kicks are matched already (Σ w = 0)."""
-    from gearbench.analysis.identify import (DRIVE_LOOP_KEYS, declared_period_kick, identify_trace,
-                                             period_mean_kick_weights)
+    from gearbench.analysis.identify import declared_period_kick, period_mean_kick_weights
 
     w = period_mean_kick_weights(0.09, 0.42e-3, 4e-3, 0.25e-3)
     assert abs(w.sum()) < 1e-12 and np.abs(w).max() > 1e-3
@@ -164,16 +179,9 @@ def test_a_stepping_drive_reporting_the_period_mean_gets_its_kicks_at_250_hz():
                 counts_per_rev=1 << 20, cog_amp=0.0)
     assert (m.setpoint_interpolation, m.current_avg_s) == (0, 4e-3)
     trace = simulate_motor(m, case.commands["in"], seed=11, period_s=4e-3)
-    b2_true = m.Kt / m.J
-    errors = {}
-    for declared in (True, False):
-        trace.meta["drive"] = {k: v for k, v in rb.drive_description(m).items()
-                               if declared or k not in DRIVE_LOOP_KEYS}
-        assert (declared_period_kick(trace) is not None) == declared
-        fit = identify_trace(trace, check=False)
-        errors[declared] = 100 * (float(fit.B[1]) / b2_true - 1)
-    assert abs(errors[True]) < 0.03, errors
-    assert errors[False] < -0.1, errors
+    errors = _b2_errors_declared_or_not(trace, m, ("default",))
+    assert abs(errors[True, "default"]) < 0.03, errors
+    assert errors[False, "default"] < -0.1, errors
     # an interpolating drive of the same kind has no kicks to add
     trace.meta["drive"] = {**rb.drive_description(m), "setpoint": "interpolated"}
     assert declared_period_kick(trace) is None
@@ -188,8 +196,7 @@ def test_an_interpolating_drive_sampling_its_current_at_one_instant_gets_its_kin
     (``identify.interpolated_kink_weights``, their steady part out: Σ w = 0) take it to
     within 0.02 %, in the accel and the torque form; without the declared loop the bias
     is back. At 1 kHz the same drive needs nothing (within 0.02 % either way)."""
-    from gearbench.analysis.identify import (DRIVE_LOOP_KEYS, declared_period_kick, identify_trace,
-                                             interpolated_kink_weights)
+    from gearbench.analysis.identify import interpolated_kink_weights
 
     w = interpolated_kink_weights(0.005, 0.3e-3, 4e-3, 0.25e-3)
     assert abs(w.sum()) < 1e-12 and np.abs(w).max() > 1e-5
@@ -200,15 +207,7 @@ def test_an_interpolating_drive_sampling_its_current_at_one_instant_gets_its_kin
                     counts_per_rev=1 << 20, cog_amp=0.0)
         assert (m.setpoint_interpolation, m.current_avg_s) == (1, 0.0)
         trace = simulate_motor(m, c.commands["out"], seed=3, period_s=period_s)
-        b2_true = m.Kt / m.J
-        errors = {}
-        for declared in (True, False):
-            trace.meta["drive"] = {k: v for k, v in rb.drive_description(m).items()
-                                   if declared or k not in DRIVE_LOOP_KEYS}
-            assert (declared_period_kick(trace) is not None) == declared
-            for form in ("default", "torque"):
-                fit = identify_trace(trace, method=form, check=False)
-                errors[declared, form] = 100 * (float(fit.B[1]) / b2_true - 1)
+        errors = _b2_errors_declared_or_not(trace, m, ("default", "torque"))
         assert all(abs(errors[True, f]) < 0.02 for f in ("default", "torque")), (period_s, errors)
         if bias_without is not None:
             assert all(errors[False, f] < bias_without for f in ("default", "torque")), errors
