@@ -373,10 +373,13 @@ def _prepare(t, th, i, *, cutoff_hz, friction_width_rad_s, command, source,
                 i, current_limit_a, float(np.sqrt(noise_var)))
         # the masked offset column is needed only where an offset is fitted (reversing)
         others = {"current": i, **({"moving": np.ones_like(th)} if reverses else {})}
-        if current_mean:
-            # period means: their own match (``derivatives.match_period_means``)
-            matched["current"] = dv.match_period_means(others.pop("current"))
-        if period_kick is not None and command is not None:
+        kicks = period_kick is not None and command is not None
+        if current_mean or kicks:
+            # the current matched here (period means: ``derivatives.match_period_means``)
+            # where it is not the instant samples' plain match: kicks are added to it
+            match = dv.match_period_means if current_mean else dv.match_samples
+            matched["current"] = match(others.pop("current"))
+        if kicks:
             # what the match cannot see of the setpoint's shape within each period (a
             # stepping drive's front-loaded kicks, an interpolating one's kinks:
             # ``declared_period_kick``); none where the drive sits at its current limit
@@ -384,8 +387,6 @@ def _prepare(t, th, i, *, cutoff_hz, friction_width_rad_s, command, source,
             # current and adds it back
             kick = _period_kick_current(np.asarray(period_kick, float), extra["command"]) * (
                 _below_current_limit(i, current_limit_a, float(np.sqrt(noise_var))))
-            if "current" in others:
-                matched["current"] = dv.match_samples(others.pop("current"))
             matched["current"] = matched["current"] + kick
             matched["current_kick"] = kick
         if drive_velocity is not None:
@@ -555,13 +556,16 @@ def _match_error(first: np.ndarray, hold: float, current: str, kp_a_s_per_rad: f
     Gp, Rp, Fp, Ep = pad(G), pad(R), pad(F), pad(E)
     n = np.arange(-2, PERIOD_KICK_PERIODS)
     tri = Rp[n + 3] + Fp[n + 4]
-    if current == "mean":
-        match = (dv.PERIOD_MEAN_MATCH[0] * Gp[n + 2] + dv.PERIOD_MEAN_MATCH[1] * Gp[n + 3]
-                 + dv.PERIOD_MEAN_MATCH[2] * Gp[n + 4] + dv.PERIOD_MEAN_MATCH[3] * Gp[n + 5])
-    else:
-        match = (dv.SECOND_DIFFERENCE_MATCH[0] * Ep[n + 2] + dv.SECOND_DIFFERENCE_MATCH[1] * Ep[n + 3]
-                 + dv.SECOND_DIFFERENCE_MATCH[2] * Ep[n + 4])
-    return tri - match
+    # both matches start at sample k − 1
+    seen, kernel = (Gp, dv.PERIOD_MEAN_MATCH) if current == "mean" else (Ep, dv.SECOND_DIFFERENCE_MATCH)
+    return tri - sum(c * seen[n + 2 + j] for j, c in enumerate(kernel))
+
+
+# drive kinds (setpoint, current) whose declared loop gives weights (``declared_period_kick``),
+# and every kind whose loop the analysis uses (``declared_kick``: step, instant)
+PERIOD_KICK_WEIGHTS = {("step", "mean"): period_mean_kick_weights,
+                       ("interpolated", "instant"): interpolated_kink_weights}
+LOOP_DRIVE_KINDS = (("step", "instant"), *PERIOD_KICK_WEIGHTS)
 
 
 def _period_kick_current(weights: np.ndarray, command: np.ndarray) -> np.ndarray:
@@ -1758,9 +1762,7 @@ def declared_period_kick(trace) -> np.ndarray | None:
     instant (``interpolated_kink_weights``); else None. Raises TraceError as
     ``declared_kick``."""
     drive = trace.meta.get("drive") or {}
-    weights = {("step", "mean"): period_mean_kick_weights,
-               ("interpolated", "instant"): interpolated_kink_weights}.get(
-        (drive.get("setpoint"), drive.get("current")))
+    weights = PERIOD_KICK_WEIGHTS.get((drive.get("setpoint"), drive.get("current")))
     if drive_sampling(trace) != "plain" or weights is None:
         return None
     loop = _declared_loop(trace)

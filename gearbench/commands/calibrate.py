@@ -5,7 +5,7 @@ import math
 from dataclasses import replace
 
 from ..analysis.calibration import calibrate_motor
-from ..analysis.identify import DRIVE_LOOP_KEYS, METHODS
+from ..analysis.identify import DRIVE_LOOP_KEYS, LOOP_DRIVE_KINDS, METHODS
 from ..analysis.model_check import calibration_linearity, with_linearity
 from ..analysis.uncertainty import TOLERANCE_SOURCES, tolerance_std
 from ..errors import GearbenchError
@@ -58,11 +58,6 @@ def add_arguments(p) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
 
-# drive kinds whose declared loop the analysis uses (``identify.declared_kick``,
-# ``identify.declared_period_kick``)
-LOOP_KINDS = (("step", "instant"), ("step", "mean"), ("interpolated", "instant"))
-
-
 def run(args) -> int:
     if not (math.isfinite(args.inertia) and args.inertia > 0):
         raise GearbenchError(f"--inertia must be > 0 kg m^2 (got {args.inertia}); pass the disk's "
@@ -84,7 +79,7 @@ def run(args) -> int:
         raise GearbenchError("--drive-current-limit goes with --drive-setpoint and --drive-current "
                              "(it says where a stepping drive's setpoint kick is clipped); pass them too")
     loop = args.drive_loop
-    if loop is not None and (args.drive_setpoint, args.drive_current) not in LOOP_KINDS:
+    if loop is not None and (args.drive_setpoint, args.drive_current) not in LOOP_DRIVE_KINDS:
         raise GearbenchError("--drive-loop goes with --drive-setpoint step --drive-current instant|mean "
                              "or --drive-setpoint interpolated --drive-current instant (it computes what "
                              "such a drive's setpoint does to its current within each period); pass them too")
