@@ -118,6 +118,9 @@ def test_misses_are_split_into_noise_limited_and_biased_and_coverage_is_counted(
     assert s["cover"]["abs"] == pytest.approx(2 / 3) and s["cover"]["kt"] == 1.0
     # per quantity: only the absolute efficiency of the third plant is a biased miss
     assert s["biased_by"] == {"kt": 0.0, "inc": 0.0, "abs": pytest.approx(1 / 3)}
+    # median |error|/sigma per quantity: Kt 0.1/0.05, 0.5/0.3, 0.1/0.05 -> 2, 1.67, 2
+    assert s["z_median"]["kt"] == pytest.approx(2.0) and s["z_median"]["abs"] == pytest.approx(2.0)
+    assert np.isnan(R.summarise([{"default": R.Outcome(error="x")}], ("default",))["default"]["z_median"]["kt"])
 
 
 def test_reversing_case_with_cogging_meets_kt_and_its_interval_covers():
