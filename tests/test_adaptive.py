@@ -315,3 +315,20 @@ def test_cycle_time_sets_each_calibration_run_against_its_design():
     assert set(r) == {"in unloaded", "in loaded"}
     assert r["in unloaded"] == pytest.approx(2.0)
     assert r["in loaded"] == pytest.approx(3 / np.sqrt(2))
+
+
+def test_cycle_time_what_if_scales_the_current_noise_and_quieter_sensors_shorten_the_levels(short_cvt):
+    """The what-if behind ``cycle_time --current-noise-scale``: both drives' current noise
+    scaled, nothing else; on the cvt plant with its noise at a tenth, the braking levels
+    reach their intervals sooner (white current noise sets how long a level takes)."""
+    from gearbench.benchmarks.cycle_time import scaled_current_noise
+
+    profile, plant = short_cvt
+    quiet = scaled_current_noise(plant, 0.1)
+    for m in ("in", "out"):
+        a, b = getattr(plant, f"motor_{m}"), getattr(quiet, f"motor_{m}")
+        assert b.current_noise_a == pytest.approx(0.1 * a.current_noise_a) and replace(b, current_noise_a=a.current_noise_a) == a
+    with pytest.raises(ValueError, match="noise scale"):
+        scaled_current_noise(plant, -1.0)
+    level_s = lambda res: sum(m["duration_s"] for m in res["measurements"] if m["kind"] == "efficiency")
+    assert level_s(_run(profile, quiet)) < level_s(_run(profile, plant))

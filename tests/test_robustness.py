@@ -600,3 +600,21 @@ def test_the_biased_share_honest_intervals_would_give_by_chance():
     assert half.chance_biased() == pytest.approx(both, rel=1e-9)
     s = R.summarise([{"default": half}, {"default": R.Outcome(error="ExcitationError: x")}], ("default",))
     assert s["default"]["chance"] == pytest.approx(both / 2, rel=1e-9)    # a refused plant: no chance
+
+
+def test_noise_scatter_repeats_a_plant_on_fresh_noise_and_compares_its_sigma(capsys):
+    """The same plant on fresh noise draws: Kt moves by the noise's spread, which the
+    reported statistical sigma is set beside (a ratio per drive kind, printed)."""
+    case = R.draw_case(5, 7)
+    rows = R.noise_scatter([case], 3)
+    assert {r["side"] for r in rows} == {"in", "out"}
+    for r in rows:
+        assert r["draws"] + r["refused"] == 3 and r["draws"] >= 2
+        assert r["spread_pct"] > 0 and r["stat_pct"] > 0 and r["std_pct"] >= r["stat_pct"]
+        assert r["kind"] == R.drive_kind(getattr(case.plant, f"motor_{r['side']}"))
+    # fresh noise really is fresh: the draws differ from the case as drawn
+    first = R.run_case(case, ("default",))["default"].kt_err_pct
+    assert all(abs(r["mean_err_pct"] - first[0 if r["side"] == "in" else 1]) > 0 for r in rows)
+    R.print_noise_scatter(rows, 3)
+    out = capsys.readouterr().out
+    assert "stat σ / spread" in out and out.count("\n  all") == 1

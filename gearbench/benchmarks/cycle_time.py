@@ -2,7 +2,7 @@
 
     python -m gearbench.benchmarks cycle_time [--plants N] [--seeds 0 1] [--png FILE] [--no-chain]
                                               [--per-plant] [--adaptive-excitation designed|drawn]
-                                              [--drive-current drawn|mean]
+                                              [--drive-current drawn|mean] [--current-noise-scale S]
 
 Procedures:
   classic   profiles/cvt-classic.yaml — fixed lengths: 4 calibration runs of 3 s one
@@ -506,11 +506,14 @@ def procedures(plant_profile: dict, step_rad_s: float) -> dict:
 
 
 def run_plants(n_plants: int, seeds, *, which=("classic", "adaptive", "paper"), log=print,
-               cvt_seeds=None, adaptive_excitation: str = "designed", drive_current: str = "drawn") -> list[dict]:
+               cvt_seeds=None, adaptive_excitation: str = "designed", drive_current: str = "drawn",
+               current_noise_scale: float = 1.0) -> list[dict]:
     """Every procedure on the profile's own plant (one run per noise seed in ``cvt_seeds``,
     default ``seeds``) and on ``n_plants`` random plants per draw seed in ``seeds``.
     ``drive_current="mean"`` is a what-if on the random plants: every drive reports its
-    current as a period mean (``period_mean_current``) instead of as drawn.
+    current as a period mean (``period_mean_current``) instead of as drawn;
+    ``current_noise_scale`` another: every drive's current noise scaled by it
+    (``scaled_current_noise``; 0: noise-free current sensors).
     Returns rows {group, plant, seed, procedure, **score}."""
     from ..profile import load_profile
     from ..sim import PlantParams
@@ -535,6 +538,8 @@ def run_plants(n_plants: int, seeds, *, which=("classic", "adaptive", "paper"), 
                     profs[k], failed[k] = base[k], f"excitation design: {exc}"
             step = float(min(0.9 * case.bench_speed_rad_s * 1.2, 330.0))
             plant = period_mean_current(case.plant) if drive_current == "mean" else case.plant
+            if current_noise_scale != 1.0:
+                plant = scaled_current_noise(plant, current_noise_scale)
             sampled = {f"current_{m}": "mean" if getattr(plant, f"motor_{m}").current_avg_s > 0 else "instant"
                        for m in ("in", "out")}
             for name, (prof, method) in procedures(profs, step).items():
@@ -560,6 +565,17 @@ def period_mean_current(plant):
     speed loop's ripple, from its encoder-quantised speed estimate, into the fit band
     and the level means)."""
     return replace(plant, **{f"motor_{m}": replace(getattr(plant, f"motor_{m}"), current_avg_s=plant.period_s)
+                             for m in ("in", "out")})
+
+
+def scaled_current_noise(plant, scale: float):
+    """``plant`` with both drives' current noise scaled by ``scale`` (a what-if: how much
+    of a plant's bench time its current sensors' noise costs; 0 leaves quantisation,
+    cogging and the loops' own ripple as the only disturbances)."""
+    if not (scale >= 0 and math.isfinite(scale)):
+        raise ValueError(f"current noise scale must be a finite number >= 0, got {scale!r}")
+    return replace(plant, **{f"motor_{m}": replace(getattr(plant, f"motor_{m}"),
+                                                   current_noise_a=getattr(plant, f"motor_{m}").current_noise_a * scale)
                              for m in ("in", "out")})
 
 
@@ -787,6 +803,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--drive-current", choices=("drawn", "mean"), default="drawn",
                     help="random plants' drives report their current as drawn (one instant or a "
                          "period mean, default) or all as a period mean (a what-if)")
+    ap.add_argument("--current-noise-scale", type=float, default=1.0, metavar="S",
+                    help="random plants' current noise x S (a what-if: 0.5 a sensor twice as quiet, "
+                         "0 none; default 1, as drawn)")
     ap.add_argument("--per-plant", action="store_true", help="one line per random plant: errors, time, why missed")
     ap.add_argument("--no-chain", action="store_true", help="skip the runs through the --sim CANopen chain")
     args = ap.parse_args(argv)
@@ -797,7 +816,8 @@ def main(argv: list[str] | None = None) -> int:
           f"efficiency <= {GOAL['inc_pp']} pp at all 12 points", flush=True)
     rows = run_plants(args.plants, args.seeds, which=tuple(args.procedures),
                       log=lambda s: print(s, flush=True), cvt_seeds=range(args.cvt_runs),
-                      adaptive_excitation=args.adaptive_excitation, drive_current=args.drive_current)
+                      adaptive_excitation=args.adaptive_excitation, drive_current=args.drive_current,
+                      current_noise_scale=args.current_noise_scale)
     if not args.no_chain:
         rows += run_chain(log=lambda s: print(s, flush=True))
     print()

@@ -2,6 +2,7 @@
 
     python -m gearbench.benchmarks robustness [--cases N] [--quick] [--seed S] [--worst K]
                                               [--period-ms MS] [--encoder-counts N] [--as-drawn]
+                                              [--noise-draws K [--noise-cases N]]
 
 The accuracy benchmark checks one plant; held-out data comes from *other* motors,
 drives and benches of the same kind. Each case here draws, from realistic ranges
@@ -586,6 +587,58 @@ def print_quantities(cases: list[Case], outcomes: list[dict[str, Outcome]], meth
           "the errors")
 
 
+def noise_scatter(cases: list[Case], draws: int) -> list[dict]:
+    """Each case's calibrations repeated on ``draws`` fresh noise draws (the same plant,
+    commands and encoder; only the noise seeds change) → per motor: its drive kind, the
+    Kt errors' spread over the draws (what noise alone does, %), the mean reported
+    standard uncertainty (%) and the mean error (what the plant does to every draw alike:
+    model error, %). An honest statistical σ is close to the spread; the reported σ also
+    holds the model-error terms, so it may exceed the spread where the mean error shows
+    them. Draws the calibration refuses are left out (counted in ``refused``)."""
+    out = []
+    for case in cases:
+        per = {side: {"err": [], "std": [], "stat": [], "refused": 0} for side in ("in", "out")}
+        for d in range(draws):
+            data = simulate_case(replace(case, seed=case.seed + 7919 * (d + 1)))
+            for side in ("in", "out"):
+                motor = getattr(case.plant, f"motor_{side}")
+                try:
+                    cal = calibrate_motor(*data["runs"][side], case.disks_kgm2[side])
+                except Exception:       # a refusal is a result here, not a crash
+                    per[side]["refused"] += 1
+                    continue
+                per[side]["err"].append(100 * (cal.Kt / motor.Kt - 1))
+                per[side]["std"].append(100 * cal.Kt_std / motor.Kt)
+                per[side]["stat"].append(100 * cal.fit.get("Kt_std_statistical", cal.Kt_std) / motor.Kt)
+        for side, r in per.items():
+            if len(r["err"]) < 2:
+                continue
+            out.append({"case": case.index, "side": side, "kind": drive_kind(getattr(case.plant, f"motor_{side}")),
+                        "spread_pct": float(np.std(r["err"], ddof=1)), "std_pct": float(np.mean(r["std"])),
+                        "stat_pct": float(np.mean(r["stat"])), "mean_err_pct": float(np.mean(r["err"])),
+                        "draws": len(r["err"]), "refused": r["refused"]})
+    return out
+
+
+def print_noise_scatter(rows: list[dict], draws: int) -> None:
+    """Per drive kind: the median ratio of the statistical σ Kt reports to the Kt spread
+    over fresh noise (1: honest for noise; a ratio from K draws is itself uncertain by
+    about 1/√(2(K−1))), the share of motors below 0.7 and above 1.5, and the median of
+    |mean error| / spread (above ~1: the plant's own model error outweighs the noise)."""
+    print(f"\nKt over {draws} fresh noise draws per plant (same plants and commands):")
+    print(f"  {'drive kind (setpoint/current)':<30}{'motors':>7}{'stat σ / spread':>17}{'< 0.7':>8}{'> 1.5':>8}"
+          f"{'total σ / spread':>18}{'|mean err| / spread':>21}")
+    for kind in sorted({r["kind"] for r in rows}) + ["all"]:
+        sel = [r for r in rows if kind in ("all", r["kind"]) and r["spread_pct"] > 0]
+        if not sel:
+            continue
+        ratio = np.array([r["stat_pct"] / r["spread_pct"] for r in sel])
+        total = np.array([r["std_pct"] / r["spread_pct"] for r in sel])
+        bias = np.array([abs(r["mean_err_pct"]) / r["spread_pct"] for r in sel])
+        print(f"  {kind:<30}{len(sel):>7}{np.median(ratio):>17.2f}{100 * np.mean(ratio < 0.7):>7.0f}%"
+              f"{100 * np.mean(ratio > 1.5):>7.0f}%{np.median(total):>18.2f}{np.median(bias):>21.2f}")
+
+
 def drive_kind(motor) -> str:
     """How the drive meets the bus master (``drive_description``): setpoint stepped or
     interpolated at each SYNC, current one instant or the period mean."""
@@ -655,6 +708,12 @@ def main(argv: list[str] | None = None) -> int:
                     help="calibration commands as drawn, without moving them to reach the bench "
                          "speeds (the draws before 2026-12-03: most absolute points then use an "
                          "extrapolated motor loss)")
+    ap.add_argument("--noise-draws", type=int, default=0, metavar="K",
+                    help="also repeat the first --noise-cases plants' calibrations on K fresh "
+                         "noise draws: each drive kind's reported Kt sigma against the noise's "
+                         "own spread (is the interval honest for noise, where model error starts)")
+    ap.add_argument("--noise-cases", type=int, default=30, metavar="N",
+                    help="plants for --noise-draws (default 30)")
     args = ap.parse_args(argv)
     methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
     if "default" not in methods:
@@ -682,6 +741,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"default: eq. 18 from the braking levels' slope (zero-load level > "
           f"{OFF_LINE_SIGMAS:g} sigma off their line) on {sum(o.off_line_reference for o in d)} "
           f"plants; window errors widened for level scatter on {sum(o.level_scatter for o in d)}")
+    if args.noise_draws >= 2:
+        print_noise_scatter(noise_scatter(cases[:max(args.noise_cases, 1)], args.noise_draws),
+                            args.noise_draws)
     if args.worst:
         print_worst(cases, outcomes, args.worst)
     if args.causes:
