@@ -68,8 +68,13 @@ MODBUS_MAX_WAKEUPS_PER_SAMPLE = 1.3     # one per sample (sleep to the due time)
 
 
 def _modbus_cpu_bound_us() -> float:
-    """The Modbus master's CPU bound per sample on this host (the larger of the two)."""
-    return max(MODBUS_MAX_CPU_PER_SAMPLE_S, MODBUS_MAX_PACED_LOOPS_PER_SAMPLE * paced_loop_cpu_s()) * 1e6
+    """The Modbus master's CPU bound per sample on this host (the larger of the two), the
+    host's paced loop timed again now as well: the suite's other worker can slow every
+    process's CPU per period (shared caches, a loaded hypervisor) after the cached timing
+    was taken (one loaded run: 932 us measured against an 800 us bound from the cached
+    66 us loop)."""
+    loop_s = max(paced_loop_cpu_s(), paced_loop_cpu_s.__wrapped__())
+    return max(MODBUS_MAX_CPU_PER_SAMPLE_S, MODBUS_MAX_PACED_LOOPS_PER_SAMPLE * loop_s) * 1e6
 
 
 @pytest.mark.skipif(_responder.available(_responder.MODBUS_SOURCE) is not None,
