@@ -301,8 +301,21 @@ def drive_description(motor) -> dict:
 
 def simulate_case(case: Case) -> dict:
     """Calibration runs per side (unloaded, loaded) and the bench trace."""
-    from ..sim import simulate_bench, simulate_motor
+    from ..sim import simulate_bench
     from ..sim import waveforms as wf
+
+    runs = simulate_runs(case)
+    period_s = case.plant.period_s
+    t = wf.time_base(case.dwell_s * len(case.levels_a), period_s)
+    cin = wf.ramp(t, slope=360.0, final=case.bench_speed_rad_s)
+    cout = -wf.staircase(t, levels=list(case.levels_a), dwell_s=case.dwell_s)
+    bench = simulate_bench(case.plant, cin, cout, seed=case.plant.seed)
+    return {"runs": runs, "bench": bench}
+
+
+def simulate_runs(case: Case) -> dict:
+    """The calibration runs alone: side -> (unloaded, loaded) traces."""
+    from ..sim import simulate_motor
 
     runs = {}
     period_s = case.plant.period_s
@@ -314,11 +327,7 @@ def simulate_case(case: Case) -> dict:
                                      period_s=period_s))
         for trace in runs[side]:
             trace.meta["drive"] = drive_description(motor)
-    t = wf.time_base(case.dwell_s * len(case.levels_a), period_s)
-    cin = wf.ramp(t, slope=360.0, final=case.bench_speed_rad_s)
-    cout = -wf.staircase(t, levels=list(case.levels_a), dwell_s=case.dwell_s)
-    bench = simulate_bench(case.plant, cin, cout, seed=case.plant.seed)
-    return {"runs": runs, "bench": bench}
+    return runs
 
 
 def run_case(case: Case, methods=METHODS, data: dict | None = None) -> dict[str, Outcome]:
@@ -517,19 +526,19 @@ def summarise(outcomes: list[dict[str, Outcome]], methods=METHODS) -> dict[str, 
                   # median |error| / own sigma: 0.674 for honest normal errors; below it the
                   # intervals are wider than the errors (coverage near 100 % says the same
                   # only once it saturates)
-                  "z_median": {q: _median_z(ocs, q) for q in ("kt", "inc", "abs")},
+                  "z_median": {q: _median_z(ocs, k)
+                               for q, k in (("kt", "kt_pct"), ("inc", "inc_pp"), ("abs", "abs_pp"))},
                   "ok": verdicts.count("meet") / n,
                   "noise": verdicts.count("noise") / n,
                   "biased": verdicts.count("biased") / n}
     return out
 
 
-def _median_z(ocs: list[Outcome], q: str) -> float:
-    """Median of |error| / reported standard uncertainty over every point of ``q``
-    ("kt", "inc" or "abs"); nan without points."""
-    errs, stds = {"kt": ("kt_err_pct", "kt_std_pct"), "inc": ("inc_err_pp", "inc_std_pp"),
-                  "abs": ("abs_err_pp", "abs_std_pp")}[q]
-    z = [abs(e) / s for o in ocs for e, s in zip(getattr(o, errs), getattr(o, stds)) if s > 0]
+def _median_z(ocs: list[Outcome], key: str) -> float:
+    """Median of |error| / reported standard uncertainty over every point of ``key``
+    (``Outcome._quantities``: "kt_pct", "inc_pp" or "abs_pp"); nan without points."""
+    z = [abs(e) / s for o in ocs for k, errs, stds in o._quantities() if k == key
+         for e, s in zip(errs, stds) if s > 0]
     return float(np.median(z)) if z else float("nan")
 
 
@@ -599,11 +608,11 @@ def noise_scatter(cases: list[Case], draws: int) -> list[dict]:
     for case in cases:
         per = {side: {"err": [], "std": [], "stat": [], "refused": 0} for side in ("in", "out")}
         for d in range(draws):
-            data = simulate_case(replace(case, seed=case.seed + 7919 * (d + 1)))
+            runs = simulate_runs(replace(case, seed=case.seed + 7919 * (d + 1)))
             for side in ("in", "out"):
                 motor = getattr(case.plant, f"motor_{side}")
                 try:
-                    cal = calibrate_motor(*data["runs"][side], case.disks_kgm2[side])
+                    cal = calibrate_motor(*runs[side], case.disks_kgm2[side])
                 except Exception:       # a refusal is a result here, not a crash
                     per[side]["refused"] += 1
                     continue
