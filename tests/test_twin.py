@@ -154,6 +154,87 @@ def test_second_unit_differs_by_its_spread_not_by_the_seed():
     assert second["seed"] == first["seed"]          # the seed is the benchmark's to set
 
 
+def test_random_hidden_benches_are_valid_draws_of_their_family():
+    import yaml
+
+    from gearbench.benchmarks.twin import ROOT, _defaults
+    from gearbench.sim import PlantParams
+    from gearbench.twin.hidden import RANDOM_MOVED, RANDOM_PARAMS, RANDOM_REDUCER, hidden_block, random_spec
+
+    for case in ("cvt", "cyclo"):
+        block = yaml.safe_load((ROOT / "profiles" / f"{case}.yaml").read_text())["simulation"]
+        defaults = _defaults(block)
+        assert random_spec(case, block, 3, defaults) == random_spec(case, block, 3, defaults)
+        assert random_spec(case, block, 3, defaults) != random_spec(case, block, 4, defaults)
+        pool = RANDOM_PARAMS | RANDOM_REDUCER["cvt" if case == "cvt" else "plain"]
+        for seed in range(40):
+            spec = random_spec(case, block, seed, defaults)
+            assert len(spec["params"]) == RANDOM_MOVED and len(spec["effects"]) == 2
+            assert case == "cyclo" or "backlash" not in spec["effects"]   # no CVT backlash in the sim
+            hidden, truth = hidden_block(block, spec, defaults)
+            PlantParams.from_dict(hidden)                                  # a bench the sim accepts
+            for path, (op, v) in spec["params"].items():
+                lo, hi = pool[path]
+                rel = abs(truth[path] / defaults(path) - 1)
+                assert op == "=" or lo - 1e-12 <= rel <= hi + 1e-12, (path, rel)
+                assert op == "*" or truth[path] <= 0.97                    # an efficiency stays one
+            sat = [(k, v) for e in spec["effects"].values() for k, v in e.items() if k.endswith("kt_sat_a")]
+            for k, s_a in sat:   # Kt at the current limit lowered by 5-30 %
+                lim = defaults(k.replace("kt_sat_a", "current_limit_a"))
+                assert 0.05 - 1e-9 <= 1 - 1 / (1 + (lim / s_a) ** 2) <= 0.30 + 1e-9
+
+
+def test_direction_friction_on_a_one_way_motor_is_scored_as_the_run_shows_it(tmp_path):
+    import pandas as pd
+
+    from gearbench.benchmarks.twin import _as_the_run_shows
+
+    v = np.full(1000, 50.0)
+    v[:10] = -50.0                                       # 1 % backwards: one way
+    pd.DataFrame({"out.velocity_rad_s": v, "in.velocity_rad_s": np.sin(np.arange(1000) / 50.0) * 10}
+                 ).to_parquet(tmp_path / "trace-a.parquet")
+    truth = {"motors.out.Tc": 0.009, "motors.out.Tc_asym": -0.002, "motors.in.Tc": 0.008, "motors.in.Tc_asym": 0.001}
+    spec = {"effects": {"direction_friction": {"motors.out.Tc_asym": -0.002}}}
+    tv, unseen = _as_the_run_shows(tmp_path, spec, truth.get)
+    assert tv("motors.out.Tc") == pytest.approx(0.007) and tv("motors.out.Tc_asym") is None
+    assert "forward only" in unseen["direction_friction"]
+    spec = {"effects": {"direction_friction": {"motors.in.Tc_asym": 0.001}}}   # reverses: identifiable
+    tv, unseen = _as_the_run_shows(tmp_path, spec, truth.get)
+    assert not unseen and tv("motors.in.Tc") == 0.008
+
+
+def test_the_held_out_fold_holds_steps_starts_too():
+    """Each step starts from rest in its first block; the folds put each motor's starts on
+    both sides, so an effect of the starts (Stribeck) can gain on the held-out fold."""
+    prob = F.Problem(_record(BLOCK, _segments(n_cal=600, n_eff=800)), copy.deepcopy(BLOCK), Q)
+    fit_fold, held = F.folds(prob)
+    b = prob.blocks()
+    assert fit_fold.sum() and held.sum() and not (fit_fold & held).any()
+    # steps: both motors, in alone, out alone, both: each motor starts twice, once per fold
+    first = [bool(fit_fold[b == k * 100000].all()) for k in range(len(prob.segments))]
+    assert first == [True, False, False, True]
+    assert all(held[b == k * 100000 + 1].all() == first[k] for k in range(len(prob.segments)))
+
+
+def test_a_motor_turned_one_way_has_no_direction_friction_to_fit():
+    rec = _record(BLOCK, _segments(n_cal=600, n_eff=800))     # every command forward
+    prob = F.Problem(rec, copy.deepcopy(BLOCK), Q)
+    assert prob.turning() == {"in": "forward", "out": "forward"}
+    assert [w.split(":")[0] for w in prob.not_identifiable()] == [
+        "direction-dependent friction of motor in", "direction-dependent friction of motor out"]
+    names = {(n, ps[0].path if ps else "") for n, ps, _ in F.candidates(BLOCK, {}, turning=prob.turning())}
+    assert not any(n == "direction_friction" for n, _ in names)
+    segs = _segments(n_cal=600, n_eff=800)
+    for sg in segs[:3]:                                        # calibrations swing through zero
+        for a in ("in", "out"):
+            c = np.asarray(sg.trace[f"{a}.command"], float)
+            sg.trace.columns[f"{a}.command"] = np.where(c != 0, c - 120.0, 0.0)
+    prob = F.Problem(_record(BLOCK, segs), copy.deepcopy(BLOCK), Q)
+    assert prob.turning() == {"in": "both", "out": "both"} and prob.not_identifiable() == []
+    paths = [ps[0].path for n, ps, _ in F.candidates(BLOCK, {}, turning=prob.turning()) if n == "direction_friction"]
+    assert paths == ["motors.in.Tc_asym", "motors.out.Tc_asym"]
+
+
 def test_effect_chain_names_a_current_offset():
     hidden = copy.deepcopy(BLOCK)
     hidden["motors"]["in"]["current_offset_a"] = 0.03
@@ -361,7 +442,9 @@ def test_the_profile_interval_of_a_backlash_holds_its_truth():
     prof = F.apply_profiles(prob, params, res["jac"], res["r"])
     assert prof and prof[0]["path"] == "backlash_rad"
     bl = params[-1]
-    assert bl.interval == pytest.approx(prof[0]["interval"])
+    # the profile's interval, centred on its minimum: widened by how far the value stayed from it
+    assert prof[0]["off_minimum"] == pytest.approx(abs(bl.value - prof[0]["written"]))
+    assert bl.interval == pytest.approx(prof[0]["interval"] + prof[0]["off_minimum"])
     assert abs(bl.value - 0.02) <= bl.interval < 0.02, (bl.value, bl.interval)
     # the ratio follows the gap along its profile: its interval carries the gap's uncertainty
     # (it held the gap fixed before); none is narrowed

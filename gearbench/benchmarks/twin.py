@@ -21,8 +21,16 @@ Runs and twin fits are cached (``--cache``, default /tmp/gearbench-twin-bench): 
 takes ~20-30 s, a twin fit 440-610 replays (measured at load 2-5: cvt 40-65 s, cyclo 330-450 s;
 the cyclo's backlash needs 87 substeps a sample instead of 20).
 
+``--hidden-set random --seeds 101-110``: a family of hidden benches nobody chose
+(``hidden.random_spec``: per seed 7 parameters moved by a random share, two effects of the
+diagnosis vocabulary at random sizes on a random motor), each printed as above, then the
+distribution over the seeds: parameters within their intervals, effects named (an effect
+the run cannot show - a direction-dependent friction on a motor it turns one way - is
+scored as the run shows it and not counted), results within the run's intervals.
+
     python -m gearbench.benchmarks twin [--cases cvt,cyclo] [--sections ...] [--cache DIR]
-                                        [--hidden-set main|alt|alt2] [--seed N] [--trials N]
+                                        [--hidden-set main|alt|alt2|random] [--seed N | --seeds A-B]
+                                        [--trials N]
 """
 from __future__ import annotations
 
@@ -38,7 +46,7 @@ from pathlib import Path
 import yaml
 
 from ..sim import PlantParams
-from ..twin.hidden import HIDDEN_SETS, UNIT2, get_path, hidden_block, second_unit
+from ..twin.hidden import HIDDEN_SETS, UNIT2, get_path, hidden_block, random_spec, second_unit
 
 ROOT = Path(__file__).resolve().parents[2]
 DEV_ITERATIONS = 30   # LM iterations cap of the dev section (the fit's own stop ends it sooner)
@@ -50,9 +58,18 @@ def _defaults(block: dict):
     return lambda path: get_path(d, path)
 
 
+def hidden_spec(case: str, seed: int, hidden_set: str = "main") -> dict:
+    """The hidden changes of ``case``: a fixed set's, or (``random``) drawn from ``seed``."""
+    if hidden_set != "random":
+        return HIDDEN_SETS[hidden_set][case]
+    block = yaml.safe_load((ROOT / "profiles" / f"{case}.yaml").read_text())["simulation"]
+    return random_spec(case, block, seed, _defaults(block))
+
+
 def make_hidden(case: str, seed: int, cache: Path, hidden_set: str = "main") -> tuple[Path, dict]:
     doc = yaml.safe_load((ROOT / "profiles" / f"{case}.yaml").read_text())
-    block, truth = hidden_block(doc["simulation"], HIDDEN_SETS[hidden_set][case], _defaults(doc["simulation"]))
+    spec = hidden_spec(case, seed, hidden_set)
+    block, truth = hidden_block(doc["simulation"], spec, _defaults(doc["simulation"]))
     block["seed"] = seed
     doc["simulation"] = block
     path = cache / f"hidden-{_tag(hidden_set)}{case}-{seed}.yaml"
@@ -83,9 +100,12 @@ def main(argv=None) -> int:
     ap.add_argument("--cache", default="/tmp/gearbench-twin-bench")
     ap.add_argument("--iterations", type=int, default=12)
     ap.add_argument("--max-effects", type=int, default=3)
-    ap.add_argument("--hidden-set", default="main", choices=sorted(HIDDEN_SETS),
+    ap.add_argument("--hidden-set", default="main", choices=sorted(HIDDEN_SETS) + ["random"],
                     help="main: the hidden benches the twin was developed on; alt: others (fresh check)")
     ap.add_argument("--seed", type=int, default=7, help="noise seed of the hidden run (default 7)")
+    ap.add_argument("--seeds", default=None,
+                    help="several seeds, e.g. 101-110 or 7,31: a table per seed and their distribution "
+                         "(with --hidden-set random each seed also draws its own hidden changes)")
     ap.add_argument("--sections", default="hidden,unit2,dev,emps",
                     help="hidden (cvt/cyclo hidden bench), unit2 (second unit), dev, emps")
     ap.add_argument("--trials", type=int, default=10, help="perfect section: trials per case (default 10)")
@@ -95,55 +115,21 @@ def main(argv=None) -> int:
                     help="the EMPS real data (skipped when absent)")
     a = ap.parse_args(argv)
     sections = set(a.sections.split(","))
+    seeds = _seeds(a.seeds) if a.seeds else [a.seed]
     cache = Path(a.cache)
     cache.mkdir(parents=True, exist_ok=True)
     ok = True
     t_all = time.monotonic()
-    for case in [c for c in a.cases.split(",") if c] if sections & {"hidden", "unit2"} else []:
-        t0 = time.monotonic()
-        nominal = ROOT / "profiles" / f"{case}.yaml"
-        HIDDEN, tag = HIDDEN_SETS[a.hidden_set], _tag(a.hidden_set)
-        hidden, truth = make_hidden(case, a.seed, cache, a.hidden_set)
-        run1 = record(hidden, cache / f"run-{tag}{case}-{a.seed}")
-        rep_path = cache / f"twin-{tag}{case}-{a.seed}.json"
-        twin_yaml = cache / f"twin-{tag}{case}-{a.seed}.yaml"
-        if not rep_path.is_file():
-            rc = gb("twin", run1, "--profile", nominal, "--write", twin_yaml, "--json", rep_path,
-                    "--iterations", a.iterations, "--max-effects", a.max_effects,
-                    log=cache / f"twin-{tag}{case}-{a.seed}.log")
-            if rc:
-                raise SystemExit(f"gearbench twin failed: see {cache / f'twin-{tag}{case}-{a.seed}.log'}")
-        rep = json.loads(rep_path.read_text())
-        tv = _defaults(yaml.safe_load(hidden.read_text())["simulation"])
-        if "hidden" in sections:
-            print(f"\n=== {case}: hidden bench '{a.hidden_set}' (seed {a.seed}), twin fitted from {nominal.name} "
-                  f"(gearbench twin: {rep.get('wall_s', float('nan')):.0f} s wall, "
-                  f"{rep.get('fit_replays', '?')} replays) ===")
-            ok &= _param_table(rep, tv, truth)
-            found = {c["effect"] for c in rep.get("chain", []) if c["significant"]}
-            for eff, paths in HIDDEN[case]["effects"].items():
-                hit = eff in found
-                ok &= hit
-                print(f"hidden effect {eff:<16} ({', '.join(f'{k}={v}' for k, v in paths.items())}): "
-                      f"{'FOUND' if hit else 'not found'}")
-            extra = found - set(HIDDEN[case]["effects"])
-            if extra:
-                print(f"effects added that were not hidden: {', '.join(sorted(extra))}")
-            for amb in rep.get("ambiguities") or []:
-                print(f"reported ambiguous: {amb}")
-            for pr in rep.get("profiles") or []:
-                t = tv(pr["path"])
-                print(f"profile interval of {pr['path']}: {pr['written']:.5g} ± {pr['interval']:.3g}"
-                      + (f" (truth {t:.5g})" if t is not None else ""))
-            gt = rep.get("gap_total", {})
-            print(f"total gap (rms, noise floors): profile {gt.get('before', float('nan')):.2f} -> "
-                  f"twin {gt.get('after', float('nan')):.2f}")
-            if "proof" in rep:
-                ok &= _results("results: run (re-analysed) vs twin (re-simulated, same analysis)",
-                               rep["proof"]["real"], rep["proof"]["twin"])
-        if "unit2" in sections and a.hidden_set == "main":
-            unit2(case, hidden, twin_yaml, run1, cache, nominal)   # informative: a spread the twin cannot know
-        print(f"({case}: {time.monotonic() - t0:.0f} s wall)")
+    rows = []
+    for seed in seeds if sections & {"hidden", "unit2"} else []:
+        for case in [c for c in a.cases.split(",") if c]:
+            t0 = time.monotonic()
+            row = hidden_case(case, seed, a, cache, sections)
+            ok &= row["ok"]
+            rows.append(row)
+            print(f"({case}: {time.monotonic() - t0:.0f} s wall)")
+    if len(rows) > 1:
+        print_summary(rows, a.hidden_set)
     for case in [c for c in a.cases.split(",") if c] if "perfect" in sections else []:
         t0 = time.monotonic()
         r = perfect_twin(record(ROOT / "profiles" / f"{case}.yaml", cache / f"run-nominal-{case}"), a.trials)
@@ -165,6 +151,142 @@ def main(argv=None) -> int:
         print(f"(EMPS: {time.monotonic() - t0:.0f} s wall)")
     print(f"\ntotal wall time {time.monotonic() - t_all:.0f} s (load average {os.getloadavg()[0]:.1f} at the end)")
     return 0 if ok else 1
+
+
+def _seeds(text: str) -> list[int]:
+    out = []
+    for part in text.split(","):
+        lo, _, hi = part.partition("-")
+        out += list(range(int(lo), int(hi or lo) + 1))
+    return out
+
+
+def hidden_case(case: str, seed: int, a, cache: Path, sections: set) -> dict:
+    """Record the hidden bench's run, fit its twin (both cached), print the tables; returns
+    the counts the distribution over seeds is made of."""
+    nominal = ROOT / "profiles" / f"{case}.yaml"
+    spec, tag = hidden_spec(case, seed, a.hidden_set), _tag(a.hidden_set)
+    hidden, truth = make_hidden(case, seed, cache, a.hidden_set)
+    run1 = record(hidden, cache / f"run-{tag}{case}-{seed}")
+    rep_path = cache / f"twin-{tag}{case}-{seed}.json"
+    twin_yaml = cache / f"twin-{tag}{case}-{seed}.yaml"
+    if not rep_path.is_file():
+        rc = gb("twin", run1, "--profile", nominal, "--write", twin_yaml, "--json", rep_path,
+                "--iterations", a.iterations, "--max-effects", a.max_effects,
+                log=cache / f"twin-{tag}{case}-{seed}.log")
+        if rc:
+            raise SystemExit(f"gearbench twin failed: see {cache / f'twin-{tag}{case}-{seed}.log'}")
+    rep = json.loads(rep_path.read_text())
+    tv = _defaults(yaml.safe_load(hidden.read_text())["simulation"])
+    tv, unseen = _as_the_run_shows(run1, spec, tv)
+    row = {"case": case, "seed": seed, "ok": True, "wall_s": rep.get("wall_s"), "replays": rep.get("fit_replays"),
+           "effects": sorted(spec["effects"])}
+    if "hidden" in sections:
+        print(f"\n=== {case}: hidden bench '{a.hidden_set}' (seed {seed}), twin fitted from {nominal.name} "
+              f"(gearbench twin: {rep.get('wall_s', float('nan')):.0f} s wall, "
+              f"{rep.get('fit_replays', '?')} replays) ===")
+        if a.hidden_set == "random":
+            moves = ", ".join(f"{k.replace('motors.', '')} {100 * (tv(k) / _nominal(case, k) - 1):+.0f} %"
+                              for k in spec["params"])
+            print(f"drawn: {moves}; effects {', '.join(f'{e} ' + ', '.join(f'{k}={v:.4g}' for k, v in p.items()) for e, p in spec['effects'].items())}")
+        counts = _param_table(rep, tv, truth)
+        row.update(zip(("within", "params", "moved_within", "moved"), counts))
+        row["ok"] &= counts[2] == counts[3]
+        found = {c["effect"] for c in rep.get("chain", []) if c["significant"]}
+        shown = [eff for eff in spec["effects"] if eff not in unseen]
+        row["effects"] = sorted(shown)
+        row["unseen"] = sorted(unseen)
+        row["found"] = sum(eff in found for eff in shown)
+        row["missed"] = [eff for eff in shown if eff not in found]
+        for eff, paths in spec["effects"].items():
+            hit = eff in found
+            row["ok"] &= hit or eff in unseen
+            print(f"hidden effect {eff:<16} ({', '.join(f'{k}={v:.4g}' for k, v in paths.items())}): "
+                  f"{'FOUND' if hit else 'not found'}" + (f" - {unseen[eff]}" if eff in unseen else ""))
+        extra = found - set(spec["effects"])
+        row["extra"] = sorted(extra)
+        if extra:
+            print(f"effects added that were not hidden: {', '.join(sorted(extra))}")
+        for amb in rep.get("ambiguities") or []:
+            print(f"reported ambiguous: {amb}")
+        for pr in rep.get("profiles") or []:
+            t = tv(pr["path"])
+            print(f"profile interval of {pr['path']}: {pr['written']:.5g} ± {pr['interval']:.3g}"
+                  + (f" (truth {t:.5g})" if t is not None else ""))
+        gt = rep.get("gap_total", {})
+        row["gap"] = (gt.get("before"), gt.get("after"))
+        print(f"total gap (rms, noise floors): profile {gt.get('before', float('nan')):.2f} -> "
+              f"twin {gt.get('after', float('nan')):.2f}")
+        if "proof" in rep:
+            res = _results("results: run (re-analysed) vs twin (re-simulated, same analysis)",
+                           rep["proof"]["real"], rep["proof"]["twin"])
+            row.update(zip(("results_ok", "results_within", "results", "verdicts_same", "verdicts"), res))
+            row["ok"] &= res[0]
+    if "unit2" in sections and a.hidden_set == "main":
+        unit2(case, hidden, twin_yaml, run1, cache, nominal)   # informative: a spread the twin cannot know
+    return row
+
+
+ONE_WAY_SHARE = 0.02   # a motor turning backwards less than this share of its moving samples turns one way
+
+
+def _as_the_run_shows(run: Path, spec: dict, tv):
+    """(truth lookup, {effect: why the run cannot show it}). A direction-dependent Coulomb
+    friction on a motor the run turns one way only is not identifiable from it: the run
+    sees Tc ± Tc_asym, one number, so the truth the twin is scored against is that
+    (``Tc_asym`` itself is not scored) and the effect is not counted as one to name."""
+    import numpy as np
+    import pandas as pd
+
+    override, unseen = {}, {}
+    for path in (spec["effects"].get("direction_friction") or {}):
+        axis = path.split(".")[1]
+        v = np.concatenate([pd.read_parquet(f, columns=[f"{axis}.velocity_rad_s"]).iloc[:, 0].to_numpy()
+                            for f in sorted(run.glob("trace-*.parquet"))])
+        fwd, back = int((v > 0.5).sum()), int((v < -0.5).sum())
+        if min(fwd, back) < ONE_WAY_SHARE * max(fwd + back, 1):
+            sign = 1.0 if fwd >= back else -1.0
+            tc = f"motors.{axis}.Tc"
+            override[tc] = tv(tc) + sign * tv(path)
+            override[path] = None
+            unseen["direction_friction"] = (f"not identifiable: the run turns motor {axis} "
+                                            f"{'forward' if sign > 0 else 'backward'} only (its Tc scored as "
+                                            f"Tc {'+' if sign > 0 else '-'} Tc_asym = {override[tc]:.4g})")
+    return (lambda p: override[p] if p in override else tv(p)), unseen
+
+
+def _nominal(case: str, path: str) -> float:
+    block = yaml.safe_load((ROOT / "profiles" / f"{case}.yaml").read_text())["simulation"]
+    v = get_path(block, path)
+    return float(_defaults(block)(path) if v is None else v)
+
+
+def print_summary(rows: list[dict], hidden_set: str) -> None:
+    """The distribution over the runs: per run one line, then the pooled shares."""
+    print(f"\n=== distribution over {len(rows)} hidden runs ('{hidden_set}') ===")
+    print(f"{'case':<6} {'seed':>5} {'params within':>13} {'moved within':>12} {'effects found':>13} "
+          f"{'extra':<22} {'results within':>14} {'verdicts':>8} {'gap before->after':>18} {'wall s':>7}")
+    for r in rows:
+        gb_, ga = r.get("gap", (None, None))
+        print(f"{r['case']:<6} {r['seed']:>5} {r.get('within', 0):>6}/{r.get('params', 0):<6} "
+              f"{r.get('moved_within', 0):>6}/{r.get('moved', 0):<5} {r.get('found', 0):>6}/{len(r['effects']):<6} "
+              f"{','.join(r.get('extra', [])) or '-':<22} {r.get('results_within', 0):>7}/{r.get('results', 0):<6} "
+              f"{r.get('verdicts_same', 0):>3}/{r.get('verdicts', 0):<4} "
+              f"{_f(gb_):>8} -> {_f(ga):<7} {_f(r.get('wall_s')):>7}")
+    tot = {k: sum(r.get(k, 0) for r in rows) for k in ("within", "params", "moved_within", "moved", "found",
+                                                       "results_within", "results", "verdicts_same", "verdicts")}
+    n_eff = sum(len(r["effects"]) for r in rows)
+    by_eff = {}
+    for r in rows:
+        for e in r["effects"]:
+            by_eff.setdefault(e, []).append(e not in r.get("missed", []))
+    print(f"parameters within their 95 % interval: {tot['within']}/{tot['params']} "
+          f"({100 * tot['within'] / max(tot['params'], 1):.1f} %; moved {tot['moved_within']}/{tot['moved']}); "
+          f"hidden effects named: {tot['found']}/{n_eff}; runs with an effect added that was not hidden: "
+          f"{sum(bool(r.get('extra')) for r in rows)}/{len(rows)}; results within the run's intervals: "
+          f"{tot['results_within']}/{tot['results']}; verdicts as the run's: {tot['verdicts_same']}/{tot['verdicts']}; "
+          f"runs entirely right: {sum(r['ok'] for r in rows)}/{len(rows)}")
+    print("hidden effects named, by effect: " + ", ".join(f"{e} {sum(v)}/{len(v)}" for e, v in sorted(by_eff.items())))
 
 
 def perfect_twin(run_dir: Path, trials: int) -> dict:
@@ -206,9 +328,10 @@ def perfect_twin(run_dir: Path, trials: int) -> dict:
             "median_z": float(np.median(z)), "verdicts_differing": verdicts}
 
 
-def _param_table(rep: dict, tv, truth: dict) -> bool:
+def _param_table(rep: dict, tv, truth: dict) -> tuple[int, int, int, int]:
     """parameter, truth, fitted, error, the 95 % interval (and its width in % of the
-    truth beside the error in %), within; returns whether every moved one is within."""
+    truth beside the error in %), within; returns (within, parameters, moved ones within,
+    moved)."""
     print(f"{'parameter':<28} {'truth':>11} {'fitted':>11} {'error %':>8} {'±95 %':>10} {'±95 % %':>8} "
           f"{'within':>6} {'moved':>5} {'Jacobian ±95 % %':>16}")
     n_in = n_moved_in = n_moved = 0
@@ -226,7 +349,7 @@ def _param_table(rep: dict, tv, truth: dict) -> bool:
               f"{rel(p['interval95'])} {'yes' if within else 'NO':>6} {'*' if moved else '':>5} "
               f"{_jacobian_pct(p, t):>16}")
     print(f"within their interval: {n_in}/{len(rep['parameters'])} (moved parameters: {n_moved_in}/{n_moved})")
-    return n_moved_in == n_moved
+    return n_in, len(rep["parameters"]), n_moved_in, n_moved
 
 
 def _jacobian_pct(p: dict, truth: float) -> str:
@@ -253,7 +376,7 @@ def unit2(case: str, hidden: Path, twin_yaml: Path, run1: Path, cache: Path, nom
     tv1 = _defaults(yaml.safe_load(hidden.read_text())["simulation"])
     spread = ", ".join(f"{k.replace('motors.', '')} {100 * (v / tv1(k) - 1):+.0f} %" for k, v in truth2.items())
     print(f"\n--- {case}: a second unit of the same kind (unit-to-unit spread: {spread}; seed 21) ---")
-    ok = _results("unit 2's run vs the twin of unit 1 (run --sim --twin, seed 21); unit 1's own run for scale",
+    ok, *_ = _results("unit 2's run vs the twin of unit 1 (run --sim --twin, seed 21); unit 1's own run for scale",
                   _res(run2), _res(pred), third=_res(run1))
     print("  the twin is fitted on one unit and knows no unit-to-unit spread: its prediction of another unit "
           "holds within that unit's 95 % interval only where the spread moves a result by less than the "
@@ -271,11 +394,12 @@ def _res(run: Path) -> dict:
             "limits": [{"name": x["name"], "passed": x["passed"]} for x in r.get("limits") or []]}
 
 
-def _results(title: str, real: dict, twin: dict, third: dict | None = None) -> bool:
+def _results(title: str, real: dict, twin: dict, third: dict | None = None) -> tuple[bool, int, int, int, int]:
     """Results side by side; within = |twin − real| inside the run's 95 % interval and the
     twin's mean's own (``twin.proof.half_width``: the twin pooled over its noise draws; a
     single run, as unit 2's prediction, has no spread). Returns whether every Kt and η is
-    within and every verdict is one of the twin's draws'."""
+    within and every verdict is one of the twin's draws', then (results within, results,
+    verdicts the same, verdicts)."""
     from ..twin.proof import half_width, verdict_among_draws, within
 
     k = twin.get("draws", 1)
@@ -284,10 +408,14 @@ def _results(title: str, real: dict, twin: dict, third: dict | None = None) -> b
           + (f" {'unit 1':>9}" if third else ""))
     ok = True
 
+    n_in = n_res = 0
+
     def line(label, a, b, ci, sd=None, c=None):
-        nonlocal ok
+        nonlocal ok, n_in, n_res
         w = within(a, b, ci, sd, k)
         ok &= w != "NO"
+        n_in += w == "yes"
+        n_res += w in ("yes", "NO")
         hw = half_width(ci, sd, k)
         d = "" if a is None or b is None or not a else f"{100 * (b - a) / abs(a):7.2f}"
         h = "" if hw is None or not a else f"{100 * hw / abs(a):8.2f}"
@@ -312,7 +440,7 @@ def _results(title: str, real: dict, twin: dict, third: dict | None = None) -> b
     ok &= same == len(real["limits"])
     print(f"  limits with the run's verdict among the twin's draws: {same}/{len(real['limits'])}; "
           f"run {real['status']} vs twin {twin['status']}")
-    return ok
+    return ok, n_in, n_res, same, len(real["limits"])
 
 
 def _emps_start(t_s, q_m, tau_n, cutoff_hz: float = 100.0) -> tuple[float, float, float, float]:
@@ -433,7 +561,6 @@ def emps_single_axis(folder: Path, iterations: int = 12, max_effects: int = 2) -
     (as Tc_asym, fitted; no chain can find what is already on). From a start 20 %
     off (M 80, Fv 150, Fc 15) Levenberg–Marquardt stopped at a local minimum with twice the
     gap of the published values (323 vs 144 floors rms)."""
-    import math
 
     import numpy as np
 

@@ -79,9 +79,12 @@ def run(args) -> int:
     report["chain"] = chain
     report["profiles"] = prob.profiles
     report["ambiguities"] = prob.ambiguities
+    report["not_identifiable"] = prob.not_identifiable()
     _print_chain(chain)
     for amb in prob.ambiguities:
         print(f"  AMBIGUOUS: {amb}")
+    for what in report["not_identifiable"]:
+        print(f"  NOT IDENTIFIABLE from this run: {what}")
     fitted = F.with_params(prob.block, params)
     fitted_values = F.written_values(params)
     report["parameters"] = [{"path": p.path, "start": start_values.get(p.path, 0.0), "fitted": fitted_values[p.path],
@@ -252,7 +255,8 @@ def _print_before_after(before, after) -> None:
 def _write_block(path: Path, block: dict, run_dir: str, report: dict) -> None:
     head = (f"# Digital twin fitted by `gearbench twin {run_dir}`.\n"
             f"# Use: gearbench run PROFILE --sim --twin {path.name}\n"
-            f"# Effects added: {', '.join(c['effect'] for c in report.get('chain', []) if c['significant']) or 'none'}\n")
+            f"# Effects added: {', '.join(c['effect'] for c in report.get('chain', []) if c['significant']) or 'none'}\n"
+            + "".join(f"# Not identifiable from that run: {w}\n" for w in report.get("not_identifiable", [])))
     path.write_text(head + yaml.safe_dump({"simulation": _plain(block)}, sort_keys=False))
 
 

@@ -117,3 +117,81 @@ def second_unit(block: dict, spread: dict, defaults) -> tuple[dict, dict]:
         set_path(b, path, float(now) * f)
         truth[path] = float(now) * f
     return b, truth
+
+
+# A family of hidden benches for the check on cases nobody chose (``--hidden-set random``):
+# per seed, 7 parameters of what the twin fits moved by a random share in a random
+# direction and two effects of the diagnosis vocabulary switched on at random sizes. The
+# ranges are a bench engineer's "a unit differs from its datasheet by this much", not
+# tuned to what the twin recovers.
+RANDOM_PARAMS = {   # path: (smallest, largest) relative move; the direction is drawn too
+    "motors.in.Kt": (0.02, 0.10), "motors.out.Kt": (0.02, 0.10),
+    "motors.in.J": (0.05, 0.25), "motors.out.J": (0.05, 0.25),
+    "motors.in.D": (0.10, 0.50), "motors.out.D": (0.10, 0.50),
+    "motors.in.Tc": (0.10, 0.40), "motors.out.Tc": (0.10, 0.40),
+    "motors.in.current_lag_s": (0.10, 0.50), "motors.out.current_lag_s": (0.10, 0.50),
+    "motors.in.vel_kp": (0.05, 0.25), "motors.out.vel_kp": (0.05, 0.25),
+    "drag_torque_nm": (0.10, 0.40), "drag_viscous": (0.10, 0.50),
+}
+RANDOM_REDUCER = {
+    "cvt": {"cvt.eta_max": (0.02, 0.08), "cvt.eta_slope_per_rad_s": (0.10, 0.40),
+            "cvt.pulsation_amp": (0.10, 0.40), "ratio": (0.01, 0.05)},
+    "plain": {"eta_mesh": (0.02, 0.08)},
+}
+RANDOM_EFFECTS = ("current_offset", "kt_saturation", "torque_ripple", "stribeck_friction",
+                  "direction_friction", "backlash")
+RANDOM_MOVED = 7
+
+
+def random_spec(case: str, block: dict, seed: int, defaults) -> dict:
+    """A spec like ``HIDDEN[case]`` drawn from seed ``seed`` (numpy's default generator):
+    ``RANDOM_MOVED`` parameters of ``RANDOM_PARAMS`` and the reducer's, each × (1 ± U(lo, hi)),
+    an efficiency kept ≤ 0.97; two distinct effects of ``RANDOM_EFFECTS`` (backlash only on a
+    plain reducer: the simulation has none on a CVT) on a random motor:
+
+    - current_offset: ±U(0.005, 0.03) A
+    - kt_saturation: Kt at the drive's current limit lowered by U(5, 30) %
+    - torque_ripple: U(1, 4) % of Kt·i at an order of 2, 3, 4, 6, 8 or 12 per revolution
+    - stribeck_friction: Ts = U(0.3, 1.0)·Tc
+    - direction_friction: Tc_asym = ±U(0.1, 0.3)·Tc
+    - backlash: U(0.005, 0.03) rad at the input shaft
+    """
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    cvt = block.get("cvt") is not None
+    pool = dict(RANDOM_PARAMS) | RANDOM_REDUCER["cvt" if cvt else "plain"]
+    params = {}
+    for path in rng.choice(sorted(pool), size=RANDOM_MOVED, replace=False):
+        lo, hi = pool[path]
+        f = 1.0 + rng.choice((-1.0, 1.0)) * rng.uniform(lo, hi)
+        if path in ("cvt.eta_max", "eta_mesh"):
+            now = get_path(block, path)
+            now = defaults(path) if now is None else now
+            params[str(path)] = ("=", float(min(0.97, now * f)))
+        else:
+            params[str(path)] = ("*", float(f))
+    effects = {}
+    names = [e for e in RANDOM_EFFECTS if not (cvt and e == "backlash")]
+    for eff in map(str, rng.choice(names, size=2, replace=False)):
+        m = f"motors.{rng.choice(('in', 'out'))}"
+
+        def now(name):
+            v = get_path(block, f"{m}.{name}")
+            return float(defaults(f"{m}.{name}") if v is None else v)
+        tc = now("Tc") * (params.get(f"{m}.Tc", ("*", 1.0))[1])
+        if eff == "current_offset":
+            effects[eff] = {f"{m}.current_offset_a": float(rng.choice((-1, 1)) * rng.uniform(0.005, 0.03))}
+        elif eff == "kt_saturation":   # Kt/(1+(i/s)²) = Kt·(1−d) at the current limit
+            d = rng.uniform(0.05, 0.30)
+            effects[eff] = {f"{m}.kt_sat_a": float(now("current_limit_a") * ((1 - d) / d) ** 0.5)}
+        elif eff == "torque_ripple":
+            effects[eff] = {f"{m}.ripple_amp": float(rng.uniform(0.01, 0.04)),
+                            f"{m}.ripple_order": int(rng.choice((2, 3, 4, 6, 8, 12)))}
+        elif eff == "stribeck_friction":
+            effects[eff] = {f"{m}.Ts": float(rng.uniform(0.3, 1.0) * tc)}
+        elif eff == "direction_friction":
+            effects[eff] = {f"{m}.Tc_asym": float(rng.choice((-1, 1)) * rng.uniform(0.1, 0.3) * tc)}
+        else:
+            effects[eff] = {"backlash_rad": float(rng.uniform(0.005, 0.03))}
+    return {"params": params, "effects": effects}
