@@ -209,6 +209,8 @@ def hidden_case(case: str, seed: int, a, cache: Path, sections: set) -> dict:
             print(f"effects added that were not hidden: {', '.join(sorted(extra))}")
         for amb in rep.get("ambiguities") or []:
             print(f"reported ambiguous: {amb}")
+        for what in rep.get("not_identifiable") or []:
+            print(f"reported not identifiable: {what}")
         for pr in rep.get("profiles") or []:
             t = tv(pr["path"])
             print(f"profile interval of {pr['path']}: {pr['written']:.5g} ± {pr['interval']:.3g}"
@@ -287,6 +289,10 @@ def print_summary(rows: list[dict], hidden_set: str) -> None:
           f"{tot['results_within']}/{tot['results']}; verdicts as the run's: {tot['verdicts_same']}/{tot['verdicts']}; "
           f"runs entirely right: {sum(r['ok'] for r in rows)}/{len(rows)}")
     print("hidden effects named, by effect: " + ", ".join(f"{e} {sum(v)}/{len(v)}" for e, v in sorted(by_eff.items())))
+    unseen = [e for r in rows for e in r.get("unseen", [])]
+    if unseen:
+        print("hidden effects the run cannot show (scored as the run shows them, not counted): "
+              + ", ".join(f"{e} {unseen.count(e)}" for e in sorted(set(unseen))))
 
 
 def perfect_twin(run_dir: Path, trials: int) -> dict:
