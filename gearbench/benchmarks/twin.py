@@ -186,7 +186,8 @@ def hidden_case(case: str, seed: int, a, cache: Path, sections: set) -> dict:
               f"(gearbench twin: {rep.get('wall_s', float('nan')):.0f} s wall, "
               f"{rep.get('fit_replays', '?')} replays) ===")
         if a.hidden_set == "random":
-            moves = ", ".join(f"{k.replace('motors.', '')} {100 * (tv(k) / _nominal(case, k) - 1):+.0f} %"
+            nom = _defaults(yaml.safe_load(nominal.read_text())["simulation"])
+            moves = ", ".join(f"{k.replace('motors.', '')} {100 * (tv(k) / nom(k) - 1):+.0f} %"
                               for k in spec["params"])
             print(f"drawn: {moves}; effects {', '.join(f'{e} ' + ', '.join(f'{k}={v:.4g}' for k, v in p.items()) for e, p in spec['effects'].items())}")
         counts = _param_table(rep, tv, truth)
@@ -255,12 +256,6 @@ def _as_the_run_shows(run: Path, spec: dict, tv):
                                             f"{'forward' if sign > 0 else 'backward'} only (its Tc scored as "
                                             f"Tc {'+' if sign > 0 else '-'} Tc_asym = {override[tc]:.4g})")
     return (lambda p: override[p] if p in override else tv(p)), unseen
-
-
-def _nominal(case: str, path: str) -> float:
-    block = yaml.safe_load((ROOT / "profiles" / f"{case}.yaml").read_text())["simulation"]
-    v = get_path(block, path)
-    return float(_defaults(block)(path) if v is None else v)
 
 
 def print_summary(rows: list[dict], hidden_set: str) -> None:

@@ -73,14 +73,19 @@ def set_path(block: dict, path: str, value) -> None:
     d[last] = value
 
 
+def value_of(block: dict, path: str, defaults):
+    """The block's value at ``path``, else ``defaults(path)`` (the simulation's default)."""
+    v = get_path(block, path)
+    return defaults(path) if v is None else v
+
+
 def hidden_block(nominal: dict, spec: dict, defaults) -> tuple[dict, dict]:
     """(hidden simulation block, truth {path: value}) from the nominal block and a spec of
     ``HIDDEN``; ``defaults(path)`` gives a parameter's default when the block omits it."""
     block = copy.deepcopy(nominal)
     truth = {}
     for path, (op, v) in spec["params"].items():
-        now = get_path(block, path)
-        now = defaults(path) if now is None else now
+        now = value_of(block, path, defaults)
         new = now * v if op == "*" else v
         set_path(block, path, float(new))
         truth[path] = float(new)
@@ -112,8 +117,7 @@ def second_unit(block: dict, spread: dict, defaults) -> tuple[dict, dict]:
     b = copy.deepcopy(block)
     truth = {}
     for path, f in spread.items():
-        now = get_path(b, path)
-        now = defaults(path) if now is None else now
+        now = value_of(b, path, defaults)
         set_path(b, path, float(now) * f)
         truth[path] = float(now) * f
     return b, truth
@@ -166,25 +170,20 @@ def random_spec(case: str, block: dict, seed: int, defaults) -> dict:
         lo, hi = pool[path]
         f = 1.0 + rng.choice((-1.0, 1.0)) * rng.uniform(lo, hi)
         if path in ("cvt.eta_max", "eta_mesh"):
-            now = get_path(block, path)
-            now = defaults(path) if now is None else now
-            params[str(path)] = ("=", float(min(0.97, now * f)))
+            params[str(path)] = ("=", float(min(0.97, value_of(block, path, defaults) * f)))
         else:
             params[str(path)] = ("*", float(f))
     effects = {}
     names = [e for e in RANDOM_EFFECTS if not (cvt and e == "backlash")]
     for eff in map(str, rng.choice(names, size=2, replace=False)):
         m = f"motors.{rng.choice(('in', 'out'))}"
-
-        def now(name):
-            v = get_path(block, f"{m}.{name}")
-            return float(defaults(f"{m}.{name}") if v is None else v)
-        tc = now("Tc") * (params.get(f"{m}.Tc", ("*", 1.0))[1])
+        tc = float(value_of(block, f"{m}.Tc", defaults)) * params.get(f"{m}.Tc", ("*", 1.0))[1]
         if eff == "current_offset":
             effects[eff] = {f"{m}.current_offset_a": float(rng.choice((-1, 1)) * rng.uniform(0.005, 0.03))}
         elif eff == "kt_saturation":   # Kt/(1+(i/s)²) = Kt·(1−d) at the current limit
             d = rng.uniform(0.05, 0.30)
-            effects[eff] = {f"{m}.kt_sat_a": float(now("current_limit_a") * ((1 - d) / d) ** 0.5)}
+            lim = float(value_of(block, f"{m}.current_limit_a", defaults))
+            effects[eff] = {f"{m}.kt_sat_a": lim * ((1 - d) / d) ** 0.5}
         elif eff == "torque_ripple":
             effects[eff] = {f"{m}.ripple_amp": float(rng.uniform(0.01, 0.04)),
                             f"{m}.ripple_order": int(rng.choice((2, 3, 4, 6, 8, 12)))}
