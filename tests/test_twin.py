@@ -577,11 +577,76 @@ def test_a_profile_vertex_is_taken_only_inside_its_points():
     for a profile that falls all the way (cyclo seed 41's exact backlash profile) or
     has too few points."""
     xs = [0.019, 0.020, 0.021, 0.022, 0.023]
-    v, c2 = F._vertex([(x, (x - 0.0205) ** 2 * 1e6 + 3.0) for x in xs], 0.021)
-    assert v == pytest.approx(0.0205) and c2 == pytest.approx(1e6)
+    v, c2, sig = F._vertex([(x, (x - 0.0205) ** 2 * 1e6 + 3.0) for x in xs], 0.021)
+    assert v == pytest.approx(0.0205) and c2 == pytest.approx(1e6) and sig == pytest.approx(0.0, abs=1e-9)
     assert F._vertex([(x, -x) for x in xs], 0.021) is None                       # no curvature
     assert F._vertex([(x, (x - 0.03) ** 2) for x in xs], 0.021) is None          # minimum beyond the grid
     assert F._vertex([(x, x ** 2) for x in xs[:3]], 0.02) is None                # too few points
+
+
+def test_the_jitter_of_a_profile_moves_its_minimum_by_the_sigma_it_reports():
+    """S along a backlash jitters (contact events move by a substep): the vertex's σ from
+    the points' scatter about the parabola is the scatter of the vertex over jitter draws
+    (the cyclo run: ±40 floors² on a rise of a few hundred over ±2 mrad)."""
+    rng = np.random.default_rng(3)
+    xs = 0.020 + np.array([-2.0, -1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0]) * 1e-3
+    draws = [F._vertex([(x, (x - 0.0203) ** 2 * 2.2e7 + 3.5e5 + rng.normal(0, 40)) for x in xs], 0.020)
+             for _ in range(400)]
+    draws = [d for d in draws if d is not None]
+    assert len(draws) > 350
+    spread = np.std([d[0] for d in draws])
+    assert 2e-4 < spread < 6e-4          # the jitter moves the minimum by several tenths of a mrad
+    assert np.median([d[2] for d in draws]) == pytest.approx(spread, rel=0.3)
+
+
+class _Rough:
+    """A linear problem r = A·u − y plus a jitter of S that neighbouring vectors do not share
+    (a replay with contact events): ``settle``'s toy."""
+
+    def __init__(self, jitter: float):
+        rng = np.random.default_rng(0)
+        self.A, self.y, self.jitter, self.block = rng.normal(size=(200, 2)), rng.normal(size=200), jitter, {}
+
+    def residual_vector(self, block, smooth=None):
+        u = np.array([block["a"], block["b"]])
+        bump = np.zeros(200)
+        bump[0] = self.jitter * (1.0 + math.sin(1e6 * u.sum()))    # not smooth in u at any scale
+        return self.A @ u - self.y + bump
+
+    def blocks(self, span):
+        return np.arange(200) // 10
+
+
+def test_settle_takes_the_linearised_minimum_that_a_rough_S_hid_from_the_fit():
+    """LM stalls where S's jitter outweighs what the next step gains; ``settle`` takes the
+    undamped Gauss–Newton step when its replay does not rise by more than it promised, else
+    widens every interval by the step (the fit is that far from where its interval is drawn)."""
+    for jitter, taken in ((0.5, True), (40.0, False)):
+        prob = _Rough(jitter)
+        params = [F.Param("a", 0.3, 1.0, lo=-10), F.Param("b", -0.2, 1.0, lo=-10)]
+        u = np.array([0.3, -0.2])
+        r = prob.residual_vector({"a": 0.3, "b": -0.2})
+        step = np.linalg.lstsq(prob.A, -r, rcond=None)[0]     # the linearised minimum, from u
+        F.settle(prob, params, prob.A, r)
+        got = np.array([p.value for p in params])
+        if taken:
+            assert got == pytest.approx(u + step)
+            assert all(p.stall == 0.0 for p in params)
+        else:
+            assert got == pytest.approx(u)
+            assert [p.stall for p in params] == pytest.approx(np.abs(step))
+        # the replay's jitter is in σ (in quadrature), the stall added to the interval
+        assert all(p.jitter > 0 for p in params)
+        bare = copy.deepcopy(params)
+        for q in bare:
+            q.jitter = 0.0
+        F.set_intervals(prob, bare, prob.A, prob.residual_vector({"a": got[0], "b": got[1]}))
+        assert [p.sigma for p in params] == pytest.approx(np.hypot([q.sigma for q in bare],
+                                                                   [p.jitter for p in params]))
+        assert all(p.interval == pytest.approx(1.96 * p.sigma + abs(p.model_bias) + p.stall) for p in params)
+    # the jitter's σ grows with the jitter: 40 against 0.5 in one residual of 200
+    assert params[0].jitter > 10 * F.replay_jitter(_Rough(0.5), params, prob.A, _Rough(0.5).residual_vector(
+        {"a": params[0].value, "b": params[1].value}))[0]
 
 
 def test_a_profile_whose_exact_curve_falls_all_the_way_keeps_the_smoothed_minimum():

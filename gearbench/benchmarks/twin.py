@@ -282,7 +282,7 @@ def print_summary(rows: list[dict], hidden_set: str) -> None:
           f"hidden effects named: {tot['found']}/{n_eff}; runs with an effect added that was not hidden: "
           f"{sum(bool(r.get('extra')) for r in rows)}/{len(rows)}; results within the run's intervals: "
           f"{tot['results_within']}/{tot['results']}; verdicts as the run's: {tot['verdicts_same']}/{tot['verdicts']}; "
-          f"runs entirely right: {sum(r['ok'] for r in rows)}/{len(rows)}")
+          f"runs with every moved parameter, hidden effect and result right: {sum(r['ok'] for r in rows)}/{len(rows)}")
     print("hidden effects named, by effect: " + ", ".join(f"{e} {sum(v)}/{len(v)}" for e, v in sorted(by_eff.items())))
     unseen = [e for r in rows for e in r.get("unseen", [])]
     if unseen:

@@ -31,7 +31,11 @@ Intervals (95 %), honest about a coloured residual and an inexact model:
   b is its first-order estimate b = −(JᵀJ)⁻¹Jᵀ(r_exact − r_smooth) at the fitted values.
 
 Both are carried to the block's SI values by the delta method (J = (J/Kt)·Kt with its
-covariance, kt_sat_a = p^(-1/2)).
+covariance, kt_sat_a = p^(-1/2)). Where the replay is not smooth in the parameters (a
+backlash's contact events move by a substep) two more terms enter at the chain's end
+(``settle``): σ² gains the replay's own jitter carried to the estimate
+(``replay_jitter``), and a fit that stalled on that jitter short of its linearised
+minimum either takes that step or has its distance from it added to the interval.
 
 Effects (the diagnosis vocabulary: ``current_offset``, ``kt_saturation``,
 ``torque_ripple``, ``stribeck_friction``, ``direction_friction``, ``time_delay``,
@@ -112,10 +116,14 @@ SCAN_REFIT = 0.5
 REFIT_ITERATIONS = 10   # LM iterations of the chain's refit after an effect is added
 ONE_WAY_SHARE = 0.02  # a motor turning the other way for less than this share of its moving samples turns one way
 # the profile (``profile_interval``): the grid around the value, in its Jacobian half-widths
-PROFILE_STEPS = (-2.0, -1.0, -0.5, 0.5, 1.0, 2.0)
+PROFILE_STEPS = (-2.0, -1.5, -1.0, -0.5, 0.5, 1.0, 1.5, 2.0)
 CHI2_1_95 = 3.841     # χ²(1) at 95 %: the rise of S (in s² units) at the profile's interval
 PROFILE_WIDEN = (1.0, 5.0)  # the profile's grid × these, the next when no minimum is inside
 DEBUG = False
+# the replay's jitter (``replay_jitter``): random steps of this share of each parameter's scale
+# (their linear part is nil; the jitter of S is not: ±10–125 floors² on the cyclo run), draws
+JITTER_STEP = 1e-6
+JITTER_DRAWS = 6
 # replays kept per fit (``Problem.residual_vector``): a fit replays the same parameter vector
 # again and again (an effect screened at "off" is the current fit; a profile's centre and the
 # intervals' exact replay are the fit's; the refit-screened candidates' base); 3 MB each on a
@@ -152,6 +160,8 @@ class Param:
     sigma: float = float("nan")       # standard error (the largest of the three covariances)
     model_bias: float = float("nan")  # b, the model-error share (module docstring)
     resolution: float = 0.0           # the data's resolution, added linearly (the ratio's)
+    stall: float = 0.0                # the fit's distance from its linearised minimum (``settle``)
+    jitter: float = 0.0               # σ of the replay's jitter carried to it (``replay_jitter``)
     # the whole Jacobian's interval before a profiled parameter's uncertainty was carried in
     # (``apply_profiles``; nan when none was)
     jacobian_interval: float = float("nan")
@@ -720,9 +730,9 @@ def _intervals(prob, params, J, r, r_exact, sel) -> None:
             grad[i] = -0.5 * p.value ** -1.5 if p.value > 0 else 0.0
         else:
             grad[i] = 1.0
-        p.sigma = float(math.sqrt(max(max(grad @ c @ grad for c in covs), 0.0)))
+        p.sigma = float(math.sqrt(max(max(grad @ c @ grad for c in covs), 0.0) + p.jitter ** 2))
         p.model_bias = float(grad @ bias)
-        p.interval = Z95 * p.sigma + abs(p.model_bias)
+        p.interval = Z95 * p.sigma + abs(p.model_bias) + p.stall
         if p.path == "ratio":
             # plus the angles' resolution, added linearly like the bias (``ratio_resolution``)
             p.resolution = abs(p.value) * prob.ratio_resolution()
@@ -984,12 +994,99 @@ def add_effects(prob: Problem, params: list[Param], *, max_effects: int = 4, ver
         jac, r = last["jac"], last["r"]
     else:
         jac = None
+    if jac is not None:
+        r = settle(prob, params, jac, r, verbose=verbose)
     if jac is not None and any(p.profile for p in params):
         # the parameters whose local Jacobian is not to be trusted: their profile
         prob.profiles = apply_profiles(prob, params, jac, r, verbose=verbose)
     if jac is not None:
         correct_smoothing_shift(prob, params, verbose=verbose)
     return chain
+
+
+def settle(prob: Problem, params: list[Param], jac: np.ndarray, r: np.ndarray, verbose=None) -> np.ndarray:
+    """The fit's end point moved to its linearised minimum (one undamped Gauss–Newton step
+    on the fresh Jacobian ``jac`` at the params' values, ``r`` the residual there); returns
+    the residual at the values kept.
+
+    S of a replay with contact events (a backlash) jitters by tens of floors² between
+    neighbouring parameter vectors, so Levenberg–Marquardt stalls (its damping rising)
+    where the linearised S still promises more than the χ² threshold of the intervals: the
+    cyclo run's chain ended with a step promising −87 floors² that its replay scored +4;
+    that step moved out.D by +1.45 and out.Tc by −1.40 of their intervals, toward their
+    truths (5 parameters had been outside). The linearised minimum is the estimate the
+    intervals describe, so the step is taken when the replay does not rise by more than
+    it promised to fall (the rise is the jitter, not the smooth S); otherwise each
+    parameter's interval gains the step's length (``Param.stall``): it is that far from
+    the minimum its interval is drawn around. The profiled parameters are held (their
+    columns are noise; ``apply_profiles`` moves them next)."""
+    for p, j in zip(params, replay_jitter(prob, params, jac, r)):
+        p.jitter = float(j)
+    if verbose:
+        most = sorted((p.jitter / p.sigma, p.path) for p in params if p.sigma > 0)[::-1][:3]
+        verbose("  the replay's jitter in σ (largest, against the covariances' σ): "
+                + ", ".join(f"{path} {k:.2f}" for k, path in most))
+    took, x, rn, promised, rise = _settle_step(prob, params, jac, r)
+    if verbose:
+        verbose(f"  settle: the linearised minimum promises S {-promised:+.1f} floors², its replay {rise:+.1f}: "
+                + ("taken" if took else "kept where the fit stopped, intervals widened by the step"))
+    if not took:
+        for p, dx in zip(params, x):
+            p.stall = abs(float(dx) * _dwritten(p, params))
+        rn = r
+    set_intervals(prob, params, jac, rn)
+    return rn
+
+
+def replay_jitter(prob: Problem, params: list[Param], jac: np.ndarray, r: np.ndarray,
+                  draws: int = JITTER_DRAWS) -> np.ndarray:
+    """σ of each parameter (written units) from the replay's own jitter: the residual of a
+    replay at u + δ (δ = JITTER_STEP of each scale, random: its linear part is nil) minus
+    the one at u is two independent draws of the jitter (contact events that moved by a
+    substep), so P·Δe/√2 (P = the least-squares projection on the parameters, as the fit's
+    estimate is made) is one draw of the error the jitter at the fit's end point puts in
+    the estimate. The root mean square over ``draws`` is added to σ in quadrature. On the
+    hidden cyclo run it is 0.5–2.2 σ of the mesh-side parameters (cogging, drags,
+    out.D); none where the replay is smooth."""
+    sc = np.array([p.scale for p in params])
+    u = np.array([p.value for p in params])
+    rng = np.random.default_rng(0)
+    xs = []
+    for _ in range(draws):
+        du = rng.normal(size=len(u)) * JITTER_STEP * sc
+        rk = prob.residual_vector(with_params(prob.block, params, _clip(params, u + du)))
+        if rk is None:
+            continue
+        de = rk - r - jac @ du
+        xs.append(np.linalg.lstsq(jac * sc, de, rcond=1e-12)[0] * sc / math.sqrt(2.0))
+    if not xs:
+        return np.zeros(len(params))
+    sd = np.sqrt(np.mean(np.square(xs), axis=0))
+    return np.array([abs(v * _dwritten(p, params)) for p, v in zip(params, sd)])
+
+
+def _settle_step(prob: Problem, params: list[Param], jac: np.ndarray, r: np.ndarray) -> tuple:
+    """``settle``'s step: (taken, the step, the residual there, the fall of S it promised,
+    the rise its replay gave); the params take it when taken."""
+    sc = np.array([p.scale for p in params])
+    u = np.array([p.value for p in params])
+    S = float(r @ r)
+    # the profiled parameters (their columns are noise) are held: their profile moves them next
+    free = np.array([not p.profile for p in params])
+    x = np.zeros(len(params))
+    try:
+        x[free] = np.linalg.lstsq(jac[:, free] * sc[free], -r, rcond=1e-12)[0] * sc[free]
+    except np.linalg.LinAlgError:
+        return False, x, None, 0.0, float("nan")
+    promised = S - float(np.sum((r + jac @ x) ** 2))
+    un = _clip(params, u + x)
+    rn = prob.residual_vector(with_params(prob.block, params, un))
+    rise = float(rn @ rn) - S if rn is not None else float("nan")
+    took = rn is not None and rise <= max(promised, 0.0)
+    if took:
+        for p, v in zip(params, un):
+            p.value = float(v)
+    return took, x, rn, promised, rise
 
 
 def angle_free_prefit(prob: Problem, params: list[Param], jac: np.ndarray, fold: np.ndarray,
@@ -1045,7 +1142,11 @@ def smoothing_shift(prob: Problem, params: list[Param]) -> np.ndarray | None:
     n0 = sub.evaluations
     # converged, not one step: one Gauss-Newton step from the truth of a hidden cyclo run moved
     # the drag +0.11 %, the converged refit +0.27 %
-    fit(sub, trial, iterations=SHIFT_ITERATIONS, intervals=False)
+    res = fit(sub, trial, iterations=SHIFT_ITERATIONS, intervals=False)
+    if res.get("jac") is not None:
+        # the refit stalls on the replay's jitter as the fit does (``settle``): its linearised
+        # minimum, on its last (secant-updated) Jacobian
+        _settle_step(sub, trial, res["jac"], res["r"])
     prob.evaluations += sub.evaluations - n0
     return np.array([p.value for p in trial]) - u0
 
@@ -1077,7 +1178,7 @@ def correct_smoothing_shift(prob: Problem, params: list[Param], verbose=None) ->
             p.model_bias = shift_w
         p.value = float(v)
         if p.sigma == p.sigma:
-            p.interval = Z95 * p.sigma + abs(p.model_bias) + p.resolution
+            p.interval = Z95 * p.sigma + abs(p.model_bias) + p.resolution + p.stall
         if verbose:
             verbose(f"  smoothing shift of {p.path}: {shift_w:+.3g} "
                     f"({shift_w / w0 * 100 if w0 else float('nan'):+.2f} %), taken off; b {p.model_bias:+.3g}")
@@ -1202,7 +1303,9 @@ def profile_interval(prob: Problem, params: list[Param], i: int, jac: np.ndarray
     parabola fitted through each gives its minimum v* and curvature; the interval is where
     the smoothed profile rises by χ²₁(95 %)·s²·κ above its minimum (s² = S/(n − p), κ the
     sandwich-to-white variance ratio of the parameter: coloured residuals; Venzon &
-    Moolgavkar 1988, profile-likelihood intervals), plus |v*_exact − v*_smooth| (the
+    Moolgavkar 1988, profile-likelihood intervals) - that half-width's σ in quadrature
+    with the σ of v* from the points' scatter about the parabola (S's jitter,
+    ``_vertex``) -, plus |v*_exact − v*_smooth| (the
     smoothing's bias, as in ``_intervals``); where no grid gives the exact profile a
     minimum, that bias is the first-order one (``_profile_on``). Returns None when the
     smoothed profile has no minimum (it falls toward a grid edge): the Jacobian interval
@@ -1253,9 +1356,11 @@ def _profile_on(prob, params, i, u, J, half, s2, kappa, verbose, exact_needed: b
     fits = {smooth: _vertex(pts, p.value) for smooth, pts in curves.items()}
     if fits[True] is None or (exact_needed and fits[False] is None):
         return None
-    vstar, c2 = fits[True]
+    vstar, c2, sig_jit = fits[True]
     thr = CHI2_1_95 * s2 * kappa
-    half_p = math.sqrt(thr / c2)
+    # the data's half-width (the χ² rise) and the minimum's own scatter from S's jitter,
+    # independent, in quadrature
+    half_p = Z95 * math.hypot(math.sqrt(thr / c2) / Z95, sig_jit)
     if fits[False] is not None:
         bias = fits[False][0] - vstar
     else:
@@ -1274,23 +1379,36 @@ def _profile_on(prob, params, i, u, J, half, s2, kappa, verbose, exact_needed: b
            "points": {("smooth" if k else "exact"): [(float(a), float(b)) for a, b in v] for k, v in curves.items()}}
     if verbose:
         verbose(f"  profile of {p.path}: minimum at {out['written']:.5g} (fit {p.written(None, _kts(params)):.5g}), "
-                f"95 % ±{out['interval']:.3g} (rise {thr:.3g} floors², κ {kappa:.1f}; smoothing bias "
+                f"95 % ±{out['interval']:.3g} (rise {thr:.3g} floors², κ {kappa:.1f}, jitter of the minimum "
+                f"±{abs(g) * sig_jit:.3g}; smoothing bias "
                 f"{abs(g) * bias:+.3g}); Jacobian interval was ±{p.interval:.3g}")
     return out
 
 
-def _vertex(pts: list[tuple], centre: float) -> tuple[float, float] | None:
-    """(v*, curvature) of the parabola through a profile's (v, S) points, None when it has
-    fewer than 4 points, no minimum, or its minimum lies outside them."""
+def _vertex(pts: list[tuple], centre: float) -> tuple[float, float, float] | None:
+    """(v*, curvature, σ of v*) of the least-squares parabola through a profile's (v, S)
+    points, None when it has fewer than 4 points, no minimum, or its minimum lies outside
+    them. σ of v* is the scatter of the points about the parabola carried to its vertex
+    (v* = −c₁/2c₂, delta method): S along a backlash jitters by tens of floors² between
+    neighbouring values (contact events move by a substep), which moves the minimum a
+    parabola finds by as much as the χ² rise the interval is drawn from."""
     if len(pts) < 4:
         return None
-    x = np.array([a for a, _ in pts])
+    x = np.array([a for a, _ in pts]) - centre
     y = np.array([b for _, b in pts])
-    c2, c1, _ = np.polyfit(x - centre, y, 2)
+    X = np.column_stack([x ** 2, x, np.ones_like(x)])
+    coef = np.linalg.lstsq(X, y, rcond=None)[0]
+    c2, c1 = float(coef[0]), float(coef[1])
     if c2 <= 0:
         return None
     vstar = centre - c1 / (2 * c2)
-    return (vstar, c2) if x.min() <= vstar <= x.max() else None
+    if not x.min() + centre <= vstar <= x.max() + centre:
+        return None
+    res = y - X @ coef
+    dof = len(x) - 3
+    cov = float(res @ res) / dof * np.linalg.pinv(X.T @ X) if dof > 0 else np.zeros((3, 3))
+    g = np.array([c1 / (2 * c2 ** 2), -1.0 / (2 * c2), 0.0])
+    return vstar, c2, math.sqrt(max(float(g @ cov @ g), 0.0))
 
 
 def _kts(params: list[Param]) -> dict:
@@ -1391,7 +1509,7 @@ def carry_profile(params: list[Param], i: int, pr: dict, rest: list[int]) -> Non
         dw = _dwritten(q, params) * q.scale * float(g)    # written units per unit of v
         q.sigma = math.hypot(q.sigma, dw * sig_v)
         q.model_bias = q.model_bias + dw * pr["bias"]
-        q.interval = Z95 * q.sigma + abs(q.model_bias) + q.resolution
+        q.interval = Z95 * q.sigma + abs(q.model_bias) + q.resolution + q.stall
 
 
 def _gn_heldout(prob, params, u, jac, r, fit_fold, held, block, own: list[int] | None = None) -> float:
