@@ -595,3 +595,60 @@ def test_a_stop_as_long_as_the_standstill_window_is_left_out_at_100_hz():
                              current_noise=1e-3, angle=theta)
     assert np.all(weight[stop] == 0.0), weight[stop]
     assert np.all(weight[:80] == 1.0) and np.all(weight[-80:] == 1.0)
+
+
+def test_the_default_filter_stops_a_decade_above_the_motions_band():
+    """Under a position loop what lies above the motion's band is the loop's answer to
+    disturbances (closed-loop bias); the default cutoff is 10x the band, at most 40 Hz and
+    rate/10, and the filter never longer than an eighth of the run."""
+    from gearbench.analysis.identify import MIN_FILTER_RUNS, default_cutoff, motion_band_hz
+    from gearbench.benchmarks._joint_stick_sim import STICK_JOINTS, simulate_stick_joint
+
+    d = simulate_stick_joint(STICK_JOINTS[0], motion="sine", seed=0, rate_hz=100)
+    band = motion_band_hz(d["time_s"], d["position_rad"])
+    assert 0.3 < band < 1.0            # two sines at 0.15-0.6 Hz
+    fit = identify_default(d["time_s"], d["position_rad"], d["current_a"], check=False,
+                           load_rad_per_unit=1.0, rad_per_unit=None)
+    assert fit.extras["cutoff_hz"] == pytest.approx(10 * band)
+    # a 1 kHz multisine up to 10 Hz keeps 40 Hz; a fast motion at 100 Hz keeps rate/10
+    t = np.arange(3000) * 1e-3
+    th = sum(np.sin(2 * np.pi * f * t) / f for f in (1.0, 3.0, 7.0, 10.0))
+    assert default_cutoff(t, th) == 40.0
+    t = np.arange(2000) * 1e-2
+    assert default_cutoff(t, np.sin(2 * np.pi * 4.0 * t)) == pytest.approx(10.0)
+    # a short slow run: the filter (≈ 5.5·rate/cutoff taps) at most 1/8 of it
+    t = np.arange(600) * 1e-2
+    cut = default_cutoff(t, np.sin(2 * np.pi * 0.3 * t))
+    assert cut == pytest.approx(5.5 * 100 * MIN_FILTER_RUNS / 600)
+
+
+def test_a_calibration_filters_both_runs_alike_at_the_rates_cutoff(monkeypatch):
+    """Eq. 17 cancels what the unloaded and loaded fits share: one cutoff for both, the
+    rate's (min(40 Hz, rate/10)) - not the motion band's, which cost the adaptive bench
+    procedure plants (calibration.py) - even where the runs are slow."""
+    import gearbench.analysis.calibration as C
+    from gearbench.analysis.identify import default_cutoff
+    from gearbench.errors import GearbenchError
+
+    t = np.arange(30000) * 1e-3
+    rng = np.random.default_rng(0)
+
+    def run(f_hz):
+        th = np.sin(2 * np.pi * f_hz * t) + 0.2 * np.sin(2 * np.pi * 2.3 * f_hz * t)
+        acc = np.gradient(np.gradient(th, t), t)
+        cur = 0.05 * acc + 0.02 * np.sign(np.gradient(th, t)) + rng.normal(0, 1e-3, len(t))
+        return Trace(t, {"position_rad": th, "current_a": cur}, source=f"{f_hz} Hz")
+    unloaded, loaded = run(0.8), run(0.5)
+    assert default_cutoff(t, loaded["position_rad"]) < 20.0     # identify alone would go lower
+    seen = []
+    real = C.identify_trace
+
+    def spy(trace, **kw):
+        seen.append(kw.get("cutoff_hz"))
+        return real(trace, **kw)
+    monkeypatch.setattr(C, "identify_trace", spy)
+    try:
+        C.calibrate_motor(unloaded, loaded, 1e-3)
+    except GearbenchError:
+        pass                    # refused or not, both runs were filtered alike
+    assert len(seen) >= 2 and all(c == pytest.approx(40.0) for c in seen)
