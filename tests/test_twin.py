@@ -673,6 +673,47 @@ def test_a_profile_whose_exact_curve_falls_all_the_way_keeps_the_smoothed_minimu
     assert out["interval"] == pytest.approx(math.sqrt(F.CHI2_1_95 / 1e7) + 2e-4, rel=1e-3)
 
 
+def test_a_profile_takes_in_the_scan_values_whose_S_is_as_low_as_its_minimum():
+    """Cyclo random seed 102: S along the backlash has two minima nearly as deep (1.5 and
+    8.7 mrad, the truth 8.7), and the local profile drew ±1.4 mrad around 1.6. Every scan
+    value whose S lies within the rise (plus S's jitter) is in the confidence set: the
+    interval reaches it and the run is said not to resolve the gap. A second basin above
+    the rise changes nothing."""
+    n = 40
+    other = np.where(np.arange(n) % 2, 1.0, -1.0)[:, None]
+    scan = (0.00126, 0.002, 0.0032, 0.0051, 0.0081, 0.0129, 0.05)
+
+    class Prob:
+        block = {"backlash_rad": 0.0}
+
+        def __init__(self, depth):
+            self.depth = depth
+
+        def residual_vector(self, block, smooth=None):
+            v = block["backlash_rad"]
+            s = min((v - 0.0016) ** 2 * 1e7, (v - 0.0081) ** 2 * 1e7 + self.depth) + 100.0
+            return np.full(n, math.sqrt(s / n))
+    for depth, resolved in ((1.0, False), (50.0, True)):
+        p = F.Param("backlash_rad", 0.002, 0.005, 1e-5, scan=scan, profile=True)
+        prob = Prob(depth)
+        local = F._profile_on(prob, [p], 0, np.array([0.002]), other * 0.0, 7e-4, 1.0, 1.0, None, False)
+        assert local["value"] == pytest.approx(0.0016, abs=1e-6)
+        half = local["interval"]
+        assert half == pytest.approx(math.sqrt(F.CHI2_1_95 / 1e7), rel=1e-3)
+        out = F._other_basins(prob, [p], 0, np.array([0.002]), other * 0.0, local)
+        assert out["resolved"] is resolved
+        if resolved:
+            assert out["interval"] == half and "basins" not in out
+        else:
+            got = [b["value"] for b in out["basins"]]
+            # on the scan's range, 4x as densely: every value found lies in the second basin
+            assert got and all(abs(v - 0.0081) < math.sqrt(F.CHI2_1_95 / 1e7) for v in got), got
+            assert out["interval"] == pytest.approx(max(got) - 0.0016, rel=1e-6)
+            # the interval a parameter reports reaches the other basin whatever its σ says
+            p.sigma, p.model_bias, p.basin_reach = 1e-4, 0.0, 0.0065
+            assert p.half_width() == pytest.approx(0.0065)
+
+
 def test_signal_mask_leaves_out_the_named_signals_only():
     """``Problem.signal_mask``: one flag per stacked residual, False exactly on the named
     signals (the angle-free refit after a Kt saturation, ``fit.angle_free_prefit``)."""

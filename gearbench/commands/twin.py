@@ -91,7 +91,7 @@ def run(args) -> int:
                              "before_effects": base_values.get(p.path),
                              "interval95": p.interval, "sigma": p.sigma, "model_bias": p.model_bias,
                              "resolution": p.resolution, "interval95_jacobian": p.jacobian_interval,
-                             "replay_jitter_sigma": p.jitter, "stall": p.stall,
+                             "replay_jitter_sigma": p.jitter, "stall": p.stall, "basin_reach": p.basin_reach,
                              "effect": p.effect} for p in params]
     _print_params(report["parameters"])
     s_n = chain[-1]["remaining"] if chain else res["S"] / res["n"]

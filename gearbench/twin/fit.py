@@ -118,6 +118,10 @@ ONE_WAY_SHARE = 0.02  # a motor turning the other way for less than this share o
 # the profile (``profile_interval``): the grid around the value, in its Jacobian half-widths
 PROFILE_STEPS = (-2.0, -1.5, -1.0, -0.5, 0.5, 1.0, 1.5, 2.0)
 CHI2_1_95 = 3.841     # χ²(1) at 95 %: the rise of S (in s² units) at the profile's interval
+# a scan value outside the profile's grid is judged by S at it and at ±this of it (S jitters
+# between neighbouring values; ``_other_basins``)
+BASIN_SPREAD = 0.01
+BASIN_DENSITY = 4      # ... on a grid this many times as dense as the scan's
 PROFILE_WIDEN = (1.0, 5.0)  # the profile's grid × these, the next when no minimum is inside
 DEBUG = False
 # the replay's jitter (``replay_jitter``): random steps of this share of each parameter's scale
@@ -162,13 +166,18 @@ class Param:
     resolution: float = 0.0           # the data's resolution, added linearly (the ratio's)
     stall: float = 0.0                # the fit's distance from its linearised minimum (``settle``)
     jitter: float = 0.0               # σ of the replay's jitter carried to it (``replay_jitter``)
+    # how far from its value it goes at the profiled parameter's other basins the data do not
+    # reject (``_other_basins``): the interval reaches at least that far
+    basin_reach: float = 0.0
     # the whole Jacobian's interval before a profiled parameter's uncertainty was carried in
     # (``apply_profiles``; nan when none was)
     jacobian_interval: float = float("nan")
 
     def half_width(self) -> float:
-        """Its 95 % half-width from the parts: 1.96·σ + |b| + resolution + stall."""
-        return Z95 * self.sigma + abs(self.model_bias) + self.resolution + self.stall
+        """Its 95 % half-width from the parts: 1.96·σ + |b| + resolution + stall, and at
+        least as far as the other basins of a profile the data do not reject."""
+        return max(Z95 * self.sigma + abs(self.model_bias) + self.resolution + self.stall,
+                   self.basin_reach)
 
     def written(self, v: float | None = None, kt: dict | None = None) -> float:
         v = self.value if v is None else v
@@ -325,6 +334,10 @@ def candidates(block: dict, orders: dict, peak_a: dict | None = None,
     return out
 
 
+def _basin_values(pr: dict) -> str:
+    return ", ".join(f"{b['written']:.4g}" for b in pr["basins"])
+
+
 def replay_key(plant: PlantParams) -> tuple:
     """The plant as the replay sees it, hashable: an effect switched off (amplitude 0) has
     its order dropped, so that a candidate screened at "off" with another order is the same
@@ -461,10 +474,14 @@ class Problem:
 
     def not_identifiable(self) -> list[str]:
         """What this run cannot show (said beside the fitted block, not fitted)."""
-        return [f"direction-dependent friction of motor {a}: the run turns it {way} only, so its "
-                f"fitted Tc is the {way} Coulomb friction; a profile that reverses motor {a} is "
-                f"predicted with it (record a reversing step to fit motors.{a}.Tc_asym)"
-                for a, way in self.turning().items() if way in ("forward", "backward")]
+        return ([f"direction-dependent friction of motor {a}: the run turns it {way} only, so its "
+                 f"fitted Tc is the {way} Coulomb friction; a profile that reverses motor {a} is "
+                 f"predicted with it (record a reversing step to fit motors.{a}.Tc_asym)"
+                 for a, way in self.turning().items() if way in ("forward", "backward")]
+                + [f"{pr['path']}: S is as low at {_basin_values(pr)} as at its profile's minimum "
+                   f"{pr['written']:.4g} (within the 95 % rise): its size is not resolved by this "
+                   f"run; its interval and those of the parameters that follow it reach there"
+                   for pr in self.profiles if pr.get("basins")])
 
     def ratio_resolution(self) -> float:
         """The ratio's resolution from the angles (relative): one output encoder count over
@@ -1333,8 +1350,72 @@ def profile_interval(prob: Problem, params: list[Param], i: int, jac: np.ndarray
         for widen in PROFILE_WIDEN:
             out = _profile_on(prob, params, i, u, J, half * widen, s2, kappa, verbose, exact_needed)
             if out is not None:
-                return out
+                return _other_basins(prob, params, i, u, J, out, verbose)
     return None
+
+
+def _other_basins(prob, params, i, u, J, pr: dict, verbose=None) -> dict:
+    """``pr`` (a local profile) with the values of parameter ``i``'s scan (``Param.scan``:
+    the backlash's gaps, the saturation's currents; ``BASIN_DENSITY`` x as dense) that the
+    data do not reject taken into its interval. A profile-likelihood confidence set is every
+    value whose profile S lies within the rise of the minimum, not only the basin around
+    it (Venzon & Moolgavkar 1988): S along a backlash can
+    have two minima nearly as deep (cyclo random seed 102: 1.5 and 8.7 mrad, the truth
+    8.7 mrad, S 10 floors² apart on 256,000, while the local profile drew ±1.4 mrad around
+    1.6). S jitters by tens of floors² between neighbouring values (contact events), so
+    a scan value is compared by the mean of S at it and at ±``BASIN_SPREAD`` of it, against
+    the local parabola's minimum: accepted when that mean is within the rise plus
+    Z95·√(σ_S²/3 + σ_min²) of it (σ_S the local points' scatter about their parabola, σ_min
+    the parabola minimum's own; a value whose single S is beyond the rise plus Z95·√2·σ_S
+    is rejected on that one replay). The interval then reaches the farthest accepted value,
+    and each other parameter's reaches where it went there (its linearised step, as along
+    the local profile): ``pr["basins"]`` lists them, and the profile's ``resolved`` is False."""
+    p = params[i]
+    pr["resolved"] = True
+    if not p.scan:
+        return pr
+    local = [a for a, _ in pr["points"]["smooth"]]
+    lo_l, hi_l = min(local), max(local)
+    # the scan's range BASIN_DENSITY x as densely: a basin as narrow as S's bumps (seed 102's
+    # at 8.7 mrad: S +141 at 7.0 mrad, +10 at 8.7, +38 at 10.5) falls between the scan's own
+    # values (a factor 1.6 apart)
+    grid = sorted(p.scan)
+    if len(grid) > 1 and grid[0] > 0:
+        grid = np.geomspace(grid[0], grid[-1], BASIN_DENSITY * (len(grid) - 1) + 1)
+    kts = _kts(params)
+    # only what lies beyond the local interval can widen it
+    far = [float(v) for v in grid if (v < lo_l or v > hi_l) and v >= p.lo
+           and abs(p.written(float(v), kts) - pr["written"]) > pr["interval"]]
+    s_min, s_jit, thr = pr["s_min"], pr["s_jitter"], pr["rise"]
+
+    def S_at(v):
+        uu = u.copy()
+        uu[i] = v
+        rv = prob.residual_vector(with_params(prob.block, params, uu), smooth=True)
+        return None if rv is None else _projected(J, rv)
+    basins = []
+    for v in far:
+        first = S_at(v)
+        if first is None or first[0] - s_min > thr + Z95 * math.sqrt(2.0) * s_jit:
+            continue
+        cluster = [first] + [c for c in (S_at(v * (1 - BASIN_SPREAD)), S_at(v * (1 + BASIN_SPREAD)))
+                             if c is not None]
+        mean_S = float(np.mean([c[0] for c in cluster]))
+        accept = thr + Z95 * math.sqrt(s_jit ** 2 / len(cluster) + pr["s_min_sigma"] ** 2)
+        if mean_S - s_min <= accept:
+            steps = np.mean([c[1] for c in cluster], axis=0)
+            basins.append({"value": float(v), "written": p.written(v, kts), "rise": mean_S - s_min,
+                           "accept": accept, "steps": steps.tolist()})
+    if not basins:
+        return pr
+    reach = max(abs(b["written"] - pr["written"]) for b in basins)
+    pr["interval"] = max(pr["interval"], reach)
+    pr["basins"], pr["resolved"] = basins, False
+    if verbose:
+        verbose(f"  profile of {p.path}: S as low (within the rise and S's jitter) at "
+                + ", ".join(f"{b['written']:.4g} (+{b['rise']:.3g} of {b['accept']:.3g})" for b in basins)
+                + f": the run does not resolve it; 95 % ±{pr['interval']:.3g}")
+    return pr
 
 
 def _profile_on(prob, params, i, u, J, half, s2, kappa, verbose, exact_needed: bool = True) -> dict | None:
@@ -1377,7 +1458,21 @@ def _profile_on(prob, params, i, u, J, half, s2, kappa, verbose, exact_needed: b
     # scales): how far each follows this parameter, d(other)/dv, least squares over the grid
     xs = np.array([a for a, _ in curves[True]])
     follow = np.polyfit(xs - p.value, np.array(steps), 1)[0]
+    # the profile's minimum S and S's own jitter (the points' scatter about the parabola),
+    # for the scan's other basins (``_other_basins``)
+    xs_c = xs - p.value
+    X = np.column_stack([xs_c ** 2, xs_c, np.ones_like(xs_c)])
+    ys = np.array([b for _, b in curves[True]])
+    coef = np.linalg.lstsq(X, ys, rcond=None)[0]
+    res = ys - X @ coef
+    s_jitter = math.sqrt(float(res @ res) / max(len(ys) - 3, 1))
+    s_min = float(coef[2] - coef[1] ** 2 / (4 * coef[0]))
+    # the minimum's own σ (delta method on the parabola's coefficients)
+    grad = np.array([coef[1] ** 2 / (4 * coef[0] ** 2), -coef[1] / (2 * coef[0]), 1.0])
+    s_min_sigma = s_jitter * math.sqrt(max(float(grad @ np.linalg.pinv(X.T @ X) @ grad), 0.0))
     out = {"path": p.path, "value": vstar, "half": half_p, "bias": bias, "kappa": kappa, "follow": follow,
+           "steps": [list(map(float, d)) for d in steps], "s_min": s_min, "s_jitter": s_jitter,
+           "s_min_sigma": s_min_sigma, "rise": thr,
            "written": p.written(vstar, _kts(params)), "interval": abs(g) * (half_p + abs(bias)),
            "points": {("smooth" if k else "exact"): [(float(a), float(b)) for a, b in v] for k, v in curves.items()}}
     if verbose:
@@ -1445,6 +1540,8 @@ def apply_profiles(prob: Problem, params: list[Param], jac: np.ndarray, r: np.nd
                 verbose(f"  profile of {p.path}: no minimum inside the scanned range; the Jacobian interval stays")
             continue
         out.append(pr)
+        if pr.get("basins"):
+            p.basin_reach = max(abs(b["written"] - pr["written"]) for b in pr["basins"])
         p.interval = pr["interval"]
         p.model_bias = pr["bias"] * _dwritten(p, params, pr["value"])
         p.sigma = pr["half"] * abs(_dwritten(p, params, pr["value"])) / Z95
@@ -1505,13 +1602,23 @@ def carry_profile(params: list[Param], i: int, pr: dict, rest: list[int]) -> Non
     the backlash fixed at its fitted value."""
     others = [k for k in range(len(params)) if k != i]
     sig_v = pr["half"] / Z95
-    for k, g in zip(others, pr["follow"]):
+    basins = pr.get("basins") or []
+    if basins:
+        # the others' steps at the profile's minimum (their line along the local grid), from
+        # which each basin's steps are measured
+        xs = np.array([a for a, _ in pr["points"]["smooth"]])
+        st = np.array(pr["steps"])
+        at_min = [float(np.polyval(np.polyfit(xs, st[:, j], 1), pr["value"])) for j in range(st.shape[1])]
+    for j, (k, g) in enumerate(zip(others, pr["follow"])):
         q = params[k]
         if k not in rest or q.sigma != q.sigma:
             continue
-        dw = _dwritten(q, params) * q.scale * float(g)    # written units per unit of v
+        per_step = _dwritten(q, params) * q.scale         # written units per unit step
+        dw = per_step * float(g)                          # written units per unit of v
         q.sigma = math.hypot(q.sigma, dw * sig_v)
         q.model_bias = q.model_bias + dw * pr["bias"]
+        for b in basins:
+            q.basin_reach = max(q.basin_reach, abs(per_step * (b["steps"][j] - at_min[j])))
         q.interval = q.half_width()
 
 
