@@ -12,8 +12,9 @@ import numpy as np
 
 from ..errors import ExcitationError, GearbenchError
 from ..trace import Trace
+from .derivatives import rate_cutoff
 from .identify import (C_J, D_J, KT_J, MAX_B2_REL_STD, SP_STEP, SPEED_ERR, TC_J, IdentificationResult,
-                       declared_kick, drive_sampling, identify_trace, is_speed_command, rate_cutoff,
+                       declared_kick, drive_sampling, identify_trace, is_speed_command,
                        own_to_accel_names, speed_ripple_to_noise)
 from .torque_constant import torque_constant
 from .uncertainty import DOF_MAX, interval
@@ -493,7 +494,7 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
         # bench's speed-loop multisines up to 4 Hz would be filtered at 30-40 Hz by it, and
         # that cost the adaptive procedure 3 of 40 random plants (cycle_time draws 0/1,
         # 25 -> 22 within the bound: their incremental efficiencies, not their Kt)
-        options["cutoff_hz"] = min(rate_cutoff(t["time_s"]) for t in (unloaded, loaded))
+        options["cutoff_hz"] = min(rate_cutoff(t.rate_hz) for t in (unloaded, loaded))
     if "speed_error" not in options and method in ("default", "torque", "iv"):
         # a drive that samples its current at one instant passes its speed loop's
         # quantisation ripple on (``identify.SPEED_ERR``); the speed it acted on, recorded,

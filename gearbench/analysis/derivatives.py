@@ -57,6 +57,28 @@ def forward_differences(position_rad: np.ndarray, dt_s: float) -> tuple[np.ndarr
     return w[:-1], a
 
 
+def rate_cutoff(rate_hz: float) -> float:
+    """min(40 Hz, rate/10): the common filter's cutoff from the sample rate alone (a
+    calibration's, and the excitation design's model of it; ``identify.default_cutoff``
+    also holds it below the motion's band).
+
+    Parameters
+    ----------
+    rate_hz : the sample rate.
+
+    Returns
+    -------
+    float
+        Hz.
+
+    Examples
+    --------
+    >>> rate_cutoff(1000.0), rate_cutoff(100.0)
+    (40.0, 10.0)
+    """
+    return float(min(40.0, rate_hz / 10.0))
+
+
 def lowpass_fir(cutoff_hz: float, rate_hz: float, *, transition_hz: float | None = None) -> np.ndarray:
     """Symmetric (linear-phase) Blackman-windowed sinc low-pass, unit DC gain.
 

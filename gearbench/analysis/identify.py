@@ -447,11 +447,6 @@ def motion_band_hz(time_s: np.ndarray, position: np.ndarray, share: float = MOTI
     return float(f[min(int(np.searchsorted(cum, share * cum[-1])), len(f) - 1)])
 
 
-def rate_cutoff(time_s: np.ndarray) -> float:
-    """min(40 Hz, rate/10): the common filter's cutoff from the sample rate alone."""
-    return float(min(40.0, 0.1 / float(np.median(np.diff(np.asarray(time_s, float))))))
-
-
 def default_cutoff(time_s: np.ndarray, position: np.ndarray) -> float:
     """The common filter's default cutoff: min(40 Hz, rate/10, MOTION_BAND_FACTOR × the
     motion's band), never so low that the filter exceeds 1/MIN_FILTER_RUNS of the run.
@@ -489,7 +484,7 @@ def default_cutoff(time_s: np.ndarray, position: np.ndarray) -> float:
     """
     t = np.asarray(time_s, float)
     rate = 1.0 / float(np.median(np.diff(t)))
-    cutoff = rate_cutoff(t)
+    cutoff = dv.rate_cutoff(rate)
     band = motion_band_hz(t, position)
     if band > 0:
         shortest = 5.5 * rate * MIN_FILTER_RUNS / max(len(t), 1)

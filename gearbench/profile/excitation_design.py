@@ -140,7 +140,7 @@ def equation_error_psd(freq_hz, *, b2: float, current_noise_a: float, counts_per
 def analysis_filter(period_s: float, cutoff_hz: float | None = None) -> np.ndarray:
     """The FIR a calibration applies (``calibration.calibrate_motor``: min(40 Hz, rate/10))."""
     rate = 1.0 / period_s
-    return dv.lowpass_fir(cutoff_hz or min(40.0, rate / 10.0), rate)
+    return dv.lowpass_fir(cutoff_hz or dv.rate_cutoff(rate), rate)
 
 
 def filter_gain(taps: np.ndarray, freq_hz, period_s: float) -> np.ndarray:

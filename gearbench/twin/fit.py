@@ -1408,8 +1408,8 @@ def _other_basins(prob, params, i, u, J, pr: dict, verbose=None) -> dict:
                            "accept": accept, "steps": steps.tolist()})
     if not basins:
         return pr
-    reach = max(abs(b["written"] - pr["written"]) for b in basins)
-    pr["interval"] = max(pr["interval"], reach)
+    pr["reach"] = max(abs(b["written"] - pr["written"]) for b in basins)
+    pr["interval"] = max(pr["interval"], pr["reach"])
     pr["basins"], pr["resolved"] = basins, False
     if verbose:
         verbose(f"  profile of {p.path}: S as low (within the rise and S's jitter) at "
@@ -1457,22 +1457,16 @@ def _profile_on(prob, params, i, u, J, half, s2, kappa, verbose, exact_needed: b
     # the others' re-optimised values along the profile (their linearised steps, in their
     # scales): how far each follows this parameter, d(other)/dv, least squares over the grid
     xs = np.array([a for a, _ in curves[True]])
-    follow = np.polyfit(xs - p.value, np.array(steps), 1)[0]
-    # the profile's minimum S and S's own jitter (the points' scatter about the parabola),
-    # for the scan's other basins (``_other_basins``)
-    xs_c = xs - p.value
-    X = np.column_stack([xs_c ** 2, xs_c, np.ones_like(xs_c)])
-    ys = np.array([b for _, b in curves[True]])
-    coef = np.linalg.lstsq(X, ys, rcond=None)[0]
-    res = ys - X @ coef
-    s_jitter = math.sqrt(float(res @ res) / max(len(ys) - 3, 1))
-    s_min = float(coef[2] - coef[1] ** 2 / (4 * coef[0]))
-    # the minimum's own σ (delta method on the parabola's coefficients)
+    follow, at_value = np.polyfit(xs - p.value, np.array(steps), 1)
+    # the profile's minimum S, its σ (delta method) and S's own jitter (the points' scatter
+    # about the parabola), for the scan's other basins (``_other_basins``)
+    coef, cov, s_jitter = _parabola(curves[True], p.value)
     grad = np.array([coef[1] ** 2 / (4 * coef[0] ** 2), -coef[1] / (2 * coef[0]), 1.0])
-    s_min_sigma = s_jitter * math.sqrt(max(float(grad @ np.linalg.pinv(X.T @ X) @ grad), 0.0))
     out = {"path": p.path, "value": vstar, "half": half_p, "bias": bias, "kappa": kappa, "follow": follow,
-           "steps": [list(map(float, d)) for d in steps], "s_min": s_min, "s_jitter": s_jitter,
-           "s_min_sigma": s_min_sigma, "rise": thr,
+           # the others' linearised steps at the minimum, from which a basin's are measured
+           "steps_at_min": (at_value + follow * (vstar - p.value)).tolist(),
+           "s_min": float(coef[2] - coef[1] ** 2 / (4 * coef[0])), "s_jitter": s_jitter,
+           "s_min_sigma": math.sqrt(max(float(grad @ cov @ grad), 0.0)), "rise": thr,
            "written": p.written(vstar, _kts(params)), "interval": abs(g) * (half_p + abs(bias)),
            "points": {("smooth" if k else "exact"): [(float(a), float(b)) for a, b in v] for k, v in curves.items()}}
     if verbose:
@@ -1481,6 +1475,19 @@ def _profile_on(prob, params, i, u, J, half, s2, kappa, verbose, exact_needed: b
                 f"±{abs(g) * sig_jit:.3g}; smoothing bias "
                 f"{abs(g) * bias:+.3g}); Jacobian interval was ±{p.interval:.3g}")
     return out
+
+
+def _parabola(pts: list[tuple], centre: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """(c₂, c₁, c₀), their covariance and the points' scatter σ_S about it: the
+    least-squares parabola S = c₂x² + c₁x + c₀ (x = v − ``centre``) through (v, S) points."""
+    x = np.array([a for a, _ in pts]) - centre
+    y = np.array([b for _, b in pts])
+    X = np.column_stack([x ** 2, x, np.ones_like(x)])
+    coef = np.linalg.lstsq(X, y, rcond=None)[0]
+    res = y - X @ coef
+    dof = len(x) - 3
+    scatter = math.sqrt(float(res @ res) / dof) if dof > 0 else 0.0
+    return coef, scatter ** 2 * np.linalg.pinv(X.T @ X), scatter
 
 
 def _vertex(pts: list[tuple], centre: float) -> tuple[float, float, float] | None:
@@ -1492,19 +1499,14 @@ def _vertex(pts: list[tuple], centre: float) -> tuple[float, float, float] | Non
     parabola finds by as much as the χ² rise the interval is drawn from."""
     if len(pts) < 4:
         return None
-    x = np.array([a for a, _ in pts]) - centre
-    y = np.array([b for _, b in pts])
-    X = np.column_stack([x ** 2, x, np.ones_like(x)])
-    coef = np.linalg.lstsq(X, y, rcond=None)[0]
+    coef, cov, _ = _parabola(pts, centre)
     c2, c1 = float(coef[0]), float(coef[1])
     if c2 <= 0:
         return None
     vstar = centre - c1 / (2 * c2)
+    x = np.array([a for a, _ in pts]) - centre
     if not x.min() + centre <= vstar <= x.max() + centre:
         return None
-    res = y - X @ coef
-    dof = len(x) - 3
-    cov = float(res @ res) / dof * np.linalg.pinv(X.T @ X) if dof > 0 else np.zeros((3, 3))
     g = np.array([c1 / (2 * c2 ** 2), -1.0 / (2 * c2), 0.0])
     return vstar, c2, math.sqrt(max(float(g @ cov @ g), 0.0))
 
@@ -1540,8 +1542,8 @@ def apply_profiles(prob: Problem, params: list[Param], jac: np.ndarray, r: np.nd
                 verbose(f"  profile of {p.path}: no minimum inside the scanned range; the Jacobian interval stays")
             continue
         out.append(pr)
-        if pr.get("basins"):
-            p.basin_reach = max(abs(b["written"] - pr["written"]) for b in pr["basins"])
+        if "reach" in pr:
+            p.basin_reach = pr["reach"]
         p.interval = pr["interval"]
         p.model_bias = pr["bias"] * _dwritten(p, params, pr["value"])
         p.sigma = pr["half"] * abs(_dwritten(p, params, pr["value"])) / Z95
@@ -1603,12 +1605,7 @@ def carry_profile(params: list[Param], i: int, pr: dict, rest: list[int]) -> Non
     others = [k for k in range(len(params)) if k != i]
     sig_v = pr["half"] / Z95
     basins = pr.get("basins") or []
-    if basins:
-        # the others' steps at the profile's minimum (their line along the local grid), from
-        # which each basin's steps are measured
-        xs = np.array([a for a, _ in pr["points"]["smooth"]])
-        st = np.array(pr["steps"])
-        at_min = [float(np.polyval(np.polyfit(xs, st[:, j], 1), pr["value"])) for j in range(st.shape[1])]
+    at_min = pr["steps_at_min"]
     for j, (k, g) in enumerate(zip(others, pr["follow"])):
         q = params[k]
         if k not in rest or q.sigma != q.sigma:
