@@ -607,7 +607,7 @@ class _Rough:
         rng = np.random.default_rng(0)
         self.A, self.y, self.jitter, self.block = rng.normal(size=(200, 2)), rng.normal(size=200), jitter, {}
 
-    def residual_vector(self, block, smooth=None):
+    def residual_vector(self, block, smooth=None, every_sample=False):
         u = np.array([block["a"], block["b"]])
         bump = np.zeros(200)
         bump[0] = self.jitter * (1.0 + math.sin(1e6 * u.sum()))    # not smooth in u at any scale
@@ -660,7 +660,7 @@ def test_a_profile_whose_exact_curve_falls_all_the_way_keeps_the_smoothed_minimu
     class Prob:
         block = {"backlash_rad": 0.0}
 
-        def residual_vector(self, block, smooth=None):
+        def residual_vector(self, block, smooth=None, every_sample=False):
             v = block["backlash_rad"]
             s = (v - 0.0200) ** 2 * 1e7 + 100.0 if smooth else 300.0 - 1e4 * v
             return np.full(n, math.sqrt(s / n))
@@ -689,7 +689,7 @@ def test_a_profile_takes_in_the_scan_values_whose_S_is_as_low_as_its_minimum():
         def __init__(self, depth):
             self.depth = depth
 
-        def residual_vector(self, block, smooth=None):
+        def residual_vector(self, block, smooth=None, every_sample=False):
             v = block["backlash_rad"]
             s = min((v - 0.0016) ** 2 * 1e7, (v - 0.0081) ** 2 * 1e7 + self.depth) + 100.0
             return np.full(n, math.sqrt(s / n))
@@ -727,3 +727,24 @@ def test_signal_mask_leaves_out_the_named_signals_only():
                            for k in prob.residual_keys()])
     assert np.array_equal(m, want)
     assert prob.signal_mask().all()
+
+
+def test_contact_chatter_is_left_out_of_S_and_nothing_else():
+    """A gapped mesh taken up at the efficiency step's start bounces chaotically in the
+    parameters: those samples (and only those) are left out of S; a rigid model leaves
+    out nothing."""
+    hidden = copy.deepcopy(BLOCK) | {"backlash_rad": 0.02}
+    rec = _record(hidden, _segments(n_cal=300, n_eff=1600))
+    params = F.base_params(BLOCK)
+    prob = F.Problem(rec, hidden, Q)
+    events = F.event_mask(prob, params)
+    step, sample = prob.sample_index()
+    assert events.any()
+    assert {prob.segments[int(g)].name for g in step[events]} == {"efficiency-0"}
+    assert sample[events].max() < 400, sample[events].max()    # the take-up, not the staircase
+    full = prob.residual_vector(hidden)
+    assert F.update_events(prob, params)
+    kept = prob.residual_vector(hidden)
+    assert np.all(kept[events] == 0) and np.array_equal(kept[~events], full[~events])
+    assert np.array_equal(prob.residual_vector(hidden, every_sample=True), full)
+    assert not F.event_mask(F.Problem(rec, copy.deepcopy(BLOCK), Q), params).any()

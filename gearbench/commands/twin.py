@@ -69,6 +69,7 @@ def run(args) -> int:
     params = F.base_params(block0)
     start_values = F.written_values(params)
     print(f"\nfitting {len(params)} parameters (Levenberg-Marquardt on position, velocity and current)")
+    F.update_events(prob, params, verbose=print)
     res = F.fit(prob, params, iterations=args.iterations, verbose=print)
     # the base fit, before any effect: a parameter that moves by more than its interval once
     # an effect is added had been fitted against that effect (biased while it was missing)
