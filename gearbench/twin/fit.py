@@ -393,6 +393,7 @@ class Problem:
         self.scales = {k: (POSITION_SCALE if k[1] == "position_rad" else 1.0) for k in self.floors}
         # time blocks of BLOCK_S for the sandwich and the folds, in residual order
         self._blocks = None
+        self._where = None      # (step, sample) of each stacked residual (``sample_index``)
         self.profiles = []      # ``apply_profiles``' results of the last chain
         self.ambiguities = []   # effects the run cannot tell apart (``ripple_cogging_ambiguity``)
         # (smooth, plant) -> residual; shared with the chain's sub-problems (``share_cache``)
@@ -468,7 +469,7 @@ class Problem:
 
     def sample_index(self) -> tuple[np.ndarray, np.ndarray]:
         """(step index, sample index within the step) of every stacked residual."""
-        if getattr(self, "_where", None) is None:
+        if self._where is None:
             segidx = {s.name: i for i, s in enumerate(self.segments)}
             segs = {s.name: s for s in self.segments}
             steps, samples = [], []
