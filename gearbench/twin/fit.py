@@ -1107,7 +1107,7 @@ def event_mask(prob: Problem, params: list[Param], draws: int = EVENT_DRAWS) -> 
     scale (random; its linear part moves a sample by ~10⁻⁶ floors) moves them by more than
     EVENT_FLOORS in one of ``draws`` nudges, and every signal of their step within
     EVENT_PAD_S of them goes with them. A gapped mesh taken up at a step's start hits and
-    bounces with a damping ratio of ~0.003 (the hidden cyclo run: samples 5-14 of its first
+    bounces (damping ratio ~0.05 on the reduced inertia: it separates again) (the hidden cyclo run: samples 5-14 of its first
     efficiency step, up to 4 floors on a 10⁻⁶ nudge): the bounces are chaotic in the
     parameters, so S jittered by ±15-40 floors² along the cogging amplitudes (±1 once they
     are left out), more than the curvature that gives their intervals. A model without
