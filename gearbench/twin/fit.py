@@ -1112,31 +1112,36 @@ def event_mask(prob: Problem, params: list[Param], draws: int = EVENT_DRAWS) -> 
     parameters, so S jittered by ±15-40 floors² along the cogging amplitudes (±1 once they
     are left out), more than the curvature that gives their intervals. A model without
     contact has none and leaves out nothing."""
-    u = np.array([p.value for p in params])
-    sc = np.array([p.scale for p in params])
-    r = prob.residual_vector(with_params(prob.block, params, u), every_sample=True)
+    r = prob.residual_vector(with_params(prob.block, params), every_sample=True)
     if r is None:
         return np.zeros(0, bool)
     hit = np.zeros(len(r), bool)
-    rng = np.random.default_rng(1)
-    for _ in range(draws):
-        du = rng.normal(size=len(u)) * JITTER_STEP * sc
-        rk = prob.residual_vector(with_params(prob.block, params, _clip(params, u + du)), every_sample=True)
-        if rk is not None:
-            hit |= np.abs(rk - r) > EVENT_FLOORS
+    for _, rk in _nudged(prob, params, draws, seed=1, every_sample=True):
+        hit |= np.abs(rk - r) > EVENT_FLOORS
     out = np.zeros(len(r), bool)
-    if not hit.any():
-        return out
     step, sample = prob.sample_index()
     for g in np.unique(step[hit]):
-        seg = prob.segments[int(g)]
-        pad = int(round(EVENT_PAD_S / max(float(np.median(np.diff(seg.trace.time_s))), 1e-9)))
-        times = np.unique(sample[hit & (step == g)])
-        near = np.zeros(int(sample[step == g].max()) + 1, bool)
-        for t in times:
+        in_step = step == g
+        pad = int(round(EVENT_PAD_S / max(float(np.median(np.diff(prob.segments[int(g)].trace.time_s))), 1e-9)))
+        near = np.zeros(int(sample[in_step].max()) + 1, bool)
+        for t in np.unique(sample[hit & in_step]):
             near[max(t - pad, 0):t + pad + 1] = True
-        out |= (step == g) & near[np.minimum(sample, len(near) - 1)]
+        out[in_step] = near[sample[in_step]]
     return out
+
+
+def _nudged(prob: Problem, params: list[Param], draws: int, seed: int, every_sample: bool = False):
+    """(δ, residual at u + δ) for ``draws`` random nudges δ of JITTER_STEP of each scale
+    (the values clipped to their bounds; draws whose plant is not valid are skipped)."""
+    u = np.array([p.value for p in params])
+    sc = np.array([p.scale for p in params])
+    rng = np.random.default_rng(seed)
+    for _ in range(draws):
+        du = rng.normal(size=len(u)) * JITTER_STEP * sc
+        rk = prob.residual_vector(with_params(prob.block, params, _clip(params, u + du)),
+                                  every_sample=every_sample)
+        if rk is not None:
+            yield du, rk
 
 
 def update_events(prob: Problem, params: list[Param], verbose=None) -> bool:
@@ -1165,14 +1170,8 @@ def replay_jitter(prob: Problem, params: list[Param], jac: np.ndarray, r: np.nda
     twin of the hidden cyclo run of seed 7 it is up to 1.6 σ (drag_viscous; cogging and
     in.D 0.6–0.8 σ), at the end of the random cyclo fits ≤ 0.16 σ, on cvt ≤ 0.05 σ."""
     sc = np.array([p.scale for p in params])
-    u = np.array([p.value for p in params])
-    rng = np.random.default_rng(0)
     xs = []
-    for _ in range(draws):
-        du = rng.normal(size=len(u)) * JITTER_STEP * sc
-        rk = prob.residual_vector(with_params(prob.block, params, _clip(params, u + du)))
-        if rk is None:
-            continue
+    for du, rk in _nudged(prob, params, draws, seed=0):
         de = rk - r - jac @ du
         xs.append(np.linalg.lstsq(jac * sc, de, rcond=1e-12)[0] * sc / math.sqrt(2.0))
     if not xs:
