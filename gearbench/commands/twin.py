@@ -92,7 +92,8 @@ def run(args) -> int:
                              "before_effects": base_values.get(p.path),
                              "interval95": p.interval, "sigma": p.sigma, "model_bias": p.model_bias,
                              "resolution": p.resolution, "interval95_jacobian": p.jacobian_interval,
-                             "replay_jitter_sigma": p.jitter, "stall": p.stall, "basin_reach": p.basin_reach,
+                             "replay_jitter_sigma": p.jitter,
+                             "smoothing_shift_sigma": p.shift_sigma, "stall": p.stall, "basin_reach": p.basin_reach,
                              "effect": p.effect} for p in params]
     _print_params(report["parameters"])
     s_n = chain[-1]["remaining"] if chain else res["S"] / res["n"]
@@ -238,8 +239,9 @@ def _print_params(rows: list[dict]) -> None:
         print(f"  {r['path']:<30} {r['start']:12.5g} {r['fitted']:12.5g} {'±' + format(r['interval95'], '.3g'):>14} "
               f"{r.get('sigma', float('nan')):10.3g} {r.get('model_bias', float('nan')):+11.3g} "
               f"{'' if shift != shift else format(shift, '+.1f') + ' ivl':>17}")
-    print("  interval = 1.96·sigma (largest of white and block-sandwich covariances) + |model bias| "
-          "(smoothed vs exact replay); the ratio's + one output encoder count over the output's travel; "
+    print("  interval = 1.96·sigma (largest of white and block-sandwich covariances, with the smoothing "
+          "correction's spread over its points in quadrature) + |model bias| "
+          "(smoothed vs exact replay, mean over the points); the ratio's + one output encoder count over the output's travel; "
           "backlash, Kt saturation and current lag from the profile of S (printed above the chain)")
     if biased:
         print(f"  fitted against an effect the simulation lacked (moved by more than their interval once "
