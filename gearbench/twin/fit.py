@@ -754,7 +754,7 @@ def set_intervals(prob: Problem, params: list[Param], jac: np.ndarray, r: np.nda
 
 def written_values(params: list[Param]) -> dict:
     """{path: value as the simulation block holds it (SI)} at the params' values."""
-    kt = {p.path.split(".")[1]: p.value for p in params if p.path.endswith(".Kt")}
+    kt = _kts(params)
     return {p.path: p.written(None, kt) for p in params}
 
 
@@ -1312,10 +1312,8 @@ def _sigma_value(p: Param, params: list[Param]) -> float:
 
 def _written_shift(params: list[Param], u: np.ndarray, shift: np.ndarray) -> np.ndarray:
     """A shift of the fitted values at u, in the written (block) values."""
-    kt0 = {p.path.split(".")[1]: v for p, v in zip(params, u) if p.path.endswith(".Kt")}
-    kt1 = {p.path.split(".")[1]: v for p, v in zip(params, u + shift) if p.path.endswith(".Kt")}
-    return np.array([p.written(v + s, kt1 or None) - p.written(v, kt0 or None)
-                     for p, v, s in zip(params, u, shift)])
+    kt0, kt1 = _kts(params, u), _kts(params, u + shift)
+    return np.array([p.written(v + s, kt1) - p.written(v, kt0) for p, v, s in zip(params, u, shift)])
 
 
 def correct_smoothing_shift(prob: Problem, params: list[Param], verbose=None) -> None:
@@ -1674,9 +1672,10 @@ def _vertex(pts: list[tuple], centre: float) -> tuple[float, float, float] | Non
     return vstar, c2, math.sqrt(max(float(g @ cov @ g), 0.0))
 
 
-def _kts(params: list[Param]) -> dict:
-    """{axis: fitted Kt} (``Param.written``'s ``kt``)."""
-    return {p.path.split(".")[1]: p.value for p in params if p.path.endswith(".Kt")}
+def _kts(params: list[Param], values=None) -> dict:
+    """{axis: fitted Kt} (``Param.written``'s ``kt``), at the params' values or ``values``."""
+    values = [p.value for p in params] if values is None else values
+    return {p.path.split(".")[1]: v for p, v in zip(params, values) if p.path.endswith(".Kt")}
 
 
 def _dwritten(p: Param, params: list[Param], v: float | None = None) -> float:
