@@ -13,7 +13,7 @@ import numpy as np
 from ..errors import ExcitationError, GearbenchError
 from ..trace import Trace
 from .derivatives import rate_cutoff
-from .identify import (C_J, D_J, KT_J, MAX_B2_REL_STD, SP_STEP, SPEED_ERR, TC_J, IdentificationResult,
+from .identify import (C_J, D_J, FORM_SPREAD, KT_J, MAX_B2_REL_STD, SP_STEP, SPEED_ERR, TC_J, IdentificationResult,
                        declared_kick, drive_sampling, identify_trace, is_speed_command,
                        own_to_accel_names, speed_ripple_to_noise)
 from .torque_constant import torque_constant
@@ -246,9 +246,10 @@ def calibrate_from_fits(unloaded: IdentificationResult, loaded: IdentificationRe
 
     """
     unloaded, loaded, b2_cov = share_setpoint_step(unloaded, loaded, declared=kick_declared)
-    kt = torque_constant(unloaded, loaded, disk_kgm2, disk_inertia_std=disk_std_kgm2,
+    (fu, su), (fl, sl) = _form_shift(unloaded), _form_shift(loaded)
+    kt = torque_constant(fu, fl, disk_kgm2, disk_inertia_std=disk_std_kgm2,
                          unloaded_name=unloaded_name, loaded_name=loaded_name,
-                         b2_covariance=b2_cov)
+                         b2_covariance=b2_cov, b2_form_shift=(su, sl))
     J = kt.rotor_inertia_kgm2
     ests = []
     for fit, inertia in ((unloaded, J), (loaded, J + disk_kgm2)):
@@ -278,7 +279,8 @@ def calibrate_from_fits(unloaded: IdentificationResult, loaded: IdentificationRe
         "b2_std_unloaded": unloaded.b2_std, "b2_std_loaded": loaded.b2_std,
         "Kt_std": kt.torque_constant_std, "J_std": kt.rotor_inertia_std, "dof": kt.dof,
         "Kt_std_statistical": kt.statistical_std, "Kt_std_model": kt.model_std,
-        "Kt_std_disk": kt.disk_std, "disk_inertia_std_kgm2": disk_std_kgm2, "disk": disk_name,
+        "Kt_std_disk": kt.disk_std, "Kt_std_form": kt.form_std,
+        "disk_inertia_std_kgm2": disk_std_kgm2, "disk": disk_name,
         "r2": min(unloaded.r2, loaded.r2), "rmse": max(unloaded.rmse, loaded.rmse),
         "n_samples": unloaded.n_samples + loaded.n_samples,
         "condition": max(unloaded.condition, loaded.condition),
@@ -299,6 +301,20 @@ def calibrate_from_fits(unloaded: IdentificationResult, loaded: IdentificationRe
         D=float(v[0]), Tc=float(v[1]), method=unloaded.method, fit=fit,
         loss_covariance=tuple(tuple(float(x) for x in r) for r in cov),
         Kt_std=kt.torque_constant_std, Kt_dof=float(kt.dof))
+
+
+def _form_shift(fit: IdentificationResult) -> tuple[IdentificationResult, float]:
+    """``fit`` with the regression-direction spread (``identify.FORM_SPREAD``·Δ²) taken
+    off its Kt/J variance, and that spread's signed standard shift √FORM_SPREAD·Δ: both
+    runs are fitted in the same direction, so the other direction moves both b2 at once
+    (``torque_constant``'s ``b2_form_shift``). A fit without the spread: (fit, 0)."""
+    delta = fit.extras.get("form_spread", {}).get("difference", {}).get(KT_J)
+    if delta is None or KT_J not in fit.names:
+        return fit, 0.0
+    k = fit.names.index(KT_J)
+    cov = np.array(fit.covariance, float, copy=True)
+    cov[k, k] = max(cov[k, k] - FORM_SPREAD * delta * delta, 0.0)
+    return replace(fit, covariance=cov), float(np.sqrt(FORM_SPREAD) * delta)
 
 
 def share_setpoint_step(unloaded: IdentificationResult, loaded: IdentificationResult, *,
@@ -642,8 +658,13 @@ def _with_model_variant_spread(cal: MotorCalibration, variant,
                       if MODEL_VARIANT_SPREAD * dh * dh > SPLIT_RUN_CHI2 * var_stat else 0.0)
             diffs["split run"] = dh
             var_model += excess
-    std = float(np.sqrt(max(cal.Kt_std ** 2 - cal.fit["Kt_std_model"] ** 2, 0.0) + var_model))
+    # the "accel form" variant refits the other regression direction on both runs: it
+    # measures what the fits' form spread (``Kt_std_form``) estimated from each run's Δ
+    form = cal.fit.get("Kt_std_form", 0.0) if "accel form" in diffs else 0.0
+    std = float(np.sqrt(max(cal.Kt_std ** 2 - cal.fit["Kt_std_model"] ** 2 - form ** 2, 0.0)
+                        + var_model))
     fit = {**cal.fit, "Kt_std": std, "Kt_std_model": float(np.sqrt(var_model)),
+           "Kt_std_form": float(cal.fit.get("Kt_std_form", 0.0)) if not form else 0.0,
            "model_variant_difference": diffs}
     return replace(cal, Kt_std=std, Kt_ci95=interval(cal.Kt, std, cal.Kt_dof), fit=fit)
 

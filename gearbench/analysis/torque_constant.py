@@ -46,7 +46,8 @@ class TorqueConstant:
 
     ``torque_constant_std`` is the total standard uncertainty, the root sum of squares
     of ``statistical_std`` (noise, from the runs' covariances), ``model_std`` (b2 model
-    error) and ``disk_std`` (the disk inertia's own uncertainty, Kt·u(j)/j)."""
+    error), ``disk_std`` (the disk inertia's own uncertainty, Kt·u(j)/j) and ``form_std``
+    (the runs' regression-direction spread moved through eq. 17 together)."""
 
     torque_constant_nm_a: float
     torque_constant_ci95: tuple[float, float]
@@ -57,6 +58,7 @@ class TorqueConstant:
     statistical_std: float = 0.0
     model_std: float = 0.0
     disk_std: float = 0.0
+    form_std: float = 0.0
 
 
 def torque_constant_from_b2(b2_unloaded: float, b2_loaded: float, disk_inertia_kgm2: float) -> float:
@@ -113,7 +115,8 @@ def paper_printed_eq17(b2_unloaded: float, b2_loaded: float, disk_inertia_kgm2: 
 def torque_constant(unloaded: IdentificationResult, loaded: IdentificationResult,
                     disk_inertia_kgm2: float, *, disk_inertia_std: float = 0.0,
                     model_b2_rel: float | None = None, unloaded_name: str = "unloaded run",
-                    loaded_name: str = "loaded run", b2_covariance: float = 0.0) -> TorqueConstant:
+                    loaded_name: str = "loaded run", b2_covariance: float = 0.0,
+                    b2_form_shift: tuple[float, float] = (0.0, 0.0)) -> TorqueConstant:
     """Kt from two fits (corrected eq. 17) with its uncertainty by first-order propagation.
 
     With u = 1/b2^ − 1/b2~ = j/Kt:  ∂Kt/∂b2~ = −Kt²/(j b2~²),  ∂Kt/∂b2^ = Kt²/(j b2^²),
@@ -131,6 +134,10 @@ def torque_constant(unloaded: IdentificationResult, loaded: IdentificationResult
     model_b2_rel : relative b2 model error not shared by the runs (None: ``MODEL_B2_REL``).
     b2_covariance : covariance of the two runs' b2 (fits that share a parameter,
         ``calibration.share_setpoint_step``; 0: independent runs).
+    b2_form_shift : one model error's standard shift of each run's b2, signed, taken
+        together: σ_form = |∂Kt/∂b2~·s~ + ∂Kt/∂b2^·s^| (``calibration.calibrate_from_fits``
+        passes the runs' regression-direction spread, ``identify.FORM_SPREAD``, which the
+        runs' b2 covariances then leave out).
     unloaded_name, loaded_name : the runs' names for messages.
 
     Returns
@@ -179,7 +186,11 @@ def torque_constant(unloaded: IdentificationResult, loaded: IdentificationResult
                    + 2 * dkt_dbu * dkt_dbl * b2_covariance, 0.0)
     var_disk = (kt / j * disk_inertia_std) ** 2
     var_model = (model_b2_rel * kt * bu / (bu - bl)) ** 2
-    var_known = var_disk + var_model
+    # one model (the other regression direction) shifts both runs at once: what it does to
+    # Kt is the shifts moved through eq. 17 together, not each on its own (an additive J
+    # error in both runs cancels: robustness seed 7 case 2, b2 +4.0 % and +1.9 %, Kt −0.05 %)
+    var_form = (dkt_dbu * b2_form_shift[0] + dkt_dbl * b2_form_shift[1]) ** 2
+    var_known = var_disk + var_model + var_form
     std = float(np.sqrt(var_stat + var_known))
     dof_stat = int(min(unloaded.dof, loaded.dof))
     # Welch–Satterthwaite with the model and disk parts known (infinite dof)
@@ -191,6 +202,8 @@ def torque_constant(unloaded: IdentificationResult, loaded: IdentificationResult
     dj_dbl = dkt_dbl / bu
     j_std = float(np.sqrt(max((dj_dbu * unloaded.b2_std) ** 2 + (dj_dbl * loaded.b2_std) ** 2
                               + 2 * dj_dbu * dj_dbl * b2_covariance, 0.0)
-                          + (jr / j * disk_inertia_std) ** 2))
+                          + (jr / j * disk_inertia_std) ** 2
+                          + (dj_dbu * b2_form_shift[0] + dj_dbl * b2_form_shift[1]) ** 2))
     return TorqueConstant(kt, interval(kt, std, dof), std, jr, j_std, dof,
-                          float(np.sqrt(var_stat)), float(np.sqrt(var_model)), float(np.sqrt(var_disk)))
+                          float(np.sqrt(var_stat)), float(np.sqrt(var_model)), float(np.sqrt(var_disk)),
+                          float(np.sqrt(var_form)))
