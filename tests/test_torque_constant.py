@@ -327,3 +327,40 @@ def test_the_ripple_terms_pull_on_the_losses_is_in_their_interval():
     sd_with = float(np.sqrt(g @ cov @ g))
     sd_without = float(np.sqrt(g @ (cov - C.RIPPLE_TERM_LOSS_SPREAD * np.outer(dd, dd)) @ g))
     assert abs(err) / sd_without > 3.0 and abs(err) / sd_with < 2.0, (err, sd_without, sd_with)
+
+
+def test_the_runs_form_spread_moves_kt_as_one_shift_not_two_independent_ones():
+    """Both runs are fitted in one regression direction, so the other direction shifts both
+    b2 at once: a shift that is an additive inertia in both runs (1/b2 moved alike)
+    cancels in eq. 17, one on the loaded run alone does not; the fit's own variance of
+    that spread is taken off before the runs are combined."""
+    from dataclasses import replace
+
+    from gearbench.analysis.identify import FORM_SPREAD
+    bu, bl = KT / J, KT / (J + DISK)
+    # the other direction sees J + 0.01 J in both runs
+    dj = 0.01 * J
+    du, dl = bu - KT / (J + dj), bl - KT / (J + DISK + dj)
+
+    def with_spread(b2, delta, std):
+        f = fake_fit(b2, std)
+        cov = np.array(f.covariance)
+        cov[0, 0] += FORM_SPREAD * delta ** 2
+        return replace(f, covariance=cov, extras={"form_spread": {"difference": {KT_J: delta}}})
+
+    fu, fl = with_spread(bu, du, 0.5), with_spread(bl, dl, 0.2)
+    cal = calibrate_from_fits(fu, fl, DISK)
+    alone = torque_constant(fake_fit(bu, 0.5), fake_fit(bl, 0.2), DISK)
+    # the old treatment: the two spreads as independent variances
+    both = torque_constant(fu, fl, DISK, model_b2_rel=0.0)
+    independent = np.sqrt(both.statistical_std ** 2 - alone.statistical_std ** 2)
+    assert independent > 3 * alone.statistical_std
+    # the common inertia cancels to first order (what is left is second order in dj/J)
+    assert cal.fit["Kt_std_form"] < 0.03 * independent
+    assert cal.fit["Kt_std_statistical"] == pytest.approx(alone.statistical_std, rel=1e-9)
+    # a shift of the loaded run alone moves Kt by its full propagated amount
+    fl1 = with_spread(bl, dl, 0.2)
+    fu0 = fake_fit(bu, 0.5)
+    cal1 = calibrate_from_fits(fu0, fl1, DISK)
+    dkt = abs(torque_constant_from_b2(bu, bl + np.sqrt(FORM_SPREAD) * dl, DISK) - KT)
+    assert cal1.fit["Kt_std_form"] == pytest.approx(dkt, rel=0.02)
