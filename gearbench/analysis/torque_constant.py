@@ -188,7 +188,8 @@ def torque_constant(unloaded: IdentificationResult, loaded: IdentificationResult
     var_model = (model_b2_rel * kt * bu / (bu - bl)) ** 2
     # one model (the other regression direction) shifts both runs at once: what it does to
     # Kt is the shifts moved through eq. 17 together, not each on its own (an additive J
-    # error in both runs cancels: robustness seed 7 case 2, b2 +4.0 % and +1.9 %, Kt −0.05 %)
+    # error in both runs cancels: robustness seed 7 case 2's output motor, b2 +4.0 % and
+    # +1.9 %, Kt −0.05 %)
     var_form = (dkt_dbu * b2_form_shift[0] + dkt_dbl * b2_form_shift[1]) ** 2
     var_known = var_disk + var_model + var_form
     std = float(np.sqrt(var_stat + var_known))
