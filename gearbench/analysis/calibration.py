@@ -603,9 +603,13 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
         # (the current delay's spread is already counted where the drive declared its kick)
         # (the accel form is no alternative where the ripple term is in: its coefficient,
         # −b2·γ, differs between the runs and cannot be shared)
+        # (nor where the drive's kick is computed from its loop and added to the current:
+        # the accel form's Kt is then off by its own handling of that kick,
+        # ``identify.identify_default``)
         names = tuple(n for n in MODEL_VARIANTS
                       if (n != "current delay" or "delay_model_difference" not in cal.fit)
-                      and (n != "accel form" or "speed_error" not in cal.fit))
+                      and (n != "accel form" or ("speed_error" not in cal.fit
+                                                 and not options.get("kick_a_per_rad_s"))))
 
         def half(k):
             mu, ml = len(unloaded) // 2, len(loaded) // 2
