@@ -1089,7 +1089,7 @@ def identify_default(time_s: np.ndarray, position_rad: np.ndarray, current_a: np
                 speed_error=drive_velocity_rad_s is not None and not sig.reverses)
     # with the drive's kick added to the current (its declared loop), the accel form's Kt/J
     # is off by what that kick does to a regressor: a stepping, instant-sampling drive's
-    # reversing runs (robustness seed 7) put its calibrated Kt 0.26-0.34 % below the torque
+    # reversing runs (robustness seed 7) put its calibrated Kt 0.04-0.34 % below the torque
     # form's whatever the noise, encoder, cogging or friction smoothing (an interpolating
     # or averaging drive on the same runs: 0.001-0.003 %; current lag -> 0: 0.66 %), so its
     # difference is no model error of this fit (``calibrate_motor`` skips it as a variant)
