@@ -664,12 +664,13 @@ def _with_model_variant_spread(cal: MotorCalibration, variant,
             var_model += excess
     # the "accel form" variant refits the other regression direction on both runs: it
     # measures what the fits' form spread (``Kt_std_form``) estimated from each run's Δ
-    form = cal.fit.get("Kt_std_form", 0.0) if "accel form" in diffs else 0.0
+    # (a calibration built without it, e.g. read from an older file, has no such term)
+    kept = cal.fit.get("Kt_std_form", 0.0)
+    form = kept if "accel form" in diffs else 0.0
     std = float(np.sqrt(max(cal.Kt_std ** 2 - cal.fit["Kt_std_model"] ** 2 - form ** 2, 0.0)
                         + var_model))
     fit = {**cal.fit, "Kt_std": std, "Kt_std_model": float(np.sqrt(var_model)),
-           "Kt_std_form": float(cal.fit.get("Kt_std_form", 0.0)) if not form else 0.0,
-           "model_variant_difference": diffs}
+           "Kt_std_form": kept - form, "model_variant_difference": diffs}
     return replace(cal, Kt_std=std, Kt_ci95=interval(cal.Kt, std, cal.Kt_dof), fit=fit)
 
 
