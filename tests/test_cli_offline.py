@@ -308,3 +308,65 @@ def test_calibrate_takes_an_interpolating_drives_loop_for_its_kinks(capsys, tmp_
     assert code == code2 == 0
     assert abs(looped["Kt"] / m.Kt - 1) < 2e-4, looped["Kt"] / m.Kt - 1
     assert plain["Kt"] / m.Kt - 1 < -5e-4, plain["Kt"] / m.Kt - 1
+
+
+def _joint_csv(path, scale=1.0):
+    """A simulated robot shoulder (second joint simulator, 100 Hz, joint angle) as a
+    user's CSV, the angle multiplied by ``scale`` (180/π: degrees)."""
+    from gearbench.benchmarks._joint_stick_sim import STICK_JOINTS, simulate_stick_joint
+    joint = STICK_JOINTS[1]
+    d = simulate_stick_joint(joint, motion="sine", seed=3, rate_hz=100)
+    Trace(d["time_s"], {"position_rad": d["position_rad"] * scale,
+                        "current_a": d["current_a"]}).write(path)
+    return joint
+
+
+def test_identify_with_a_torque_constant_reports_inertia_and_friction_in_si(capsys, tmp_path):
+    """--torque-constant k: J, D, Tc = k x the torque side's per-ampere coefficients, the
+    same 95 % half-widths (form spread included in both), and near the joint's truth."""
+    p = tmp_path / "shoulder.csv"
+    joint = _joint_csv(p)
+    code, out, _ = run(capsys, "identify", p, "--load-angle", "1", "--torque-constant",
+                       joint.gain_nm_a, "--json")
+    assert code == 0
+    d = json.loads(out)
+    ph, pa = d["physical"], d["per_ampere"]
+    from gearbench.analysis.uncertainty import coverage_factor
+    t = coverage_factor(d["dof"])
+    for name, key in (("J", "J/Kt"), ("D", "D/Kt"), ("Tc", "Tc/Kt")):
+        assert ph[name]["value"] == pytest.approx(joint.gain_nm_a * pa[key][0], rel=1e-9)
+        assert ph[name]["half_width_95"] == pytest.approx(t * joint.gain_nm_a * pa[key][1], rel=1e-6)
+    # the form spread is in both (without it J's interval was 2.4x narrower here)
+    assert d["form_spread"]["difference"]
+    for name, truth in (("J", joint.J), ("D", joint.Fv), ("Tc", joint.Fc)):
+        assert ph[name]["value"] == pytest.approx(truth, rel=0.05)
+    assert ph["J"]["unit"] == "kg m^2" and ph["Tc"]["unit"] == "N m"
+    code, text, _ = run(capsys, "identify", p, "--load-angle", "1", "--torque-constant", "60")
+    assert code == 0 and "with 60 N m/A (taken as exact): J " in text
+
+
+def test_identify_reads_an_angle_in_degrees_as_stated(capsys, tmp_path):
+    """--position-unit deg fits the same model as the same run in radians; unstated,
+    the degrees would be taken for radians and every rate come out 57x off."""
+    rad, deg = tmp_path / "rad.csv", tmp_path / "deg.csv"
+    _joint_csv(rad)
+    _joint_csv(deg, 180 / np.pi)
+    _, a, _ = run(capsys, "identify", rad, "--load-angle", "1", "--json")
+    code, b, _ = run(capsys, "identify", deg, "--load-angle", "1", "--position-unit", "deg", "--json")
+    assert code == 0
+    a, b = json.loads(a), json.loads(b)
+    assert b["position_unit"] == "deg"
+    assert set(b["params"]) == set(a["params"])
+    for name, v in a["params"].items():
+        assert b["params"][name] == pytest.approx(v, rel=1e-6, abs=1e-9), name
+    _, c, _ = run(capsys, "identify", deg, "--load-angle", "1", "--json", "--no-check")
+    assert json.loads(c)["b2"] == pytest.approx(a["b2"] * 180 / np.pi, rel=0.05)
+
+
+def test_identify_unit_options_bad_input(capsys, tmp_path):
+    p = tmp_path / "rad.csv"
+    _joint_csv(p)
+    bad(capsys, "identify", p, "--torque-constant", "0", must=("--torque-constant", "positive"))
+    bad(capsys, "identify", p, "--travel-per-rev", "5", must=("--travel-per-rev", "linear axis"))
+    bad(capsys, "identify", p, "--position-unit", "mm", "--travel-per-rev", "-1",
+        must=("--travel-per-rev", "positive"))

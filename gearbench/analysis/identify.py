@@ -1217,6 +1217,14 @@ def _with_form_spread(main: IdentificationResult, other: IdentificationResult) -
     identified[KT_J] = bool(b2 > 0 and b2_std <= MAX_B2_REL_STD * b2)
     extras = {**main.extras, "identified": identified,
               "form_spread": {"other": other.method, "difference": dict(zip(names, map(float, delta)))}}
+    if main.extras.get("per_ampere") and len(names) == 3:
+        # the torque side's own coefficients (J/Kt, D/Kt, Tc/Kt) = (1, D/J, Tc/J)/b2 carry
+        # the same spread, through that map's Jacobian
+        b2, dj, tj = (main.value(n) for n in names)
+        d = np.array([[-1 / b2 ** 2, 0, 0], [-dj / b2 ** 2, 1 / b2, 0],
+                      [-tj / b2 ** 2, 0, 1 / b2]]) @ delta
+        extras["per_ampere"] = {k: [v, float(np.hypot(s, np.sqrt(FORM_SPREAD) * dk))]
+                                for (k, (v, s)), dk in zip(main.extras["per_ampere"].items(), d)}
     return replace(main, covariance=cov, extras=extras)
 
 
@@ -1666,6 +1674,52 @@ def cogging_candidates(scores: np.ndarray) -> tuple[int, ...]:
     z = np.where(visible, scores, -np.inf)
     ranked = np.argsort(z)[::-1][:COGGING_CANDIDATES]
     return tuple(int(k) + 1 for k in ranked if z[k] > screen)
+
+
+def physical_parameters(fit: IdentificationResult, torque_per_ampere: float) -> dict:
+    """Inertia, viscous and Coulomb friction in SI from a fit and a known torque per ampere.
+
+    ``J θ'' + D θ' + Tc s(θ') = k i`` with k known (a motor's Kt for a motor angle; a
+    robot joint's torque per ampere, gear included, for a joint angle; a force per
+    ampere and a position in metres give kg, N s/m and N): J = k/b2, D = k·(D/J)/b2,
+    Tc = k·(Tc/J)/b2, their standard uncertainties by the delta method on the fit's
+    whole (Kt/J, D/J, Tc/J) covariance — correlations included, so a friction the run
+    identifies keeps its own interval when the inertia is poorly known (to first order:
+    the torque side's per-ampere coefficients with their model-error spreads). k is
+    taken as exact; its relative tolerance adds in quadrature to each.
+
+    Parameters
+    ----------
+    fit : an ``IdentificationResult`` with Kt/J, D/J and Tc/J.
+    torque_per_ampere : k (N m/A, or N/A for a linear axis in metres).
+
+    Returns
+    -------
+    dict
+        ``{"J": (value, std), "D": (value, std), "Tc": (value, std)}``.
+
+    References
+    ----------
+    JCGM 100:2008 (GUM), sec. 5.1.2 (law of propagation of uncertainty); M. Gautier and
+    W. Khalil, "On the identification of the inertial parameters of robots", Proc. 27th
+    IEEE CDC, 1988 (the torque-side model)
+
+    Examples
+    --------
+    >>> physical_parameters(fit, 60.0)["J"]     # doctest: +SKIP
+    (3.89, 0.075)
+    """
+    k = float(torque_per_ampere)
+    if not (np.isfinite(k) and k > 0):
+        raise ValueError(f"torque per ampere must be a positive number, got {torque_per_ampere!r}")
+    ix = [fit.names.index(n) for n in (KT_J, D_J, TC_J)]
+    b2, dj, tj = (fit.values[i] for i in ix)
+    jac = k * np.array([[-1 / b2 ** 2, 0, 0], [-dj / b2 ** 2, 1 / b2, 0],
+                        [-tj / b2 ** 2, 0, 1 / b2]])
+    cov = jac @ np.asarray(fit.covariance)[np.ix_(ix, ix)] @ jac.T
+    std = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    return {name: (float(v), float(s)) for name, v, s in
+            zip(("J", "D", "Tc"), (k / b2, k * dj / b2, k * tj / b2), std)}
 
 
 def identify(time_s, position_rad, current_a, *, method: str = "default",

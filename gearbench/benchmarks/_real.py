@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..analysis.identify import D_J, KT_J, TC_J, identify_default
+from ..analysis.identify import identify_default, physical_parameters
 from ..analysis.uncertainty import coverage_factor
 from ..trace import Trace
 from ._data import SHARED_DIR
@@ -34,18 +34,11 @@ FORMS = ("accel", "torque", "iv")
 
 
 def physical(fit, gain: float) -> dict:
-    """(inertia, viscous, Coulomb) = gain·(1/b2, (D/J)/b2, (Tc/J)/b2) with 95 % half-widths
-    by the delta method on the fit's covariance (``gain``: torque per ampere, or k for
-    EMPS's motor angle in rad per metre)."""
-    names = (KT_J, D_J, TC_J)
-    ix = [fit.names.index(n) for n in names]
-    b2, dj, tj = (fit.value(n) for n in names)
-    jac = gain * np.array([[-1 / b2 ** 2, 0, 0], [-dj / b2 ** 2, 1 / b2, 0],
-                           [-tj / b2 ** 2, 0, 1 / b2]])
-    cov = jac @ fit.covariance[np.ix_(ix, ix)] @ jac.T
-    half = coverage_factor(fit.dof) * np.sqrt(np.maximum(np.diag(cov), 0))
-    vals = gain * np.array([1 / b2, dj / b2, tj / b2])
-    return {k: (float(v), float(h)) for k, v, h in zip(("J", "Fv", "Fc"), vals, half)}
+    """(inertia, viscous, Coulomb) = ``identify.physical_parameters`` with 95 % half-widths
+    (``gain``: torque per ampere, or k for EMPS's motor angle in rad per metre)."""
+    half = coverage_factor(fit.dof)
+    ph = physical_parameters(fit, gain)
+    return {k: (v, half * s) for k, (v, s) in zip(("J", "Fv", "Fc"), ph.values())}
 
 
 def emps_rows(rates=(1000, 250, 100)) -> list[dict]:
