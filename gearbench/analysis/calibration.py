@@ -14,8 +14,8 @@ from ..errors import ExcitationError, GearbenchError
 from ..trace import Trace
 from .derivatives import rate_cutoff
 from .identify import (C_J, D_J, FORM_SPREAD, KT_J, MAX_B2_REL_STD, SP_STEP, SPEED_ERR, TC_J, IdentificationResult,
-                       declared_kick, drive_sampling, identify_trace, is_speed_command,
-                       own_to_accel_names, speed_ripple_to_noise)
+                       declared_kick, declared_period_kick, drive_sampling, identify_trace, is_speed_command,
+                       kick_speed_response, own_to_accel_names, speed_ripple_to_noise)
 from .torque_constant import torque_constant
 from .uncertainty import DOF_MAX, interval
 
@@ -73,7 +73,8 @@ SPLIT_RUN_CHI2 = 3.84
 # Relative standard uncertainty of a kick computed from the drive's declared loop
 # (``identify.kick_coefficient``): its gain and current-loop time constant as set, not as
 # the drive's scaling realises them; Kt's variance gains (ΔKt)² of a refit at c·(1 + this).
-# An assumption (not fitted): noise-free, Kp 10 % off moves Kt by 0.02-0.04 %.
+# An assumption (not fitted): noise-free, Kp 10 % off moves Kt by 0.02-0.04 %. Combined in
+# quadrature with what c leaves out at the run's rate (``identify.kick_speed_response``).
 KICK_REL_STD = 0.10
 MODEL_VARIANTS = ("current delay", "no cogging", "accel form")
 # The speed loop's ripple term is fitted only where the ripple one encoder count makes
@@ -562,14 +563,30 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
         return cal
     c = options.get("kick_a_per_rad_s")
     if c and "kick_a_per_rad_s" not in given:
+        # the declared gain's realisation, and what c leaves out: the speed's own response
+        # within the period (largest on the unloaded run, whose Kt/J is larger)
+        rel = float(np.hypot(KICK_REL_STD, kick_speed_response(unloaded, cal.fit.get("b2_unloaded", 0.0))))
         try:
             alt = calibrate_motor(unloaded, loaded, disk_kgm2, method, disk_std_kgm2=disk_std_kgm2,
                                   disk_name=disk_name, model_errors=False,
-                                  **{**given, "kick_a_per_rad_s": c * (1.0 + KICK_REL_STD)})
+                                  **{**given, "kick_a_per_rad_s": c * (1.0 + rel)})
         except ExcitationError:     # refused at the other kick: nothing to measure
             alt = None
         if alt is not None:
-            cal = _with_kick_spread(cal, alt)
+            cal = _with_kick_spread(cal, alt, rel)
+    weights = None if "period_kick_weights" in given else declared_period_kick(unloaded)
+    if weights is not None and method in ("default", "torque", "iv"):
+        # the same for the kicks or kinks the period's match misses (``identify.
+        # declared_period_kick``, from the same declared loop): the weights scaled
+        rel = float(np.hypot(KICK_REL_STD, kick_speed_response(unloaded, cal.fit.get("b2_unloaded", 0.0))))
+        try:
+            alt = calibrate_motor(unloaded, loaded, disk_kgm2, method, disk_std_kgm2=disk_std_kgm2,
+                                  disk_name=disk_name, model_errors=False,
+                                  **{**given, "period_kick_weights": weights * (1.0 + rel)})
+        except ExcitationError:
+            alt = None
+        if alt is not None:
+            cal = _with_kick_spread(cal, alt, rel)
     if (kick and (options.get("setpoint_step") or options.get("kick_a_per_rad_s"))
             and "lag" not in given):
         try:
@@ -702,12 +719,12 @@ def _with_ripple_term_loss_spread(cal: MotorCalibration, alt: MotorCalibration) 
     return replace(cal, fit=fit, loss_covariance=cov)
 
 
-def _with_kick_spread(cal: MotorCalibration, alt: MotorCalibration) -> MotorCalibration:
+def _with_kick_spread(cal: MotorCalibration, alt: MotorCalibration, rel: float = KICK_REL_STD) -> MotorCalibration:
     """``cal`` with (ΔKt)² of its difference to ``alt`` (the same runs with the declared
-    kick one KICK_REL_STD larger) added to Kt's variance: c's uncertainty propagated
-    (GUM 5.1.3, sensitivity by finite difference)."""
+    kick larger by its relative standard uncertainty ``rel``) added to Kt's variance: c's
+    uncertainty propagated (GUM 5.1.3, sensitivity by finite difference)."""
     std = float(np.hypot(cal.Kt_std, alt.Kt - cal.Kt))
-    fit = {**cal.fit, "kick_model_difference": float(alt.Kt - cal.Kt), "Kt_std": std}
+    fit = {**cal.fit, "kick_model_difference": float(alt.Kt - cal.Kt), "kick_rel_std": rel, "Kt_std": std}
     return replace(cal, Kt_std=std, Kt_ci95=interval(cal.Kt, std, cal.Kt_dof), fit=fit)
 
 
