@@ -367,6 +367,8 @@ def test_identify_unit_options_bad_input(capsys, tmp_path):
     p = tmp_path / "rad.csv"
     _joint_csv(p)
     bad(capsys, "identify", p, "--torque-constant", "0", must=("--torque-constant", "positive"))
+    bad(capsys, "identify", p, "--torque-constant", "60", "--method", "paper",
+        must=("--torque-constant", "paper"))
     bad(capsys, "identify", p, "--travel-per-rev", "5", must=("--travel-per-rev", "linear axis"))
     bad(capsys, "identify", p, "--position-unit", "mm", "--travel-per-rev", "-1",
         must=("--travel-per-rev", "positive"))

@@ -1712,6 +1712,10 @@ def physical_parameters(fit: IdentificationResult, torque_per_ampere: float) -> 
     k = float(torque_per_ampere)
     if not (np.isfinite(k) and k > 0):
         raise ValueError(f"torque per ampere must be a positive number, got {torque_per_ampere!r}")
+    missing = [n for n in (KT_J, D_J, TC_J) if n not in fit.names]
+    if missing:
+        raise ValueError(f"the {fit.method} fit has no {', '.join(missing)}: J, D and Tc need the "
+                         f"motor model's Kt/J, D/J and Tc/J")
     ix = [fit.names.index(n) for n in (KT_J, D_J, TC_J)]
     b2, dj, tj = (fit.values[i] for i in ix)
     jac = k * np.array([[-1 / b2 ** 2, 0, 0], [-dj / b2 ** 2, 1 / b2, 0],

@@ -61,6 +61,9 @@ def run(args) -> int:
     if k is not None and not (math.isfinite(k) and k > 0):
         raise GearbenchError(f"--torque-constant must be a positive torque per ampere (N m/A, "
                              f"N/A for a linear axis), got {k}")
+    if k is not None and args.method.startswith("paper"):
+        raise GearbenchError("--torque-constant needs the default method (or accel/torque/iv): "
+                             "the paper's method fits C/J where J, D and Tc need Tc/J")
     if args.load_angle is not None:
         if not (math.isfinite(args.load_angle) and args.load_angle > 0):
             raise GearbenchError(f"--load-angle must be a positive number of load radians per "
