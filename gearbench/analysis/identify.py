@@ -1941,7 +1941,7 @@ def kick_speed_response(trace, b2: float) -> float:
 
     Examples
     --------
-    >>> round(1 - 2 * (1 / 1.75 - 1 / np.expm1(1.75)), 2)     # x = 1.75
+    >>> round(float(1 - 2 * (1 / 1.75 - 1 / np.expm1(1.75))), 2)     # x = 1.75
     0.28
     """
     loop = _declared_loop(trace)
