@@ -561,11 +561,14 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
         cal.fit["kick_a_per_rad_s"] = float(options["kick_a_per_rad_s"])
     if not model_errors:
         return cal
+    # the declared loop's kick (or period weights) is uncertain by its gain's realisation
+    # and by what it leaves out, the speed's own response within the period (largest on
+    # the unloaded run, whose Kt/J is larger)
     c = options.get("kick_a_per_rad_s")
-    if c and "kick_a_per_rad_s" not in given:
-        # the declared gain's realisation, and what c leaves out: the speed's own response
-        # within the period (largest on the unloaded run, whose Kt/J is larger)
+    weights = None if "period_kick_weights" in given else declared_period_kick(unloaded)
+    if (c and "kick_a_per_rad_s" not in given) or weights is not None:
         rel = float(np.hypot(KICK_REL_STD, kick_speed_response(unloaded, cal.fit.get("b2_unloaded", 0.0))))
+    if c and "kick_a_per_rad_s" not in given:
         try:
             alt = calibrate_motor(unloaded, loaded, disk_kgm2, method, disk_std_kgm2=disk_std_kgm2,
                                   disk_name=disk_name, model_errors=False,
@@ -574,11 +577,9 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
             alt = None
         if alt is not None:
             cal = _with_kick_spread(cal, alt, rel)
-    weights = None if "period_kick_weights" in given else declared_period_kick(unloaded)
     if weights is not None and method in ("default", "torque", "iv"):
         # the same for the kicks or kinks the period's match misses (``identify.
         # declared_period_kick``, from the same declared loop): the weights scaled
-        rel = float(np.hypot(KICK_REL_STD, kick_speed_response(unloaded, cal.fit.get("b2_unloaded", 0.0))))
         try:
             alt = calibrate_motor(unloaded, loaded, disk_kgm2, method, disk_std_kgm2=disk_std_kgm2,
                                   disk_name=disk_name, model_errors=False,

@@ -1707,7 +1707,7 @@ def physical_parameters(fit: IdentificationResult, torque_per_ampere: float) -> 
     Examples
     --------
     >>> physical_parameters(fit, 60.0)["J"]     # doctest: +SKIP
-    (3.89, 0.075)
+    (3.89, 0.18)
     """
     k = float(torque_per_ampere)
     if not (np.isfinite(k) and k > 0):

@@ -36,9 +36,8 @@ FORMS = ("accel", "torque", "iv")
 def physical(fit, gain: float) -> dict:
     """(inertia, viscous, Coulomb) = ``identify.physical_parameters`` with 95 % half-widths
     (``gain``: torque per ampere, or k for EMPS's motor angle in rad per metre)."""
-    half = coverage_factor(fit.dof)
-    ph = physical_parameters(fit, gain)
-    return {k: (v, half * s) for k, (v, s) in zip(("J", "Fv", "Fc"), ph.values())}
+    t = coverage_factor(fit.dof)
+    return {k: (v, t * s) for k, (v, s) in zip(("J", "Fv", "Fc"), physical_parameters(fit, gain).values())}
 
 
 def emps_rows(rates=(1000, 250, 100)) -> list[dict]:
