@@ -561,30 +561,24 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
         cal.fit["kick_a_per_rad_s"] = float(options["kick_a_per_rad_s"])
     if not model_errors:
         return cal
-    # the declared loop's kick (or period weights) is uncertain by its gain's realisation
-    # and by what it leaves out, the speed's own response within the period (largest on
-    # the unloaded run, whose Kt/J is larger)
+    # what the declared loop adds to the current — a stepping, instant-sampling drive's kick
+    # c, or the kicks or kinks the period's match misses (``identify.declared_period_kick``),
+    # one or the other by the drive's sampling — is uncertain by the gain's realisation and
+    # by what it leaves out, the speed's own response within the period (largest on the
+    # unloaded run, whose Kt/J is larger)
     c = options.get("kick_a_per_rad_s")
-    weights = None if "period_kick_weights" in given else declared_period_kick(unloaded)
-    if (c and "kick_a_per_rad_s" not in given) or weights is not None:
-        rel = float(np.hypot(KICK_REL_STD, kick_speed_response(unloaded, cal.fit.get("b2_unloaded", 0.0))))
+    name, declared = None, None
     if c and "kick_a_per_rad_s" not in given:
+        name, declared = "kick_a_per_rad_s", c
+    elif "period_kick_weights" not in given and method in ("default", "torque", "iv"):
+        name, declared = "period_kick_weights", declared_period_kick(unloaded)
+    if declared is not None:
+        rel = float(np.hypot(KICK_REL_STD, kick_speed_response(unloaded, cal.fit.get("b2_unloaded", 0.0))))
         try:
             alt = calibrate_motor(unloaded, loaded, disk_kgm2, method, disk_std_kgm2=disk_std_kgm2,
                                   disk_name=disk_name, model_errors=False,
-                                  **{**given, "kick_a_per_rad_s": c * (1.0 + rel)})
+                                  **{**given, name: declared * (1.0 + rel)})
         except ExcitationError:     # refused at the other kick: nothing to measure
-            alt = None
-        if alt is not None:
-            cal = _with_kick_spread(cal, alt, rel)
-    if weights is not None and method in ("default", "torque", "iv"):
-        # the same for the kicks or kinks the period's match misses (``identify.
-        # declared_period_kick``, from the same declared loop): the weights scaled
-        try:
-            alt = calibrate_motor(unloaded, loaded, disk_kgm2, method, disk_std_kgm2=disk_std_kgm2,
-                                  disk_name=disk_name, model_errors=False,
-                                  **{**given, "period_kick_weights": weights * (1.0 + rel)})
-        except ExcitationError:
             alt = None
         if alt is not None:
             cal = _with_kick_spread(cal, alt, rel)

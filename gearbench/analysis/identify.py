@@ -1219,12 +1219,11 @@ def _with_form_spread(main: IdentificationResult, other: IdentificationResult) -
               "form_spread": {"other": other.method, "difference": dict(zip(names, map(float, delta)))}}
     if main.extras.get("per_ampere") and len(names) == 3:
         # the torque side's own coefficients (J/Kt, D/Kt, Tc/Kt) = (1, D/J, Tc/J)/b2 carry
-        # the same spread, through that map's Jacobian
-        b2, dj, tj = (main.value(n) for n in names)
-        d = np.array([[-1 / b2 ** 2, 0, 0], [-dj / b2 ** 2, 1 / b2, 0],
-                      [-tj / b2 ** 2, 0, 1 / b2]]) @ delta
-        extras["per_ampere"] = {k: [v, float(np.hypot(s, np.sqrt(FORM_SPREAD) * dk))]
-                                for (k, (v, s)), dk in zip(main.extras["per_ampere"].items(), d)}
+        # the same spread (that map is its own inverse: ``own_to_accel_names`` maps it)
+        _, spread = own_to_accel_names("torque", [main.value(n) for n in names], np.ones(3),
+                                       FORM_SPREAD * np.outer(delta, delta))
+        extras["per_ampere"] = {k: [v, float(np.sqrt(s * s + spread[j, j]))]
+                                for j, (k, (v, s)) in enumerate(main.extras["per_ampere"].items())}
     return replace(main, covariance=cov, extras=extras)
 
 
@@ -1717,13 +1716,12 @@ def physical_parameters(fit: IdentificationResult, torque_per_ampere: float) -> 
         raise ValueError(f"the {fit.method} fit has no {', '.join(missing)}: J, D and Tc need the "
                          f"motor model's Kt/J, D/J and Tc/J")
     ix = [fit.names.index(n) for n in (KT_J, D_J, TC_J)]
-    b2, dj, tj = (fit.values[i] for i in ix)
-    jac = k * np.array([[-1 / b2 ** 2, 0, 0], [-dj / b2 ** 2, 1 / b2, 0],
-                        [-tj / b2 ** 2, 0, 1 / b2]])
-    cov = jac @ np.asarray(fit.covariance)[np.ix_(ix, ix)] @ jac.T
+    # (b2, D/J, Tc/J) -> (1, D/J, Tc/J)/b2 is the torque side's map to the accel names
+    # (its own inverse)
+    values, cov = own_to_accel_names("torque", [fit.values[i] for i in ix], np.ones(3),
+                                     np.asarray(fit.covariance)[np.ix_(ix, ix)])
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    return {name: (float(v), float(s)) for name, v, s in
-            zip(("J", "D", "Tc"), (k / b2, k * dj / b2, k * tj / b2), std)}
+    return {name: (float(k * v), float(k * s)) for name, v, s in zip(("J", "D", "Tc"), values, std)}
 
 
 def identify(time_s, position_rad, current_a, *, method: str = "default",
