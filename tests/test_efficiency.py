@@ -221,7 +221,8 @@ def test_loss_extrapolation_is_flagged_and_widens_the_absolute_interval():
 
 def test_calibration_runs_that_disagree_on_losses_widen_the_loss_covariance():
     """Both runs measure one motor's friction; a disagreement beyond their covariances is
-    model error and enters the (D, Tc) covariance as LOSS_RUN_SPREAD x ΔΔᵀ."""
+    model error and enters the (D, Tc) covariance as LOSS_RUN_SPREAD x ΔΔᵀ; one within
+    them (Mahalanobis distance² below LOSS_RUN_CHI2) is their noise and adds nothing."""
     from gearbench.analysis.calibration import LOSS_RUN_SPREAD, calibrate_from_fits
     from gearbench.analysis.identify import D_J, KT_J, TC_J, IdentificationResult
 
@@ -239,6 +240,10 @@ def test_calibration_runs_that_disagree_on_losses_widen_the_loss_covariance():
     np.testing.assert_allclose(extra, LOSS_RUN_SPREAD * np.outer(delta, delta), rtol=1e-6, atol=1e-22)
     assert differ.fit["loss_run_difference"] == pytest.approx(list(delta))
     assert differ.fit["speed_range_rad_s"] == [20.0, 200.0]
+    # the runs' (D, Tc) standard errors here: 0.38 uN m s and 38 uN m; a quarter of each apart
+    noisy = calibrate_from_fits(fit(kt / J, 2e-6, 0.008, J), fit(kt / (J + DISK), 2.1e-6, 0.00801, J + DISK), DISK)
+    np.testing.assert_allclose(noisy.loss_covariance, agree.loss_covariance, rtol=1e-9)
+    assert noisy.fit["loss_run_difference"] == pytest.approx([-1e-7, -1e-5])
 
 
 def _with_level_offsets(tr, lvl, offsets_a):
