@@ -316,3 +316,21 @@ def test_levels_on_one_line_give_eq18_from_the_line_through_every_level():
     tr, _, lvl = hand_bench(noise=0.002, seed=3, levels=levels)
     bent = efficiency(_with_level_offsets(tr, lvl, {1.0: 0.003}), M_IN, M_OUT)
     assert all(p.incremental_method == "secant" for p in bent.points)
+
+
+def test_the_staircase_slope_pools_its_windows_degrees_of_freedom():
+    """Eq. 18's slope rests on every level's mean: its standard error's dof is the
+    Welch–Satterthwaite pool of the windows' (9 each here), not the smallest window's."""
+    from gearbench.analysis.efficiency import SteadyWindow, incremental_slope
+
+    def window(k, dof):
+        return SteadyWindow(0, 1, float(k), 100.0, -0.5 * k, 0.1 + 0.08 * k, 1e-3, -0.5 * k, 1e-3,
+                            100.0, 10.0, dof, dof)
+
+    five = [window(k, 9.0) for k in range(5)]
+    b, sb, dof = incremental_slope(five)
+    assert b == pytest.approx(-0.16) and sb > 0
+    # shares ∝ d² = 1, 1/4, 0, 1/4, 1 of 9 dof each: (5/2)² / (17/8 / 9)
+    assert dof == pytest.approx(9 * 6.25 / 2.125)
+    one_short = five[:4] + [window(4, 2.0)]
+    assert incremental_slope(one_short)[2] < dof

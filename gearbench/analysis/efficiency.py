@@ -45,7 +45,7 @@ from ..errors import ExcitationError, GearbenchError, TraceError
 from ..trace import BENCH_COLUMNS, Trace
 from .calibration import MotorCalibration
 from .ripple import ripple_corrected_current
-from .streaming import slope_fit
+from .streaming import slope_dof, slope_fit
 from .streaming import tapered_mean_sem as _mean_sem
 from .uncertainty import DOF_MAX, effective_dof, interval
 from .windows import TAPER_ALPHA, taper  # noqa: F401  (taper: public here since 0.1)
@@ -805,7 +805,7 @@ def incremental_slope(windows: list[SteadyWindow]) -> tuple[float, float, float]
     """Eq. 18 as a slope: weighted straight line of the input current's window means on
     the output current's over one speed's levels (zero load included); the reducer's
     no-load loss is the intercept. Returns (slope dI_in/dI_out, its standard error, dof:
-    the smallest window dof, as each mean's error is known from its own blocks).
+    the windows' errors pooled as the slope pools them, ``streaming.slope_dof``).
 
     Parameters
     ----------
@@ -823,9 +823,11 @@ def incremental_slope(windows: list[SteadyWindow]) -> tuple[float, float, float]
 
     x = np.array([w.current_out_a for w in windows])
     y = np.array([w.current_in_a for w in windows])
-    _, b, sb = slope_fit(x, y, np.array([w.current_in_sem for w in windows]),
-                         np.array([w.current_out_sem for w in windows]))
-    dof = min(min(w.current_in_dof for w in windows), min(w.current_out_dof for w in windows))
+    sy = np.array([w.current_in_sem for w in windows])
+    sx = np.array([w.current_out_sem for w in windows])
+    _, b, sb = slope_fit(x, y, sy, sx)
+    dof = slope_dof(x, np.hypot(sy, b * sx) if np.isfinite(b) else sy,
+                    [min(w.current_in_dof, w.current_out_dof) for w in windows])
     return b, sb, float(dof)
 
 

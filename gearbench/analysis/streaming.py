@@ -27,6 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import derivatives as dv
+from .uncertainty import effective_dof
 from .windows import taper
 
 Z95 = 1.959963984540054
@@ -304,6 +305,38 @@ def slope_fit(x: np.ndarray, y: np.ndarray, sem_y: np.ndarray, sem_x: np.ndarray
             return float("nan"), float("nan"), float("inf")
         b = float(w @ ((x - xm) * (y - ym)) / sxx)
     return ym - b * xm, b, float(np.sqrt(1.0 / sxx))
+
+
+def slope_dof(x: np.ndarray, sem: np.ndarray, dof) -> float:
+    """Degrees of freedom of a weighted slope's standard error (``slope_fit``) whose level
+    means carry errors ``sem`` known to ``dof`` each: Welch–Satterthwaite over the levels'
+    shares of Var(b), w_k·d_k²/Sxx² with w_k = 1/σ_k² and d_k = x_k − x̄_w — not the
+    smallest level's dof, which ignores that the slope pools them.
+
+    Parameters
+    ----------
+    x, sem, dof : array_like
+        The levels' x (output current means), their (effective) standard errors and
+        those errors' degrees of freedom.
+
+    Returns
+    -------
+    float
+
+    References
+    ----------
+    B. L. Welch (1947), F. E. Satterthwaite (1946); JCGM 100:2008 (GUM) G.4.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> round(slope_dof(np.array([0., 1, 2, 3]), np.full(4, 0.1), np.full(4, 4.0)), 1)
+    9.8
+    """
+    x, sem = np.asarray(x, float), np.asarray(sem, float)
+    w = 1.0 / np.maximum(sem ** 2, 1e-300)
+    d = x - float(w @ x) / float(w.sum())
+    return effective_dof(list(w * d * d), list(np.asarray(dof, float)))
 
 
 def slope_target_sem(eta_pp: float, eta: float, slope: float, x_levels: np.ndarray,
