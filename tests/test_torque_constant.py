@@ -195,11 +195,13 @@ def test_kt_model_error_is_measured_from_the_runs_under_other_models():
     diffs = cal.fit["model_variant_difference"]
     assert set(diffs) == set(MODEL_VARIANTS) | {"split run"}
     variants = MODEL_VARIANT_SPREAD * sum(diffs[n] ** 2 for n in MODEL_VARIANTS)
-    excess = max(MODEL_VARIANT_SPREAD * diffs["split run"] ** 2
-                 - cal.fit["Kt_std_statistical"] ** 2, 0.0)
-    assert cal.fit["Kt_std_model"] == pytest.approx(np.sqrt(variants + excess))
-    # this plant's runs disagree under the other models: wider than the fixed term
-    assert cal.Kt == fixed.Kt and cal.Kt_std > 1.5 * fixed.Kt_std
+    # the halves differ by 2.3 of their own sigmas, within t(95 %, 6 dof) = 2.45: no excess
+    noise = cal.fit["split_run_noise"]
+    assert abs(diffs["split run"]) / noise["noise_std"] == pytest.approx(2.27, abs=0.01)
+    assert noise["dof"] == 6.0
+    assert cal.fit["Kt_std_model"] == pytest.approx(np.sqrt(variants))
+    # the same Kt; its interval (−0.22 % off, 1.6 sigma) holds the truth
+    assert cal.Kt == fixed.Kt and cal.Kt_ci95[0] < m.Kt < cal.Kt_ci95[1]
     assert cal.Kt_ci95[0] <= m.Kt <= cal.Kt_ci95[1]
 
 
@@ -229,9 +231,11 @@ def test_a_refused_model_variant_measures_nothing():
 
 
 def test_split_run_excess_counts_only_beyond_noise():
-    """The two halves' Kt difference widens the interval only where it is significant
-    ((Δh/2)² above χ²(1)'s 95 % quantile times σ_stat²): a difference of 1.5 σ_stat
-    (1.5² < 3.84) is noise and adds nothing, one of 3 σ_stat adds (3² − 1) σ_stat²."""
+    """The two halves' Kt difference Δh widens the interval only where it is significant
+    against the halves' own statistical variances (Δh² above t²(95 %, their fewer dof)·
+    (σ0² + σ1²)), and then by ¼(Δh² − σ0² − σ1²): with halves of √2 σ_stat each, a
+    difference of 1.5·2 σ_stat is noise, one of 3·2 σ_stat adds (9 − 1) σ_stat²; one of
+    2.5·2 σ_stat counts at 100 dof but not from halves known to 4 dof (t 2.78)."""
     from types import SimpleNamespace
 
     from gearbench.analysis.calibration import MotorCalibration, _with_model_variant_spread
@@ -242,13 +246,17 @@ def test_split_run_excess_counts_only_beyond_noise():
     def same(name):
         return SimpleNamespace(Kt=0.1)
 
-    def halves(dh):
-        return lambda k: SimpleNamespace(Kt=0.1 + (dh if k == 0 else 0.0))
+    def halves(dh, dof=100.0):
+        return lambda k: SimpleNamespace(Kt=0.1 + (dh if k == 0 else 0.0), Kt_dof=dof,
+                                         fit={"Kt_std_statistical": np.sqrt(2.0) * stat})
     quiet = _with_model_variant_spread(cal, same, ("accel form",), halves(2 * 1.5 * stat))
     assert quiet.Kt_std == pytest.approx(stat)
     assert quiet.fit["model_variant_difference"]["split run"] == pytest.approx(3 * stat)
     loud = _with_model_variant_spread(cal, same, ("accel form",), halves(2 * 3.0 * stat))
     assert loud.Kt_std == pytest.approx(np.sqrt(stat ** 2 + (9 - 1) * stat ** 2))
+    middle = 2 * 2.5 * stat
+    assert _with_model_variant_spread(cal, same, ("accel form",), halves(middle)).Kt_std > 2 * stat
+    assert _with_model_variant_spread(cal, same, ("accel form",), halves(middle, 4.0)).Kt_std == pytest.approx(stat)
 
 
 def test_cogging_orders_the_data_select_leave_no_model_without_them():

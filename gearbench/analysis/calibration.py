@@ -17,7 +17,7 @@ from .identify import (C_J, D_J, FORM_SPREAD, KT_J, MAX_B2_REL_STD, SP_STEP, SPE
                        declared_kick, declared_period_kick, drive_sampling, identify_trace, is_speed_command,
                        kick_speed_response, own_to_accel_names, speed_ripple_to_noise)
 from .torque_constant import torque_constant
-from .uncertainty import DOF_MAX, interval
+from .uncertainty import DOF_MAX, coverage_factor, interval
 
 REQUIRED_KEYS = ("Kt", "J", "D", "Tc")
 # As written out (result.json, calibrate --json): SI unit suffixes on the model's names
@@ -75,7 +75,12 @@ MODEL_VARIANT_SPREAD = 0.25
 # 98.0/98.5 -> 97.0/95.5/95.5/97.5 %, median |z| 0.43/0.52/0.42/0.38 -> 0.48/0.62/0.50/
 # 0.48 (0.67 for an exact interval); plants biased 3/2/2/1 -> 4/5/3/1 %: honest
 # intervals leave some 2-2.5 sigma misses of the 0.2 % target where sigma is ~0.1 %.
-SPLIT_RUN_CHI2 = 3.84
+# Since 2026-12-06 the test and the excess take the halves' own statistical variances (the
+# two halves' Kt spread 1.1-1.2x what 4 σ_stat² gave) and the t quantile of the fewer
+# halves' dof (median 18-35, tenth percentile 5-7) instead of χ²(1): the excess fired on
+# 17/20 of 199 motors of seeds 7/8, now 13/12. Seeds 0/1/3/7/8/17 Kt / incremental coverage
+# 95.5/95.0/96.0/95.5/95.5/95.0 -> 95.0/94.5/95.5/95.0/95.0/94.5 % and 96/99/97/100/98/95 ->
+# 96/99/96/99/98/95 %; plants biased unchanged but seed 1's 2 -> 3 %.
 # Relative standard uncertainty of a kick computed from the drive's declared loop
 # (``identify.kick_coefficient``): its gain and current-loop time constant as set, not as
 # the drive's scaling realises them; Kt's variance gains (ΔKt)² of a refit at c·(1 + this).
@@ -670,10 +675,11 @@ def _with_model_variant_spread(cal: MotorCalibration, variant,
     MODEL_VARIANT_SPREAD·ΣΔ², Δ its Kt's difference to ``variant(name)`` (the same runs
     calibrated under each of ``names``), plus the split-run excess: the two halves' Kt
     (``half(0)``, ``half(1)``: each run's first and second half) differ by Δh, and
-    (Δh/2)² beyond its statistical expectation (σ_stat², each half having twice the
-    full runs' variance) is misfit that changes along the run. A variant or half that is
-    refused measures nothing. Unchanged where no variant could be calibrated."""
-    diffs = {}
+    MODEL_VARIANT_SPREAD·(Δh² − σ0² − σ1²), the part beyond the halves' own statistical
+    variances, is misfit that changes along the run — counted where Δh² exceeds
+    t²(95 %, the fewer halves' dof)·(σ0² + σ1²). A variant or half that is refused
+    measures nothing. Unchanged where no variant could be calibrated."""
+    diffs, split = {}, None
     for name in names:
         try:
             diffs[name] = float(variant(name).Kt - cal.Kt)
@@ -684,14 +690,18 @@ def _with_model_variant_spread(cal: MotorCalibration, variant,
     var_model = MODEL_VARIANT_SPREAD * sum(d * d for d in diffs.values())
     if half is not None:
         try:
-            dh = float(half(0).Kt - half(1).Kt)
+            halves = (half(0), half(1))
         except GearbenchError:
-            dh = None
-        if dh is not None:
-            var_stat = cal.fit["Kt_std_statistical"] ** 2
-            excess = (MODEL_VARIANT_SPREAD * dh * dh - var_stat
-                      if MODEL_VARIANT_SPREAD * dh * dh > SPLIT_RUN_CHI2 * var_stat else 0.0)
+            halves = None
+        if halves is not None:
+            dh = float(halves[0].Kt - halves[1].Kt)
+            # the halves' own statistical variances (their excitation need not split evenly)
+            # and the t quantile of the fewer dof: each half's variance is itself estimated
+            var_null = sum(h.fit["Kt_std_statistical"] ** 2 for h in halves)
+            q = coverage_factor(min(h.Kt_dof for h in halves)) ** 2
+            excess = MODEL_VARIANT_SPREAD * (dh * dh - var_null) if dh * dh > q * var_null else 0.0
             diffs["split run"] = dh
+            split = {"noise_std": float(np.sqrt(var_null)), "dof": float(min(h.Kt_dof for h in halves))}
             var_model += excess
     # the "accel form" variant refits the other regression direction on both runs: it
     # measures what the fits' form spread (``Kt_std_form``) estimated from each run's Δ
@@ -701,7 +711,8 @@ def _with_model_variant_spread(cal: MotorCalibration, variant,
     std = float(np.sqrt(max(cal.Kt_std ** 2 - cal.fit["Kt_std_model"] ** 2 - form ** 2, 0.0)
                         + var_model))
     fit = {**cal.fit, "Kt_std": std, "Kt_std_model": float(np.sqrt(var_model)),
-           "Kt_std_form": kept - form, "model_variant_difference": diffs}
+           "Kt_std_form": kept - form, "model_variant_difference": diffs,
+           **({"split_run_noise": split} if split else {})}
     return replace(cal, Kt_std=std, Kt_ci95=interval(cal.Kt, std, cal.Kt_dof), fit=fit)
 
 
