@@ -698,11 +698,11 @@ def _with_model_variant_spread(cal: MotorCalibration, variant,
             # the halves' own statistical variances (their excitation need not split evenly)
             # and the t quantile of the fewer dof: each half's variance is itself estimated
             var_null = sum(h.fit["Kt_std_statistical"] ** 2 for h in halves)
-            q = coverage_factor(min(h.Kt_dof for h in halves)) ** 2
-            excess = MODEL_VARIANT_SPREAD * (dh * dh - var_null) if dh * dh > q * var_null else 0.0
+            dof = float(min(h.Kt_dof for h in halves))
+            if dh * dh > coverage_factor(dof) ** 2 * var_null:
+                var_model += MODEL_VARIANT_SPREAD * (dh * dh - var_null)
             diffs["split run"] = dh
-            split = {"noise_std": float(np.sqrt(var_null)), "dof": float(min(h.Kt_dof for h in halves))}
-            var_model += excess
+            split = {"noise_std": float(np.sqrt(var_null)), "dof": dof}
     # the "accel form" variant refits the other regression direction on both runs: it
     # measures what the fits' form spread (``Kt_std_form``) estimated from each run's Δ
     # (a calibration built without it, e.g. read from an older file, has no such term)
