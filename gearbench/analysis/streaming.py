@@ -21,6 +21,7 @@ reported results still come from the full analysis of the recorded run
                  settled mean (from per-chunk second differences) and a steadiness check.
 ``kt_share``     how much of Kt's relative error one run's b2 error makes (eq. 17).
 ``slope_fit``    weighted straight line through level means (eq. 18 as a slope).
+``slope_dof``    the degrees of freedom of that slope's standard error (Welch–Satterthwaite).
 """
 from __future__ import annotations
 
