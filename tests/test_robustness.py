@@ -123,6 +123,22 @@ def test_misses_are_split_into_noise_limited_and_biased_and_coverage_is_counted(
     assert np.isnan(R.summarise([{"default": R.Outcome(error="x")}], ("default",))["default"]["z_median"]["kt"])
 
 
+def test_the_coverage_an_honest_method_shows_is_binomial_on_its_independent_units():
+    # 100 plants: honest 95 % intervals cover 90-99 % of them in 95 % of benchmarks, and
+    # fall inside the 93-97 % band only ~3 times in 4
+    h = R.honest_coverage_range(100)
+    assert h["range"] == (0.90, 0.99) and h["p_band"] == pytest.approx(0.754, abs=1e-3)
+    h = R.honest_coverage_range(200)
+    assert h["range"] == (0.92, 0.98) and h["p_band"] == pytest.approx(0.860, abs=1e-3)
+    assert np.isnan(R.honest_coverage_range(0)["p_band"])
+    # the units: a plant's two motors for Kt, the plant for its efficiency points
+    two = R.Outcome([0.1, 0.2], [0.1] * 3, [0.1] * 3, [0.05] * 2, [0.05] * 3, [0.05] * 3,
+                    [True, False], [True] * 3, [True] * 3)
+    s = R.summarise([{"default": two}, {"default": R.Outcome(error="x")}], ("default",))["default"]
+    assert s["honest"]["kt"] == R.honest_coverage_range(2)
+    assert s["honest"]["inc"] == R.honest_coverage_range(1)
+
+
 def test_reversing_case_with_cogging_meets_kt_and_its_interval_covers():
     """Case 2 of seed 0: reversing, 1.4 mN m of order-12 cogging on the input motor; before
     the cogging terms its absolute efficiency was 8-10 pp off (friction absorbed the
