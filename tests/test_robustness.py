@@ -238,7 +238,7 @@ def _pooled(outs):
 
 @pytest.mark.xfail(strict=True, reason="known: the intervals are too wide on seed 1 (317/320; "
                    "incremental 120/120, absolute 120/120) since a held angle counts as a dwell "
-                   "(identify._held) and removed reversing plant 32's biased absolute misses "
+                   "(identify.samples._held) and removed reversing plant 32's biased absolute misses "
                    "(2.3 pp, the 3 clustered misses that had kept this check inside its bound); "
                    "a Kt interval too wide in the bulk (median |z| 0.36-0.40) widens every "
                    "efficiency interval built on it")
@@ -533,7 +533,7 @@ def test_stepping_drive_at_its_current_limit_gives_kt_within_target():
     one c for both runs over-corrects the loaded run: Kt −0.55 ± 0.11 % (biased) when the
     limit is not known (−0.32 ± 0.16 % since the speed loop's ripple term is fitted too,
     ``identify.SPEED_ERR``); with the drive's declared limit the term is 0 at those samples
-    (``identify._below_current_limit``): within 0.2 % (covered before the ripple term: below)."""
+    (``identify.samples._below_current_limit``): within 0.2 % (covered before the ripple term: below)."""
     from gearbench.analysis.calibration import calibrate_motor
 
     case = R.draw_case(8, 11)
@@ -568,7 +568,7 @@ def test_stepping_drive_at_its_current_limit_is_covered_by_its_interval():
 def _kick_factor(tau_per_period: float, ticks: int, n: int = 400) -> float:
     """Period mean minus end value of a first-order lag's periodic response to the
     step-minus-ramp current command pattern (1 − (m+1)/M at speed-loop tick m, mean
-    removed), per unit Kp·Δcmd (``identify._setpoint_steps``)."""
+    removed), per unit Kp·Δcmd (``identify.drive_loop._setpoint_steps``)."""
     u = np.repeat(1.0 - (np.arange(ticks) + 1.0) / ticks, n // ticks)
     u -= u.mean()
     a = 1.0 - np.exp(-1.0 / (len(u) * tau_per_period))

@@ -54,7 +54,7 @@ LOSS_RUN_SPREAD = 0.25
 # (one more absolute-efficiency miss beyond 2 sigma).
 LOSS_RUN_CHI2 = 5.99
 # Model error of a drive that says it steps its setpoint and samples its current: the
-# exact relation has no current delay (``identify._setpoint_steps``), but a transport
+# exact relation has no current delay (``identify.drive_loop._setpoint_steps``), but a transport
 # delay of the drive is not declared; the fit with a delay is the other plausible model,
 # and (Kt, D, Tc) gain DELAY_MODEL_SPREAD x (difference)² (as LOSS_RUN_SPREAD). Without
 # it, seed 8 case 18's output motor had D +50 ± 19 % and Tc −9.3 ± 3.6 mN m off truth.
@@ -336,7 +336,7 @@ def share_setpoint_step(unloaded: IdentificationResult, loaded: IdentificationRe
                         declared: bool | None = None):
     """Both runs' fits with one coefficient per drive term for the motor's drive.
 
-    The setpoint-step term c·Δcmd (``identify._setpoint_steps``) and the speed-loop
+    The setpoint-step term c·Δcmd (``identify.drive_loop._setpoint_steps``) and the speed-loop
     ripple term γ·e (``identify.SPEED_ERR``) are properties of the drive (its gains and
     current lag), the same in both runs, but within one run each is nearly collinear
     with θ'' and leaves J/Kt known to ~1 %. Conditioning the two runs'
@@ -354,7 +354,7 @@ def share_setpoint_step(unloaded: IdentificationResult, loaded: IdentificationRe
         in a torque-side form (otherwise they are returned unchanged).
     declared : True when the drive says it steps its setpoint and samples its current
         at one instant (``identify.drive_sampling``): the setpoint-step term is then part
-        of the physical model (``identify._setpoint_steps``) and kept whatever its Wald;
+        of the physical model (``identify.drive_loop._setpoint_steps``) and kept whatever its Wald;
         False or None: kept only where the shared c is significant.
 
     Returns
@@ -466,7 +466,7 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
 
     The traces' drive description (``meta["drive"]``, ``identify.drive_sampling``)
     sets the setpoint-step term: a drive that steps its setpoint and samples its current
-    at one instant gets the physical kick relation (``identify._setpoint_steps``: the
+    at one instant gets the physical kick relation (``identify.drive_loop._setpoint_steps``: the
     term always kept, no current delay, the spread to the delay fit added as model error,
     ``DELAY_MODEL_SPREAD``); where it also declares its loop (``identify.declared_kick``)
     (forward or reversing runs alike), the kick is computed from it and added to the current, the
@@ -503,8 +503,8 @@ def calibrate_motor(unloaded: Trace, loaded: Trace, disk_kgm2: float,
                                     and all(_holds_speed_command(t) for t in (unloaded, loaded)))
         if kick and options["setpoint_step"]:
             # the sample is taken at the encoder's instant: the exact relation has no
-            # current delay to fit (``identify._setpoint_steps``); no kick where the
-            # drive sits at its declared current limit (``identify._below_current_limit``)
+            # current delay to fit (``identify.drive_loop._setpoint_steps``); no kick where the
+            # drive sits at its declared current limit (``identify.samples._below_current_limit``)
             options.setdefault("lag", False)
             options.setdefault("current_limit_a", _declared_current_limit(unloaded, loaded))
             known = options.get("kick_a_per_rad_s", _known_kick(unloaded, loaded))
@@ -662,7 +662,7 @@ def _cogging_in_doubt(fu: IdentificationResult, fl: IdentificationResult, given:
     """The model without cogging is a defensible other model: a run fell back to the
     cross-check (which has none, so the fit it replaced may have), or orders were kept
     that were named, not selected (``given["cogging"]``). Orders the default selects pass
-    their Wald test at the BIC price (``identify._select_cogging``): the data reject the
+    their Wald test at the BIC price (``identify.cogging._select_cogging``): the data reject the
     model without them, and its Kt difference is that model's error, not this one's."""
     if any("returned" in f.extras.get("cross_check", {}) for f in (fu, fl)):
         return True

@@ -397,7 +397,7 @@ def causes(o: Outcome) -> str:
       the sample is high by 0.5-2.5 % at any filter cutoff (10-150 Hz), also with a
       noise-free current (seed 8 case 11 input: +0.87 %, +0.04 % from the period mean).
       The calibration traces carry the drive's description (``drive_description``), so
-      the fit uses the physical model (``identify._setpoint_steps``: one c for both
+      the fit uses the physical model (``identify.drive_loop._setpoint_steps``: one c for both
       runs, no current delay); what remains is the kick's closed-loop feedback;
     * ``zero-load off line``: the zero-load level lay more than ``OFF_LINE_SIGMAS`` off
       the braking levels' line (the mesh's power flow reversing at no load), so eq. 18

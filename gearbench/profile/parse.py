@@ -379,7 +379,7 @@ def _sampling(c: _Checker, d: dict, mp) -> dict | None:
     """``sampling:`` of a motor: how its drive samples, from its set-up (CiA 402: cyclic
     synchronous velocity with interpolation 0x60C2, or setpoints taken as steps; a current
     object that is a period mean, or one current-loop sample). The identification fits a
-    stepping, sampling drive's current kick (identify._setpoint_steps) only when told."""
+    stepping, sampling drive's current kick (identify.drive_loop._setpoint_steps) only when told."""
     if d.get("sampling") is None:
         return None
     sp = mp + ("sampling",)

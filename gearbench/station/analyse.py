@@ -74,7 +74,7 @@ def calibrate(unloaded: Trace, loaded: Trace, *, motor: str, disk_kgm2: float,
     u.source, l_.source = f"step {unloaded.source}", f"step {loaded.source}"
     if sampling:
         # the drive's limit with its sampling: kicks are not added where it clips
-        # (``identify._below_current_limit``), as the analysis reads it from a trace
+        # (``identify.samples._below_current_limit``), as the analysis reads it from a trace
         limit = {} if current_limit_a is None else {"current_limit_a": float(current_limit_a)}
         u.meta["drive"] = l_.meta["drive"] = {**dict(sampling), **limit}
     cal = calibrate_motor(u, l_, disk_kgm2, method=method, disk_std_kgm2=disk_std_kgm2, disk_name=disk_name)

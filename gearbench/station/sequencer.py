@@ -531,7 +531,7 @@ class Sequencer:
 def _drive_description(spec) -> dict | None:
     """How the motor's drive samples (the profile's ``sampling``) and the current limit it
     clamps at (``current_limit_a``, 0x6073): where it sits at the limit a stepped
-    setpoint gives no current kick (``identify._below_current_limit``)."""
+    setpoint gives no current kick (``identify.samples._below_current_limit``)."""
     if not spec.sampling:
         return None
     return {**spec.sampling, "current_limit_a": float(spec.current_limit_a)}
