@@ -580,54 +580,52 @@ def _direction_groups(cases: list[Case]) -> list[tuple[str, list[int]]]:
             ("reversing", [k for k, c in enumerate(cases) if c.reversing])]
 
 
+def _group_summaries(cases: list[Case], outcomes: list[dict[str, Outcome]], methods):
+    """[(row label, {method: summary})] for the non-empty direction groups."""
+    return [(f"{name} ({len(idx)})", summarise([outcomes[k] for k in idx], methods))
+            for name, idx in _direction_groups(cases) if idx]
+
+
 def print_table(cases: list[Case], outcomes: list[dict[str, Outcome]], methods=METHODS) -> None:
-    groups = _direction_groups(cases)
     print(f"{'cases':<14}{'method':<12}{'|Kt err| %':>23}   {'|incr err| pp':>23}   "
           f"{'|abs err| pp':>23}  {'95% coverage':>14}  fail  meet noise biased")
     print(f"{'':<26}{'mean   95pct     max':>23}   {'mean   95pct     max':>23}   "
           f"{'mean   95pct     max':>23}  {'Kt  incr   abs':>14}")
-    for name, idx in groups:
-        if not idx:
-            continue
-        s = summarise([outcomes[k] for k in idx], methods)
+    for label, s in _group_summaries(cases, outcomes, methods):
         for m in methods:
             r = s[m]
             cov = " ".join(f"{100 * r['cover'][q]:4.0f}" for q in ("kt", "inc", "abs"))
-            print(f"{f'{name} ({len(idx)})':<14}{m:<12}{_stats(r['kt'])}   {_stats(r['inc'])}   "
+            print(f"{label:<14}{m:<12}{_stats(r['kt'])}   {_stats(r['inc'])}   "
                   f"{_stats(r['abs'])}  {cov:>14}  {r['fail']:4d}  {100 * r['ok']:3.0f}%  "
                   f"{100 * r['noise']:3.0f}%   {100 * r['biased']:3.0f}%")
 
 
 def print_quantities(cases: list[Case], outcomes: list[dict[str, Outcome]], methods=METHODS) -> None:
-    """Per quantity, forward and reversing: 95 % coverage and the share of plants with a
-    biased miss (beyond the target and beyond 2 sigma of the method's own uncertainty)."""
-    groups = _direction_groups(cases)
+    """Per quantity, forward and reversing: 95 % coverage, the share of plants with a
+    biased miss (beyond the target and beyond 2 sigma of the method's own uncertainty), and
+    the coverage range honest intervals would show on as many plants."""
+    rows = _group_summaries(cases, outcomes, methods)
+    qs = ("kt", "inc", "abs")
     print(f"\n{'cases':<16}{'method':<12}{'coverage %  Kt  incr   abs':>28}   "
           f"{'biased %  Kt  incr   abs':>26}   {'by chance %  Kt  incr   abs  plants':>37}   "
           f"{'median |err|/sd  Kt  incr  abs':>31}")
-    for name, idx in groups:
-        if not idx:
-            continue
-        s = summarise([outcomes[k] for k in idx], methods)
+    for label, s in rows:
         for m in methods:
             r = s[m]
-            cov = " ".join(f"{100 * r['cover'][q]:5.1f}" for q in ("kt", "inc", "abs"))
-            bia = " ".join(f"{100 * r['biased_by'][q]:5.1f}" for q in ("kt", "inc", "abs"))
-            cha = " ".join(f"{100 * r['chance_by'][q]:5.1f}" for q in ("kt", "inc", "abs"))
-            zm = " ".join(f"{r['z_median'][q]:5.2f}" for q in ("kt", "inc", "abs"))
-            print(f"{f'{name} ({len(idx)})':<16}{m:<12}{cov:>28}   {bia:>26}   {cha:>29} "
+            cov = " ".join(f"{100 * r['cover'][q]:5.1f}" for q in qs)
+            bia = " ".join(f"{100 * r['biased_by'][q]:5.1f}" for q in qs)
+            cha = " ".join(f"{100 * r['chance_by'][q]:5.1f}" for q in qs)
+            zm = " ".join(f"{r['z_median'][q]:5.2f}" for q in qs)
+            print(f"{label:<16}{m:<12}{cov:>28}   {bia:>26}   {cha:>29} "
                   f"{100 * r['chance']:6.1f}   {zm:>31}")
-    print(f"\n{'cases':<16}{'method':<12}{'honest coverage range %  Kt      incr       abs':>50}   "
-          f"{'P(in %g-%g %% band)  Kt  incr   abs' % tuple(100 * b for b in COVERAGE_BAND):>35}")
-    for name, idx in groups:
-        if not idx:
-            continue
-        s = summarise([outcomes[k] for k in idx], methods)
+    band = "P(in %g-%g %% band)  Kt  incr   abs" % tuple(100 * b for b in COVERAGE_BAND)
+    print(f"\n{'cases':<16}{'method':<12}{'honest coverage range %  Kt      incr       abs':>50}   {band:>35}")
+    for label, s in rows:
         for m in methods:
             h = s[m]["honest"]
-            rng = " ".join(f"{100 * h[q]['range'][0]:4.0f}-{100 * h[q]['range'][1]:<4.0f}" for q in ("kt", "inc", "abs"))
-            pb = " ".join(f"{h[q]['p_band']:5.2f}" for q in ("kt", "inc", "abs"))
-            print(f"{f'{name} ({len(idx)})':<16}{m:<12}{rng:>50}   {pb:>35}")
+            rng = " ".join(f"{100 * h[q]['range'][0]:4.0f}-{100 * h[q]['range'][1]:<4.0f}" for q in qs)
+            pb = " ".join(f"{h[q]['p_band']:5.2f}" for q in qs)
+            print(f"{label:<16}{m:<12}{rng:>50}   {pb:>35}")
     print("honest coverage range: where 95 % of perfectly honest intervals' coverage falls on these "
           "units (motors for Kt, plants for the efficiencies), binomial; P: that it falls in the band")
     print("by chance: the biased share honest intervals would give (every error normal with its "
