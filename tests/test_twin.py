@@ -130,11 +130,11 @@ def test_intervals_take_the_widest_covariance_and_add_the_model_bias():
     params = [F.Param("a", 1.0, 1.0), F.Param("b", 1.0, 1.0)]
     sel = np.ones(n, bool)
     white = np.random.default_rng(1).normal(size=n)
-    F._intervals(prob, params, J, white, white, sel)
+    F.lm._intervals(prob, params, J, white, white, sel)
     iid = [p.interval for p in params]
     assert all(abs(p.model_bias) < 1e-12 for p in params)
     slow = 3 * np.sign(np.sin(t / 150.0)) + white     # coloured over hundreds of samples
-    F._intervals(prob, params, J, slow, slow + 0.5, sel)
+    F.lm._intervals(prob, params, J, slow, slow + 0.5, sel)
     assert params[0].interval > 1.5 * iid[0]
     # exact − smooth = 0.5 everywhere = the constant column's direction: a's bias is −0.5
     assert params[0].model_bias == pytest.approx(-0.5, abs=1e-9)
@@ -390,7 +390,7 @@ def test_broyden_update_meets_the_secant_and_keeps_other_directions():
     sc = np.array([1e-5, 1.0, 1e3])           # SI scales apart by 10⁸, as Kt/J or D
     step = np.array([2e-7, 0.0, 0.0])
     dr = rng.normal(size=50)
-    Jn = F._broyden(J, sc, step, dr)
+    Jn = F.lm._broyden(J, sc, step, dr)
     assert np.allclose(Jn @ step, dr)
     assert np.allclose(Jn[:, 1:], J[:, 1:])     # the other parameters' columns untouched
 
@@ -475,7 +475,7 @@ def test_the_ratio_interval_is_no_finer_than_one_output_count_over_the_travel():
     assert prob.ratio_resolution() == pytest.approx(2 * math.pi / 1e4 / travel, rel=0.01)
     params = [F.Param("ratio", 10.0, 10.0)]
     n = len(prob.blocks())
-    F._intervals(prob, params, np.ones((n, 1)) * 1e6, np.zeros(n), np.zeros(n), np.ones(n, bool))
+    F.lm._intervals(prob, params, np.ones((n, 1)) * 1e6, np.zeros(n), np.zeros(n), np.ones(n, bool))
     assert params[0].interval == pytest.approx(10.0 * prob.ratio_resolution()) == pytest.approx(params[0].resolution)
 
 
@@ -535,7 +535,7 @@ def test_the_smoothing_shift_is_taken_off_the_value_and_kept_as_the_model_bias(m
     for p in params:
         p.sigma, p.model_bias = 0.1, -0.1
     shifts = np.array([[0.2, -0.05], [0.4, -0.05], [0.0, -0.05]])
-    monkeypatch.setattr(F, "smoothing_shift", lambda prob, ps: shifts)
+    monkeypatch.setattr(F.smoothness, "smoothing_shift", lambda prob, ps: shifts)
     F.correct_smoothing_shift(None, params)
     assert [p.value for p in params] == pytest.approx([1.8, 5.05])
     assert [p.model_bias for p in params] == pytest.approx([0.2, -0.1])
@@ -560,13 +560,13 @@ def test_the_smoothing_shifts_draws_on_the_carried_jacobian_match_a_converged_re
     rows = F.smoothing_shift(prob, params, draws=2)
     assert rows.shape == (3, 3) and np.all(np.isfinite(rows))
     u0 = np.array([p.value for p in params])
-    fresh, jac = F._shift_at(prob, params, u0, None)
+    fresh, jac = F.smoothness._shift_at(prob, params, u0, None)
     assert np.array_equal(rows[0], fresh)
-    sig = np.array([F._sigma_value(p, params) for p in params])
+    sig = np.array([F.smoothness._sigma_value(p, params) for p in params])
     assert np.all(sig > 0)
-    uk = F._clip(params, u0 + sig * np.array([1.0, -1.0, 0.5]))
-    at_uk, _ = F._shift_at(prob, params, uk, None)
-    carried, _ = F._shift_at(prob, params, uk, jac)
+    uk = F.params._clip(params, u0 + sig * np.array([1.0, -1.0, 0.5]))
+    at_uk, _ = F.smoothness._shift_at(prob, params, uk, None)
+    carried, _ = F.smoothness._shift_at(prob, params, uk, jac)
     assert np.all(np.abs(carried - at_uk) < sig), (carried - at_uk) / sig
     assert not np.array_equal(rows[1], rows[0]) and not np.array_equal(rows[2], rows[1])
 
@@ -608,11 +608,11 @@ def test_a_profile_vertex_is_taken_only_inside_its_points():
     for a profile that falls all the way (cyclo seed 41's exact backlash profile) or
     has too few points."""
     xs = [0.019, 0.020, 0.021, 0.022, 0.023]
-    v, c2, sig = F._vertex([(x, (x - 0.0205) ** 2 * 1e6 + 3.0) for x in xs], 0.021)
+    v, c2, sig = F.profiles._vertex([(x, (x - 0.0205) ** 2 * 1e6 + 3.0) for x in xs], 0.021)
     assert v == pytest.approx(0.0205) and c2 == pytest.approx(1e6) and sig == pytest.approx(0.0, abs=1e-9)
-    assert F._vertex([(x, -x) for x in xs], 0.021) is None                       # no curvature
-    assert F._vertex([(x, (x - 0.03) ** 2) for x in xs], 0.021) is None          # minimum beyond the grid
-    assert F._vertex([(x, x ** 2) for x in xs[:3]], 0.02) is None                # too few points
+    assert F.profiles._vertex([(x, -x) for x in xs], 0.021) is None                       # no curvature
+    assert F.profiles._vertex([(x, (x - 0.03) ** 2) for x in xs], 0.021) is None          # minimum beyond the grid
+    assert F.profiles._vertex([(x, x ** 2) for x in xs[:3]], 0.02) is None                # too few points
 
 
 def test_the_jitter_of_a_profile_moves_its_minimum_by_the_sigma_it_reports():
@@ -621,7 +621,7 @@ def test_the_jitter_of_a_profile_moves_its_minimum_by_the_sigma_it_reports():
     (the cyclo run: ±40 floors² on a rise of a few hundred over ±2 mrad)."""
     rng = np.random.default_rng(3)
     xs = 0.020 + np.array([-2.0, -1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0]) * 1e-3
-    draws = [F._vertex([(x, (x - 0.0203) ** 2 * 2.2e7 + 3.5e5 + rng.normal(0, 40)) for x in xs], 0.020)
+    draws = [F.profiles._vertex([(x, (x - 0.0203) ** 2 * 2.2e7 + 3.5e5 + rng.normal(0, 40)) for x in xs], 0.020)
              for _ in range(400)]
     draws = [d for d in draws if d is not None]
     assert len(draws) > 350
@@ -697,8 +697,8 @@ def test_a_profile_whose_exact_curve_falls_all_the_way_keeps_the_smoothed_minimu
             return np.full(n, math.sqrt(s / n))
     p = F.Param("backlash_rad", 0.0226, 0.01)
     p.model_bias = 2e-4
-    assert F._profile_on(Prob(), [p], 0, np.array([0.0226]), other * 0.0, 0.0015, 1.0, 1.0, None) is None
-    out = F._profile_on(Prob(), [p], 0, np.array([0.0226]), other * 0.0, 0.0015, 1.0, 1.0, None, False)
+    assert F.profiles._profile_on(Prob(), [p], 0, np.array([0.0226]), other * 0.0, 0.0015, 1.0, 1.0, None) is None
+    out = F.profiles._profile_on(Prob(), [p], 0, np.array([0.0226]), other * 0.0, 0.0015, 1.0, 1.0, None, False)
     assert out is not None and out["value"] == pytest.approx(0.0200, abs=1e-6)
     assert out["bias"] == pytest.approx(2e-4)
     assert out["interval"] == pytest.approx(math.sqrt(F.CHI2_1_95 / 1e7) + 2e-4, rel=1e-3)
@@ -727,11 +727,11 @@ def test_a_profile_takes_in_the_scan_values_whose_S_is_as_low_as_its_minimum():
     for depth, resolved in ((1.0, False), (50.0, True)):
         p = F.Param("backlash_rad", 0.002, 0.005, 1e-5, scan=scan, profile=True)
         prob = Prob(depth)
-        local = F._profile_on(prob, [p], 0, np.array([0.002]), other * 0.0, 7e-4, 1.0, 1.0, None, False)
+        local = F.profiles._profile_on(prob, [p], 0, np.array([0.002]), other * 0.0, 7e-4, 1.0, 1.0, None, False)
         assert local["value"] == pytest.approx(0.0016, abs=1e-6)
         half = local["interval"]
         assert half == pytest.approx(math.sqrt(F.CHI2_1_95 / 1e7), rel=1e-3)
-        out = F._other_basins(prob, [p], 0, np.array([0.002]), other * 0.0, local)
+        out = F.profiles._other_basins(prob, [p], 0, np.array([0.002]), other * 0.0, local)
         assert out["resolved"] is resolved
         if resolved:
             assert out["interval"] == half and "basins" not in out
