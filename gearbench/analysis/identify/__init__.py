@@ -46,22 +46,22 @@ from ...errors import TraceError
 from .result import (BIAS, C_J, D_J, IdentificationResult, KT_J, LAG, LOAD_COS, LOAD_SIN,
                      SPEED_ERR, SP_STEP, TC_J, own_to_accel_names, physical_parameters)
 from .signals import (MIN_FILTER_RUNS, MOTION_BAND_FACTOR, MOTION_BAND_SHARE, default_cutoff,
-                     motion_band_hz)
+                      motion_band_hz)
 from .samples import (CREEP_TOP_FRACTION, PUSHED_MIN_SAMPLES, REVERSAL_TOP_FRACTION,
-                     SHORT_SPEED_SPAN, STANDSTILL_COUNTS_PER_SAMPLE, STANDSTILL_TOP_FRACTION,
-                     STICK_BAND, STICK_MARGIN_S, STICK_MARGIN_SAMPLES, STUCK_CURRENT_SIGMAS,
-                     count_reversals, encoder_resolution, equation_weight, smoothing_half_width,
-                     speed_range, standstill_speed, top_speed)
+                      SHORT_SPEED_SPAN, STANDSTILL_COUNTS_PER_SAMPLE, STANDSTILL_TOP_FRACTION,
+                      STICK_BAND, STICK_MARGIN_S, STICK_MARGIN_SAMPLES, STUCK_CURRENT_SIGMAS,
+                      count_reversals, encoder_resolution, equation_weight, smoothing_half_width,
+                      speed_range, standstill_speed, top_speed)
 from .drive_loop import (DRIVE_LOOP_KEYS, LOOP_DRIVE_KINDS, PERIOD_KICK_FINE, PERIOD_KICK_PERIODS,
-                     PERIOD_KICK_WEIGHTS, declared_kick, declared_period_kick, drive_sampling,
-                     interpolated_kink_weights, is_speed_command, kick_coefficient,
-                     kick_speed_response, period_mean_kick_weights, speed_ripple_to_noise)
+                         PERIOD_KICK_WEIGHTS, declared_kick, declared_period_kick, drive_sampling,
+                         interpolated_kink_weights, is_speed_command, kick_coefficient,
+                         kick_speed_response, period_mean_kick_weights, speed_ripple_to_noise)
 from .cogging import (COGGING_CANDIDATES, COGGING_MIN_WALD, COGGING_SCREEN, MAX_COGGING_ORDER,
-                     MIN_SCREEN_ORDERS, cogging_candidates, cogging_order_scores)
+                      MIN_SCREEN_ORDERS, cogging_candidates, cogging_order_scores)
 from .checks import (MAX_B2_REL_STD, MAX_CONDITION, MIN_ACCEL_SNR, MIN_R2_SHARE, b2_shortfall,
                      check_excitation, check_fit_quality)
 from .default import (AUTO_FORM, FORMS, FORM_SPREAD, FORM_SPREAD_MAX_SHARE, LEFT_OUT_WARN_SHARE,
-                     identify_default)
+                      identify_default)
 from .paper import identify_paper
 
 
